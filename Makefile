@@ -1,0 +1,37 @@
+# `make demo` and `make test` work on a fresh machine: they create .venv themselves.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+TNNC   := $(VENV)/bin/tnnc
+STAMP  := $(VENV)/.installed
+JOBS   ?= 2
+
+.PHONY: venv demo test test-all bench check clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(TNNC) demo
+
+check: $(STAMP)
+	$(TNNC) check networks/*/*.thn
+
+# The fast suite (CI runs this); slow training/diagnosis tests have fast variants that run here.
+test: $(STAMP)
+	$(PY) -m pytest -q -n $(JOBS) -m "not slow" tests
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q -n $(JOBS) tests
+
+bench: $(STAMP)
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) build dist .pytest_cache

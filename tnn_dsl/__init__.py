@@ -1,0 +1,35 @@
+"""tnn_dsl: a declarative language for lumped thermal networks, compiled to JAX and PyTorch.
+
+Public API (everything else is private; see docs/architecture.md):
+
+* ``load(path) -> Network`` / ``loads(text, filename) -> Network``: parse and validate a ``.thn`` file.
+* ``Network``: the validated IR (pydantic; ``.graph()`` gives the networkx view).
+* ``TnnError``: raised for any problem the user can fix; ``str(err)`` is the formatted report.
+"""
+
+from __future__ import annotations
+
+from ._errors import DataError, Diagnostic, ModelFileError, TnnError
+from ._ir import Network
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    # name: (module, attribute) — imported on first use so `import tnn_dsl` stays light
+    "load": ("._parser", "load"),
+    "loads": ("._parser", "loads"),
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        value = getattr(importlib.import_module(module, __name__), attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'tnn_dsl' has no attribute {name!r}")
+
+
+__all__ = ["Network", "TnnError", "DataError", "ModelFileError", "Diagnostic", "__version__", *_LAZY]

@@ -1,0 +1,79 @@
+"""``tnnc``: the command-line front end. Every command is a thin layer over the public Python API.
+
+Each command lives in its own module ``tnn_dsl/cli/_<command>.py`` exposing
+
+    def register(subparsers) -> None   # adds its argparse sub-parser and sets ``func=run``
+    def run(args) -> int               # exit status
+
+Problems the user can fix raise :class:`tnn_dsl.TnnError` (printed, exit 1). Anything else is an
+internal error: a one-line message and exit 2 (``--debug`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import sys
+
+# command name -> module (in tnn_dsl.cli); listed here in the order `tnnc --help` shows them.
+COMMANDS = {
+    "check": "_check",
+    "compile": "_compile",
+    "simulate": "_simulate",
+    "train": "_train",
+    "evaluate": "_evaluate",
+    "inspect": "_inspect",
+    "sensitivity": "_sensitivity",
+    "excitation": "_excitation",
+    "diagnose": "_diagnose",
+    "generate": "_generate",
+    "estimate": "_estimate",
+    "demo": "_demo",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tnnc",
+        description="Lumped thermal networks: check, compile, simulate, train, diagnose.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show Python tracebacks for internal errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module in COMMANDS.items():
+        if importlib.util.find_spec(f"{__name__}.{module}") is None:
+            continue
+        importlib.import_module(f"{__name__}.{module}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .._errors import TnnError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if getattr(args, "func", None) is None:
+            parser.print_help()
+            return 1
+        return int(args.func(args) or 0)
+    except TnnError as err:
+        print(err.format(), file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as err:  # noqa: BLE001 - the one place that turns a bug into exit 2
+        if debug:
+            raise
+        print(f"tnnc: internal error: {type(err).__name__}: {err}", file=sys.stderr)
+        print("This is a bug in tnnc, not in your files. Re-run with --debug for the traceback.", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
