@@ -1,0 +1,115 @@
+"""``tnnc compile FILE --emit equations|ir-json|graph [-o OUT]``: the network written out.
+
+* ``equations`` (default): the ODE system per node, component flows, learned functions, parameters.
+* ``ir-json``: the validated IR as JSON (``Network.from_json`` reads it back; the round trip is exact).
+* ``graph``: Graphviz DOT text; with ``-o NAME.png`` a picture (Graphviz ``dot`` if installed, else
+  matplotlib), with ``-o NAME.svg``/``.pdf`` a picture through Graphviz.
+
+``FILE`` is a ``.thn`` file or an IR JSON file (``*.json``) as ``--emit ir-json`` writes it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+
+from .._errors import Diagnostic, TnnError
+
+EMITS = ("equations", "ir-json", "graph")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compile",
+        help="write a network out: its equations, its IR as JSON, or a picture",
+        description="Write a network out: the ODE system per node (equations), the validated IR as JSON "
+                    "(ir-json; round-trips exactly), or a picture (graph: DOT text, or PNG/SVG/PDF by the "
+                    "-o suffix). FILE may also be an IR .json file.",
+    )
+    p.add_argument("file", metavar="FILE", help="a .thn network, or an IR .json file")
+    p.add_argument("--emit", choices=EMITS, default="equations",
+                   help="what to write (default: equations)")
+    p.add_argument("-o", "--output", metavar="OUT",
+                   help="write here instead of stdout; for --emit graph the suffix picks the format "
+                        "(.dot, .png, .svg, .pdf)")
+    p.add_argument("--ascii", action="store_true",
+                   help="equations in plain ASCII (* - ^) instead of · − and superscripts")
+    p.set_defaults(func=run)
+
+
+def load_network(path: str):
+    """A ``.thn`` file through the parser, or an IR JSON file."""
+    if path.endswith(".json"):
+        from .._emit import network_from_json
+
+        try:
+            with open(path, "rb") as f:
+                text = f.read().decode("utf-8")
+        except FileNotFoundError:
+            raise TnnError(Diagnostic(f"{path}: no such file")) from None
+        except UnicodeDecodeError:
+            raise TnnError(Diagnostic(f"{path}: not UTF-8 text", hint="IR files are JSON written by "
+                                      "`tnnc compile FILE.thn --emit ir-json -o OUT.json`")) from None
+        except OSError as err:
+            raise TnnError(Diagnostic(f"{path}: cannot read: {err.strerror}")) from None
+        return network_from_json(text, path)
+    import tnn_dsl
+
+    return tnn_dsl.load(path)
+
+
+def _write_text(path: str | None, text: str) -> None:
+    if path is None or path == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    try:
+        with open(path, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+    except OSError as err:
+        raise TnnError(Diagnostic(f"{path}: cannot write: {err.strerror}",
+                                  hint="check that the directory exists and is writable")) from None
+
+
+def run(args) -> int:
+    from .. import _emit
+
+    net = load_network(args.file)
+    out = args.output
+    if args.emit == "equations":
+        _write_text(out, _emit.equations(net, ascii_only=args.ascii))
+    elif args.emit == "ir-json":
+        _write_text(out, _emit.ir_json(net))
+    else:
+        suffix = os.path.splitext(out)[1].lower() if out and out != "-" else ".dot"
+        if suffix in (".dot", ".gv"):
+            _write_text(out, _emit.dot(net))
+        elif suffix == ".png":
+            try:
+                how = _emit.render_png(net, out)
+            except OSError as err:
+                raise TnnError(Diagnostic(f"{out}: cannot write: {err.strerror}",
+                                          hint="check that the directory exists and is writable")) from None
+            if how != "graphviz":
+                print("note: Graphviz `dot` is not installed; drew the network with matplotlib instead "
+                      "(install graphviz, e.g. `apt install graphviz` or `brew install graphviz`, "
+                      "for the full labelled picture)", file=sys.stderr)
+        elif suffix in (".svg", ".pdf"):
+            exe = shutil.which("dot")
+            if exe is None:
+                raise TnnError(Diagnostic(
+                    f"{out}: writing {suffix} needs Graphviz's `dot` program, which is not installed",
+                    hint="install graphviz (`apt install graphviz`, `brew install graphviz`, "
+                         "`conda install graphviz`), or write `-o NAME.png` (drawn with matplotlib) "
+                         "or `-o NAME.dot`"))
+            proc = subprocess.run([exe, f"-T{suffix[1:]}", "-o", out], input=_emit.dot(net).encode("utf-8"),
+                                  capture_output=True, timeout=120, check=False)
+            if proc.returncode != 0:
+                raise TnnError(Diagnostic(f"{out}: graphviz failed: "
+                                          f"{proc.stderr.decode('utf-8', 'replace').strip()}"))
+        else:
+            raise TnnError(Diagnostic(f"{out}: unknown picture format {suffix or '(no suffix)'!r}",
+                                      hint="use -o NAME.dot (Graphviz text), NAME.png, NAME.svg or NAME.pdf"))
+    return 0
