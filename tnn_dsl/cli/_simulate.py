@@ -1,0 +1,229 @@
+"""``tnnc simulate NET --data CSV -o OUT.csv``: a free-run simulation driven by a data file's inputs.
+
+``NET`` is a ``.thn`` file (its parameters at their written values, learned functions untrained, i.e. at
+their nominal values) or a model directory written by ``tnnc train`` (its fitted parameters).
+
+The inputs are read from the data file's columns (the ``column "..."`` of each ``input``), on the
+file's step or ``--dt``. The initial state is, with ``--init steady`` (the default), the steady state of
+the first inputs (thesis §4.5: what the case-study data starts from); with ``--init measured``, that steady
+state with every node that has a sensor moved so that its sensor reads the first measured value (its lag
+state too), for runs that do not start at rest (the TCLab cool-down file). When the file has the sensor
+columns and the two differ by more than 1 K at t = 0, a note suggests ``--init measured``.
+
+``OUT.csv`` holds ``time_s`` and one column per sensor (the sensor's name) in the network's temperature
+unit; ``--states`` adds every state (``T_<node>``; ``<sensor>_lag`` for a lagged sensor). ``--plot`` draws
+measured against simulated for each sensor that the data file measures, and the inputs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from .._errors import Diagnostic, TnnError
+
+try:  # the integrators the backends offer; the list is fixed by _integrators.INTEGRATORS
+    from .._integrators import INTEGRATORS as _INTEGRATORS
+except Exception:  # noqa: BLE001 - the CLI must still build its parser
+    _INTEGRATORS = ("euler", "rk4", "expeuler")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate a network (or a trained model) on a data file's inputs",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("net", metavar="NET", help="a .thn network file, or a model directory from `tnnc train`")
+    p.add_argument("--data", required=True, metavar="CSV", help="data file with the input columns (CSV or Parquet)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="where to write the simulated sensors")
+    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
+    p.add_argument("--integrator", choices=tuple(_INTEGRATORS), default="rk4", help="integrator (default rk4)")
+    p.add_argument("--substeps", type=int, default=None, metavar="K",
+                   help="integrator sub-steps per data step (default: chosen from the fastest time constant)")
+    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
+    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: t, time, time_s ...)")
+    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
+                   help="unit of a numeric time column (default: from its name, else s)")
+    p.add_argument("--init", choices=("steady", "measured"), default="steady",
+                   help="initial state: steady state of the first inputs (default), or moved to the first measurements")
+    p.add_argument("--states", action="store_true", help="also write every state (node temperatures)")
+    p.add_argument("--plot", default=None, metavar="OUT.png", help="plot measured vs simulated")
+    p.add_argument("--seed", type=int, default=0, help="seed for initialising learned functions of a .thn (default 0)")
+    p.set_defaults(func=run)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _load(net_arg: str, backend: str, seed: int):
+    """→ (network, compiled model, backend params, label)."""
+    if os.path.isdir(net_arg):
+        from .._model_io import load_model
+
+        tm = load_model(net_arg)
+        model = tm.compiled(backend)
+        return tm.network, model, tm.backend_params(backend), f"model {net_arg}"
+    from .._compile import compile as compile_network
+    from .._parser import load
+
+    net = load(net_arg)
+    model = compile_network(net, backend=backend, dtype="float64")
+    return net, model, model.init_params(seed=seed), net_arg
+
+
+def _to_backend(x: np.ndarray, backend: str):
+    if backend == "torch":
+        import torch
+
+        return torch.as_tensor(np.asarray(x, dtype=np.float64))
+    import jax.numpy as jnp
+
+    return jnp.asarray(np.asarray(x, dtype=np.float64))
+
+
+def _np(x) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu()
+    return np.asarray(x, dtype=np.float64)
+
+
+def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how: str) -> tuple[np.ndarray, list[str]]:
+    """The initial state (n_states,) K and notes. ``how="steady"``: steady state of ``u0`` (n_inputs,) SI;
+    ``"measured"``: that, with each sensed node (and its lag state) shifted so that the sensor reads
+    ``y0`` (n_outputs,) K; nodes read by several sensors take the mean shift; NaN readings are skipped."""
+    backend = model.backend
+    ub = _to_backend(u0, backend)
+    T0 = _np(model.steady_state(params, ub))
+    notes: list[str] = []
+    if not np.all(np.isfinite(T0)):
+        raise TnnError(Diagnostic("the steady state of the first inputs could not be computed (not finite)",
+                                  hint="check the network's parameters; a node with no path to a boundary has no steady state"))
+    if y0 is None:
+        return T0, notes
+    y_model = _np(model.outputs(params, _to_backend(T0, backend), ub))
+    gap = y0 - y_model
+    if how == "steady":
+        worst = np.nanmax(np.abs(gap)) if np.isfinite(gap).any() else 0.0
+        if worst > 1.0:
+            k = int(np.nanargmax(np.abs(gap)))
+            notes.append(f"note: started at the steady state of the first inputs, {model.output_names[k]} is "
+                         f"{abs(gap[k]):.2f} K {'below' if gap[k] > 0 else 'above'} its first measurement; "
+                         f"if the run does not start at rest use --init measured")
+        return T0, notes
+    idx = {n: i for i, n in enumerate(model.state_names)}
+    shifts: dict[int, list[float]] = {}
+    for k, s in enumerate(net.sensors):
+        if not np.isfinite(gap[k]):
+            continue
+        for name in (s.node, f"{s.name}.lag"):
+            if name in idx:
+                shifts.setdefault(idx[name], []).append(float(gap[k]))
+    T = T0.copy()
+    for i, g in shifts.items():
+        T[i] += float(np.mean(g))
+    moved = sorted({model.state_names[i] for i in shifts})
+    notes.append(f"note: initial state: steady state of the first inputs, with {', '.join(moved) or 'no state'} moved to "
+                 f"the first measurements")
+    return T, notes
+
+
+def simulate_experiment(net, model, params, exp, integrator: str = "rk4", substeps: int | None = None,
+                        init: str = "steady"):
+    """Free run of one :class:`Experiment` → (states (N, n_states) K, outputs (N, n_outputs) K, notes)."""
+    y0 = exp.outputs[0] if np.isfinite(exp.outputs[0]).any() else None
+    T0, notes = initial_state(net, model, params, exp.inputs[0], y0, init)
+    states, outputs = model.rollout(params, _to_backend(T0, model.backend), _to_backend(exp.inputs, model.backend),
+                                    float(exp.dt), integrator=integrator, substeps=substeps)
+    return _np(states), _np(outputs), notes
+
+
+def run(args) -> int:
+    from .._data import read_data, write_csv
+
+    if args.substeps is not None and args.substeps < 1:
+        raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
+    net, model, params, label = _load(args.net, args.backend, args.seed)
+    (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, time_unit=args.time_unit,
+                       require_outputs=False)
+    for n in exp.notes:
+        print(f"note: {n}", file=sys.stderr)
+    states, y, notes = simulate_experiment(net, model, params, exp, args.integrator, args.substeps, args.init)
+    for n in notes:
+        print(n, file=sys.stderr)
+    if not np.all(np.isfinite(y)):
+        k = int(np.argmax(~np.all(np.isfinite(y), axis=1)))
+        raise TnnError(Diagnostic(
+            f"the simulation diverged at t = {exp.t[k]:g} s (non-finite temperatures)",
+            hint="try --integrator expeuler or more --substeps; check the parameters for a tiny capacity"))
+
+    cols: dict[str, np.ndarray] = {s.name: y[:, k] for k, s in enumerate(net.sensors)}
+    if args.states:
+        for k, name in enumerate(model.state_names):
+            key = f"T_{name}" if name in net.node_names else name.replace(".", "_")
+            if key in cols:
+                key = f"state_{key}"
+            cols[key] = states[:, k]
+    write_csv(args.output, exp.t, cols, net.temperature_unit)
+
+    unit = {"degC": "°C", "K": "K", "degF": "°F"}[net.temperature_unit]
+    print(f"simulated {label} on {exp.path}: {exp.n_steps} steps of {exp.dt:g} s ({args.backend}, {args.integrator})")
+    measured = np.isfinite(exp.outputs)
+    for k, s in enumerate(net.sensors):
+        if measured[:, k].any():
+            err = y[measured[:, k], k] - exp.outputs[measured[:, k], k]
+            print(f"  {s.name}: MAE {np.mean(np.abs(err)):.3f} K, max {np.max(np.abs(err)):.3f} K "
+                  f"(vs column {exp.output_columns[k]!r})")
+    print(f"wrote {args.output} (temperatures in {unit})")
+    if args.plot:
+        _plot(args.plot, net, exp, y, label)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .._data import _unit_scale, from_kelvin
+
+    unit = net.temperature_unit
+    ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
+    n_s = len(net.sensors)
+    fig, axes = plt.subplots(n_s + 1, 1, figsize=(10, 2.6 * (n_s + 1)), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    scale, tl = (3600.0, "h") if exp.duration > 3 * 3600 else ((60.0, "min") if exp.duration > 600 else (1.0, "s"))
+    tt = exp.t / scale
+    for k, s in enumerate(net.sensors):
+        ax = axes[k]
+        meas = exp.outputs[:, k]
+        if np.isfinite(meas).any():
+            ax.plot(tt, from_kelvin(meas, unit), color="0.3", lw=1.0, label=f"measured ({exp.output_columns[k]})")
+            mae = np.nanmean(np.abs(y[:, k] - meas))
+            ax.set_title(f"{s.name}: MAE {mae:.3f} K", fontsize=9, loc="left")
+        ax.plot(tt, from_kelvin(y[:, k], unit), color="C0", lw=1.2, label="simulated")
+        ax.set_ylabel(f"{s.name} [{ushow}]")
+        ax.legend(fontsize=8, loc="best")
+        ax.grid(alpha=0.3)
+    ax = axes[-1]
+    for k, inp in enumerate(net.inputs):
+        if inp.is_temperature:
+            v, u = from_kelvin(exp.inputs[:, k], unit), ushow
+        else:  # back to the unit the network declares (% stays %)
+            scale, offset = _unit_scale(inp.unit)
+            v, u = (exp.inputs[:, k] - offset) / scale, (inp.unit or "1")
+        ax.step(tt, v, where="post", lw=0.9, label=f"{inp.name} [{u}]")
+    ax.set_ylabel("inputs")
+    ax.set_xlabel(f"time [{tl}]")
+    ax.legend(fontsize=8, loc="best", ncol=min(5, max(1, len(net.inputs))))
+    ax.grid(alpha=0.3)
+    fig.suptitle(f"{label} on {os.path.basename(exp.path)}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
