@@ -16,8 +16,23 @@ __version__ = "0.1.0"
 
 _LAZY = {
     # name: (module, attribute) — imported on first use so `import tnn_dsl` stays light
+    "sensitivity": ("._sensitivity", "sensitivity"),
+    "excitation": ("._sensitivity", "excitation"),
+    "compile": ("._compile", "compile"),
+    "Model": ("._compile", "Model"),
+    "ParamSpec": ("._compile", "ParamSpec"),
     "load": ("._parser", "load"),
     "loads": ("._parser", "loads"),
+    "read_data": ("._data", "read_data"),
+    "Experiment": ("._data", "Experiment"),
+    "split_by_time": ("._data", "split_by_time"),
+    "generate_case_study": ("._casestudy", "generate_case_study"),
+    "diagnose": ("._diagnose", "diagnose"),
+    "train": ("._train", "train"),
+    "evaluate": ("._train", "evaluate"),
+    "TrainConfig": ("._train", "TrainConfig"),
+    "load_model": ("._model_io", "load_model"),
+    "TrainedModel": ("._model_io", "TrainedModel"),
 }
 
 
