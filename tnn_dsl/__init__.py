@@ -33,6 +33,13 @@ _LAZY = {
     "TrainConfig": ("._train", "TrainConfig"),
     "load_model": ("._model_io", "load_model"),
     "TrainedModel": ("._model_io", "TrainedModel"),
+    "ekf": ("._estimate", "ekf"),
+    "EKFResult": ("._estimate", "EKFResult"),
+    "tune_process_noise": ("._estimate", "tune_process_noise"),
+    "MPC": ("._mpc", "MPC"),
+    "closed_loop": ("._mpc", "closed_loop"),
+    "run_study": ("._study", "run_study"),
+    "StudyConfig": ("._study", "StudyConfig"),
 }
 
 

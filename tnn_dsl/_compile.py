@@ -1160,7 +1160,7 @@ class Model:
             batch = T.shape[:-1]
             n = T.shape[-1]
             Tf = T.reshape(-1, n)
-            uf = torch.broadcast_to(u, (*batch, u.shape[-1])).reshape(-1, u.shape[-1])
+            uf = torch.broadcast_to(u, (*batch, u.shape[-1])).reshape(Tf.shape[0], u.shape[-1])
             J = torch.func.vmap(torch.func.jacfwd(lambda x, v: core.rhs(prep, x, v)))(Tf, uf)
             return J.reshape(*batch, n, n)
         # numpy: central differences (reference backend only)

@@ -1,0 +1,116 @@
+"""``tnnc evaluate MODEL DATA... [--json FILE] [--plot PNG]``: errors of a trained model on data.
+
+Each data file is simulated as a free run (from the steady state of its first inputs; ``--init measured``
+starts the sensor nodes at the first measurement) and compared with the measurements: per sensor the
+mean absolute error, the max absolute error (thesis eq. 4.9), the bias (mean predicted − measured) and
+the RMSE, all in K. ``--plot`` draws measured vs predicted per sensor with the error below.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+import numpy as np
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "evaluate",
+        help="MAE / max error per sensor of a trained model on data files (thesis eq. 4.9)",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", metavar="MODEL", help="a model directory written by `tnnc train`")
+    p.add_argument("data", nargs="+", metavar="DATA", help="data files (CSV or Parquet)")
+    p.add_argument("--backend", choices=("jax", "torch"), default=None, help="compute backend (default: the model's)")
+    p.add_argument("--init", choices=("auto", "steady", "measured"), default="auto",
+                   help="initial state: steady state of the first inputs, or sensor nodes from the first "
+                        "measurement (default auto: measured for data starting mid-file)")
+    p.add_argument("--json", default=None, metavar="FILE", help="write the metrics as JSON ('-' for stdout)")
+    p.add_argument("--plot", default=None, metavar="PNG", help="plot measured vs predicted, with the error below")
+    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
+    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
+    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
+                   help="unit of a numeric time column")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from .._data import read_data
+    from .._model_io import _jsonable, load_model
+    from .._train import error_metrics
+
+    tm = load_model(args.model)
+    exps = read_data(tm.network, args.data, time_col=args.time_col, dt=args.dt, time_unit=args.time_unit)
+    preds = tm.predict(exps, backend=args.backend, init=args.init)
+    sensors = [s.name for s in tm.network.sensors]
+    metrics = error_metrics(preds, sensors)
+    metrics["model"] = args.model
+    metrics["backend"] = args.backend or tm.backend
+    out = sys.stdout if args.json != "-" else sys.stderr
+    print(f"{'data':<28} {'sensor':<12} {'MAE K':>9} {'max K':>9} {'bias K':>9} {'RMSE K':>9} {'n':>7}", file=out)
+    for rec in metrics["experiments"]:
+        for s in sensors:
+            r = rec["sensors"][s]
+            print(f"{rec['name'][:28]:<28} {s[:12]:<12} {_f(r['mae'])} {_f(r['max_error'])} {_f(r['bias'])} "
+                  f"{_f(r['rmse'])} {r['n']:>7}", file=out)
+    if len(metrics["experiments"]) > 1 or len(sensors) > 1:
+        print(f"{'all':<28} {'all':<12} {_f(metrics['mae'])} {_f(metrics['max_error'])} {_f(metrics['bias'])} "
+              f"{_f(metrics['rmse'])} {metrics['n']:>7}", file=out)
+    if args.json:
+        text = json.dumps(_jsonable(metrics), indent=2)
+        if args.json == "-":
+            print(text)
+        else:
+            with open(args.json, "w", encoding="utf-8") as f:
+                f.write(text + "\n")
+    if args.plot:
+        plot_predictions(args.plot, tm.network, preds)
+        print(f"wrote {args.plot}", file=out)
+    return 0
+
+
+def _f(x) -> str:
+    return f"{'—':>9}" if x is None or not math.isfinite(x) else f"{x:>9.4f}"
+
+
+def plot_predictions(path: str, net, preds) -> None:
+    """One pair of axes per (experiment, sensor): measured and predicted (network's unit), error (K) below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .._data import from_kelvin
+
+    unit = net.temperature_unit
+    ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
+    pairs = [(p, j) for p in preds for j in range(len(p["sensors"]))]
+    pairs = pairs[:12]
+    fig, axes = plt.subplots(2 * len(pairs), 1, figsize=(10, 3.2 * len(pairs)), squeeze=False,
+                             gridspec_kw={"height_ratios": [2, 1] * len(pairs)})
+    for i, (p, j) in enumerate(pairs):
+        t = np.asarray(p["t"], dtype=float)
+        scale, tu = (3600.0, "h") if t[-1] - t[0] > 3 * 3600 else ((60.0, "min") if t[-1] - t[0] > 600 else (1.0, "s"))
+        tt = t / scale
+        meas = np.asarray(p["measured"])[:, j]
+        pred = np.asarray(p["y"])[:, j]
+        ax, ax_e = axes[2 * i, 0], axes[2 * i + 1, 0]
+        ax.plot(tt, from_kelvin(meas, unit), color="0.3", lw=1.0, label="measured")
+        ax.plot(tt, from_kelvin(pred, unit), color="C0", lw=1.2, label="predicted")
+        err = pred - meas
+        ok = np.isfinite(err)
+        mae = float(np.mean(np.abs(err[ok]))) if ok.any() else math.nan
+        ax.set_title(f"{p['name']}: {p['sensors'][j]}  (MAE {mae:.3g} K)")
+        ax.set_ylabel(ulabel)
+        ax.legend(loc="best", fontsize=8)
+        ax_e.plot(tt, err, color="C3", lw=0.8)
+        ax_e.axhline(0.0, color="0.5", lw=0.6)
+        ax_e.set_ylabel("error K")
+        ax_e.set_xlabel(f"time ({tu})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

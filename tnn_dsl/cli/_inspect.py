@@ -1,0 +1,198 @@
+"""``tnnc inspect MODEL [--plot DIR] [--json FILE]``: what a trained model learned.
+
+Prints the fitted value of every free parameter next to its nominal (as written) value, the training
+summary (data, metrics, why training stopped) and, for each learned function, its inputs with the range
+they covered in training. ``--plot DIR`` writes one PNG per learned function: each target plotted
+against each input over the range that input saw in training, the other inputs held at the middle of
+their ranges (for a positive parameter target: its value; for a flow or heat load: the learned
+correction in W, or the flow itself for ``replace``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+import numpy as np
+
+_ROLE_UNIT = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "time_constant": "s",
+              "heat_flow": "W", "offset": "K", "temperature": "K"}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "inspect",
+        help="fitted vs nominal parameters and the learned functions of a trained model",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", metavar="MODEL", help="a model directory written by `tnnc train`")
+    p.add_argument("--plot", default=None, metavar="DIR", help="write one plot per learned function into DIR")
+    p.add_argument("--json", default=None, metavar="FILE", help="write the parameter table as JSON ('-' for stdout)")
+    p.add_argument("--all", action="store_true", help="list every constant parameter, not only the free ones")
+    p.set_defaults(func=run)
+
+
+def parameter_table(tm, all_params: bool = False) -> list[dict]:
+    """Rows ``{name, role, unit, nominal, fitted, change_pct, free}`` (SI; temperatures in K)."""
+    rows = []
+    for p in tm.network.params:
+        if not p.is_constant or p.name not in tm.params:
+            continue
+        if not (p.free or all_params):
+            continue
+        fitted = float(np.asarray(tm.params[p.name]).reshape(-1)[0])
+        nominal = float(p.value)
+        change = (fitted - nominal) / abs(nominal) * 100.0 if nominal != 0 else math.nan
+        rows.append({"name": p.name, "role": p.role, "unit": _ROLE_UNIT.get(p.role, p.unit or "SI"),
+                     "nominal": nominal, "fitted": fitted, "change_pct": change, "free": bool(p.free),
+                     "bounds": [p.lower, p.upper]})
+    return rows
+
+
+def learned_summary(tm) -> list[dict]:
+    """Per learned function: kind, targets, inputs and the training range of each input."""
+    out = []
+    norm = tm.meta.get("normalisation", {})
+    for fn in tm.network.learned:
+        xm = np.asarray(tm.params.get(f"{fn.name}.x_mean", np.zeros(len(fn.inputs))), dtype=float)
+        xs = np.asarray(tm.params.get(f"{fn.name}.x_scale", np.ones(len(fn.inputs))), dtype=float)
+        info = norm.get(fn.name, {})
+        lo = np.asarray(info.get("x_min", (xm - xs).tolist()), dtype=float)
+        hi = np.asarray(info.get("x_max", (xm + xs).tolist()), dtype=float)
+        out.append({"name": fn.name, "kind": fn.kind, "targets": [t.name for t in fn.targets],
+                    "target_kinds": [t.kind for t in fn.targets], "inputs": [a.name for a in fn.inputs],
+                    "input_kinds": [a.kind for a in fn.inputs], "x_min": lo.tolist(), "x_max": hi.tolist(),
+                    "frozen": fn.frozen, "replace": fn.replace})
+    return out
+
+
+def learned_values(tm, fn, X: np.ndarray) -> np.ndarray:
+    """Target values ``(M, n_targets)`` of learned function ``fn`` at inputs ``X (M, n_in)`` (SI)."""
+    from .._backends import get_xp
+    from .._learned import apply, target_value
+
+    xp = get_xp("numpy")
+    arrays = {k.split(".", 1)[1]: v for k, v in tm.params.items() if k.startswith(fn.name + ".")}
+    z = np.asarray(apply(xp, fn, arrays, X), dtype=float).reshape(len(X), -1)
+    ysc = np.asarray(arrays.get("y_scale", np.ones(z.shape[1])), dtype=float)
+    cols = []
+    for i, t in enumerate(fn.targets):
+        if t.kind == "param":
+            p = next((q for q in tm.network.params if q.name == t.name), None)
+            from .._ir import POSITIVE_ROLES
+
+            positive = p is not None and p.role in POSITIVE_ROLES
+            nominal = float(p.value) if p is not None and p.value is not None else (1.0 if positive else 0.0)
+            cols.append(np.asarray(target_value(xp, z[:, i], nominal, positive, ysc[i]), dtype=float))
+        else:
+            cols.append(ysc[i] * z[:, i])
+    return np.stack(cols, axis=1)
+
+
+def _fmt(v: float, role: str, unit: str) -> str:
+    if role == "temperature" and unit == "K":
+        return f"{v:.6g} K ({v - 273.15:.4g} °C)"
+    return f"{v:.6g} {unit}"
+
+
+def run(args) -> int:
+    from .._model_io import _jsonable, load_model
+
+    tm = load_model(args.model)
+    meta = tm.meta
+    rows = parameter_table(tm, args.all)
+    out = sys.stdout if args.json != "-" else sys.stderr
+    print(f"model {args.model}: network {tm.network.name}, trained with {meta.get('backend', '?')} "
+          f"(rollout {meta.get('rollout', '?')}, stopped: {meta.get('stopped', '?')})", file=out)
+    m = meta.get("metrics", {})
+    for part in ("train", "validation"):
+        if part in m and isinstance(m[part], dict):
+            r = m[part]
+            print(f"  {part:<10} MAE {r.get('mae') or math.nan:.4g} K  max {r.get('max_error') or math.nan:.4g} K",
+                  file=out)
+    if rows:
+        print(f"\n{'parameter':<22} {'nominal':>26} {'fitted':>26} {'change':>9}", file=out)
+        for r in rows:
+            ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
+            print(f"{r['name'][:22]:<22} {_fmt(r['nominal'], r['role'], r['unit']):>26} "
+                  f"{_fmt(r['fitted'], r['role'], r['unit']):>26} {ch:>9}", file=out)
+    summ = learned_summary(tm)
+    for s in summ:
+        fn = next(f for f in tm.network.learned if f.name == s["name"])
+        extra = " (frozen)" if s["frozen"] else ""
+        print(f"\nlearned {s['name']}: {', '.join(s['targets'])} as {s['kind']}({', '.join(s['inputs'])}){extra}",
+              file=out)
+        for a, k, lo, hi in zip(s["inputs"], s["input_kinds"], s["x_min"], s["x_max"]):
+            unit = "K" if k == "node" else ""
+            print(f"  input {a:<12} trained over [{lo:.5g}, {hi:.5g}] {unit}", file=out)
+        if s["inputs"]:
+            mid = (np.asarray(s["x_min"]) + np.asarray(s["x_max"])) / 2
+            corners = np.stack([np.asarray(s["x_min"]), mid, np.asarray(s["x_max"])])
+            vals = learned_values(tm, fn, corners)
+            for j, t in enumerate(s["targets"]):
+                print(f"  {t:<18} at low/mid/high inputs: {vals[0, j]:.5g} / {vals[1, j]:.5g} / {vals[2, j]:.5g}",
+                      file=out)
+        else:
+            vals = learned_values(tm, fn, np.zeros((1, 0)))
+            for j, t in enumerate(s["targets"]):
+                print(f"  {t:<18} = {vals[0, j]:.6g}", file=out)
+    for w in meta.get("warnings", []) or []:
+        print(f"warning: {w}", file=out)
+    if args.json:
+        text = json.dumps(_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2)
+        if args.json == "-":
+            print(text)
+        else:
+            with open(args.json, "w", encoding="utf-8") as f:
+                f.write(text + "\n")
+    if args.plot:
+        os.makedirs(args.plot, exist_ok=True)
+        for s in summ:
+            fn = next(f for f in tm.network.learned if f.name == s["name"])
+            path = os.path.join(args.plot, f"{s['name']}.png")
+            plot_function(path, tm, fn, s)
+            print(f"wrote {path}", file=out)
+    return 0
+
+
+def plot_function(path: str, tm, fn, s: dict, n: int = 101) -> None:
+    """Each target against each input over its training range, the other inputs at mid-range."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n_in = max(len(s["inputs"]), 1)
+    fig, axes = plt.subplots(1, n_in, figsize=(4.0 * n_in, 3.4), squeeze=False)
+    lo, hi = np.asarray(s["x_min"], dtype=float), np.asarray(s["x_max"], dtype=float)
+    mid = (lo + hi) / 2
+    for i in range(n_in):
+        ax = axes[0, i]
+        if not s["inputs"]:
+            vals = learned_values(tm, fn, np.zeros((1, 0)))
+            ax.bar(s["targets"], vals[0])
+            continue
+        X = np.tile(mid, (n, 1))
+        span = hi[i] - lo[i]
+        grid = np.linspace(lo[i], hi[i], n) if span > 0 else np.linspace(lo[i] - 0.5, hi[i] + 0.5, n)
+        X[:, i] = grid
+        vals = learned_values(tm, fn, X)
+        xlab = s["inputs"][i]
+        gx = grid
+        if s["input_kinds"][i] == "node":
+            gx = grid - 273.15
+            xlab = f"T({xlab}) °C"
+        for j, t in enumerate(s["targets"]):
+            ax.plot(gx, vals[:, j], label=t)
+        ax.set_xlabel(xlab)
+        ax.grid(alpha=0.3)
+        if i == 0:
+            ax.legend(fontsize=8)
+    fig.suptitle(f"{s['name']}: {', '.join(s['targets'])} as {s['kind']} (others at mid-range)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,218 @@
+"""``tnnc train NET DATA... [--val VAL...] -o MODEL``: fit a network's free parameters and learned
+functions to measured data (thesis eq. 4.8) and write a model directory.
+
+Several DATA files are trained together (batched). Validation (``--val``, or ``--val-fraction`` to hold
+out the end of each file) is always a free run over each whole validation file; the model with the best
+validation MAE is kept (early stopping). Adam runs first, then an L-BFGS polish. Progress (epoch, loss,
+validation MAE, time left) goes to stderr. Ctrl-C stops training and saves the best model so far.
+
+Every option can also be given in a YAML file (``--config train.yaml``, keys as the long option names
+with ``_`` or ``-``); flags given on the command line win over the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+# (flag, config field, type, help). `None` type: a store_true/false flag handled below.
+_OPTIONS = [
+    ("--epochs", "epochs", int, "Adam epochs (default 300)"),
+    ("--lr", "lr", float, "Adam step size in transformed coordinates (default 0.02)"),
+    ("--lr-final", "lr_final", float, "cosine decay to lr*LR_FINAL at the end (default 0.1)"),
+    ("--rollout", "rollout", str, "auto | free | steady | measured | estimated (default auto)"),
+    ("--window", "window", float, "window length in s for windowed rollouts (default 600)"),
+    ("--batch-size", "batch_size", int, "windows per optimiser step, 0 = all (default 0)"),
+    ("--integrator", "integrator", str, "euler | rk4 | expeuler (default rk4)"),
+    ("--substeps", "substeps", int, "integrator sub-steps per data step (default: the model's choice)"),
+    ("--dtype", "dtype", str, "float64 | float32 (default float64)"),
+    ("--clip", "clip", float, "gradient-norm clip (default: 10x the running mean norm)"),
+    ("--lam", "lam", float, "lambda of eq. 4.8: weight of the max error per window (default 0)"),
+    ("--weight-decay", "weight_decay", float, "L2 weight on learned-function weights (default 0)"),
+    ("--continuity", "continuity", float, "multiple-shooting continuity weight (default 10)"),
+    ("--lbfgs-iters", "lbfgs_iters", int, "L-BFGS polish iterations, 0 to skip (default 100)"),
+    ("--patience", "patience", int, "early stopping after N epochs without a better validation MAE (default 80)"),
+    ("--val-every", "val_every", int, "validate every N epochs, 0 = automatic (default 0)"),
+    ("--val-fraction", "val_fraction", float, "without --val: hold out this last fraction of each file"),
+    ("--init", "init", str, "initial state of free runs: auto | steady | measured (default auto)"),
+    ("--init-from", "init_from", str, "initialise from another model directory (same names and shapes)"),
+    ("--max-restarts", "max_restarts", int, "divergence guard: restarts with a smaller step (default 6)"),
+    ("--time-limit", "time_limit", float, "stop Adam after this many seconds (best state kept)"),
+]
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="fit a network's free parameters and learned functions to data; write a model directory",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("net", metavar="NET", help="the network (.thn)")
+    p.add_argument("data", nargs="+", metavar="DATA", help="training data files (CSV or Parquet)")
+    p.add_argument("--val", nargs="+", default=None, metavar="VAL", help="validation data files")
+    p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model directory to write")
+    p.add_argument("--backend", choices=("jax", "torch"), default=None, help="compute backend (default jax)")
+    p.add_argument("--seed", type=int, default=None, help="seed (initial weights, minibatches; default 0)")
+    p.add_argument("--config", default=None, metavar="train.yaml", help="training options in YAML")
+    p.add_argument("--json", default=None, metavar="metrics.json", help="write metrics as JSON ('-' for stdout)")
+    for flag, dest, typ, help_ in _OPTIONS:
+        p.add_argument(flag, dest=f"opt_{dest}", type=typ, default=None, help=help_)
+    p.add_argument("--gamma", nargs="+", default=None, metavar="G|NAME=G",
+                   help="gamma of eq. 4.8: one weight for every free parameter, or NAME=G pairs")
+    p.add_argument("--freeze", nargs="+", default=None, metavar="NAME",
+                   help="parameters or learned functions kept fixed")
+    p.add_argument("--no-prefit", dest="opt_prefit", action="store_false", default=None,
+                   help="do not pre-fit replace-mode flow functions to the nominal physics")
+    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
+    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
+    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
+                   help="unit of a numeric time column (default: from its name, else s)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=run)
+
+
+def _gamma(values):
+    from .._errors import Diagnostic, TnnError
+
+    if values is None:
+        return None
+    if len(values) == 1 and "=" not in values[0]:
+        try:
+            return float(values[0])
+        except ValueError:
+            raise TnnError(Diagnostic(f"--gamma: {values[0]!r} is not a number", hint="--gamma 0.1 or --gamma C_h1=0.1"))
+    out = {}
+    for v in values:
+        name, _, num = v.partition("=")
+        try:
+            out[name] = float(num)
+        except ValueError:
+            raise TnnError(Diagnostic(f"--gamma: {v!r} is not NAME=NUMBER", hint="--gamma C_h1=0.1 U12=1"))
+    return out
+
+
+class _Progress:
+    """One live line on a terminal; a line every few seconds otherwise."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+        self.width = 0
+
+    def __call__(self, info: dict) -> None:
+        if self.quiet:
+            return
+        now = time.perf_counter()
+        final = info.get("phase") == "lbfgs" or info.get("epoch") == info.get("epochs")
+        if not self.tty and now - self.last < 5.0 and not final and info.get("epoch", 0) != 0:
+            return
+        self.last = now
+
+        def f(x, unit=" K"):
+            return "—" if x is None or not math.isfinite(x) else f"{x:.4g}{unit}"
+
+        eta = info.get("eta", math.nan)
+        eta_s = "" if not math.isfinite(eta) else f"  ~{_dur(eta)} left"
+        phase = "L-BFGS" if info.get("phase") == "lbfgs" else "epoch"
+        line = (f"{phase} {info.get('epoch', 0)}/{info.get('epochs', 0)}  loss {f(info.get('loss'), '')}  "
+                f"val MAE {f(info.get('val_mae'))}  best {f(info.get('best_val_mae'))}  "
+                f"{_dur(info.get('elapsed', 0.0))}{eta_s}")
+        if self.tty:
+            pad = max(0, self.width - len(line))
+            sys.stderr.write("\r" + line + " " * pad)
+            sys.stderr.flush()
+            self.width = len(line)
+        else:
+            print(line, file=sys.stderr)
+
+    def end(self) -> None:
+        if self.tty and self.width and not self.quiet:
+            sys.stderr.write("\n")
+            self.width = 0
+
+    def log(self, msg: str) -> None:
+        if self.quiet and not msg.startswith("warning"):
+            return
+        self.end()
+        print(msg, file=sys.stderr)
+
+
+def _dur(s: float) -> str:
+    s = float(s)
+    if s < 60:
+        return f"{s:.0f} s"
+    if s < 3600:
+        return f"{s / 60:.1f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def run(args) -> int:
+    import tnn_dsl
+
+    from .._data import read_data
+    from .._errors import Diagnostic, TnnError
+    from .._train import load_config, train
+
+    overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
+    overrides["prefit"] = args.opt_prefit
+    overrides["gamma"] = _gamma(args.gamma)
+    overrides["freeze"] = args.freeze
+    overrides["backend"] = args.backend
+    overrides["seed"] = args.seed
+    cfg = load_config(args.config, **overrides)
+    net = tnn_dsl.load(args.net)
+    kw = {"time_col": args.time_col, "dt": args.dt, "time_unit": args.time_unit}
+    exps = read_data(net, args.data, **kw)
+    vals = read_data(net, args.val, **kw) if args.val else None
+    prog = _Progress(args.quiet)
+    for e in exps + (vals or []):
+        for note in getattr(e, "notes", ()):
+            prog.log(f"note: {e.name}: {note}")
+    interrupted = False
+    try:
+        tm = train(net, exps, vals, config=cfg, callback=prog, log=prog.log)
+    except KeyboardInterrupt:
+        prog.end()
+        raise
+    prog.end()
+    tm.save(args.output)
+    meta = tm.meta
+    stopped = meta.get("stopped")
+    interrupted = stopped == "interrupted"
+    m = meta.get("metrics", {})
+    tr = m.get("train", {})
+    va = m.get("validation")
+    if not args.quiet or stopped == "diverged":
+        print(f"model written to {args.output}  ({meta.get('backend')}, rollout {meta.get('rollout')}, "
+              f"{_dur(meta.get('train_seconds', 0.0))}, stopped: {stopped})", file=sys.stderr)
+        print(f"  train      MAE {tr.get('mae', math.nan):.4g} K  max {tr.get('max_error', math.nan):.4g} K",
+              file=sys.stderr)
+        if va:
+            print(f"  validation MAE {va.get('mae', math.nan):.4g} K  max {va.get('max_error', math.nan):.4g} K",
+                  file=sys.stderr)
+    if args.json:
+        doc = {"model": args.output, "backend": meta.get("backend"), "stopped": stopped,
+               "metrics": meta.get("metrics"), "fitted": meta.get("fitted"), "warnings": meta.get("warnings"),
+               "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
+        from .._model_io import _jsonable
+
+        text = json.dumps(_jsonable(doc), indent=2)
+        if args.json == "-":
+            print(text)
+        else:
+            with open(args.json, "w", encoding="utf-8") as f:
+                f.write(text + "\n")
+    if stopped == "diverged":
+        raise TnnError(Diagnostic(
+            f"training diverged; the best model so far was saved to {args.output}. "
+            + (meta.get("warnings") or [""])[-1],
+            hint="lower --lr (e.g. --lr 0.005), try --integrator expeuler, or check the nominal values"))
+    if interrupted:
+        print(f"interrupted: the best model so far was saved to {args.output}", file=sys.stderr)
+        return 130
+    return 0
