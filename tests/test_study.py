@@ -1,0 +1,67 @@
+"""The case-study pipeline (tnn_dsl._study) on tiny data and budgets: M1, M4 and M5, where M5's frozen
+Peltier network must be M4's trained one; out-of-distribution evaluation; ratios and tables; plots.
+The full study is ``examples/thesis_case_study.py`` (results in docs/results.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from tnn_dsl._study import StudyConfig, plot_study, ratios_table, results_table, run_study, thesis_ratios
+
+
+@pytest.mark.parametrize("backend", ["jax"])
+def test_study_tiny(tmp_path, backend):
+    cfg = StudyConfig(backend=backend, epochs=2, time_limit=None, lbfgs_iters=0, n_ood=1, widen=(0.4,),
+                      durations=(600.0, 300.0, 300.0), models=("M1", "M4", "M5"))
+    msgs = []
+    res = run_study(tmp_path / "out", data_dir=tmp_path / "data", config=cfg, progress=msgs.append)
+    assert set(res["models"]) == {"M1", "M4", "M5"}
+    for name, r in res["models"].items():
+        assert math.isfinite(r["validation"]["mae"]) and r["validation"]["mae"] > 0
+        assert r["validation"]["max_error"] >= r["validation"]["mae"]
+        assert set(r["ood"]) == {"40"} and math.isfinite(r["ood"]["40"])
+    # M5's Peltier net is M4's, frozen: identical arrays, and not counted as trainable
+    from safetensors.numpy import load_file
+
+    p4 = load_file(str(tmp_path / "out/models/m4/params.safetensors"))
+    p5 = load_file(str(tmp_path / "out/models/m5/params.safetensors"))
+    import tnn_dsl
+
+    frozen = [fn.name for fn in tnn_dsl.load_model(tmp_path / "out/models/m5").network.learned if fn.frozen]
+    assert len(frozen) == 1
+    pel = [k for k in p5 if k.startswith(frozen[0] + ".")]
+    assert len(pel) >= 6
+    for k in pel:
+        np.testing.assert_array_equal(p4[k], p5[k])
+    # the thesis's parameter counts: M4 122 (Peltier MLP) + 3 (constants), M5 139 (heat-pipe MLP only)
+    assert res["models"]["M4"]["n_trainable"] == 125 and res["models"]["M5"]["n_trainable"] == 139
+    # ratios are computed from our numbers; the ones needing absent models are NaN
+    r = res["ratios"]
+    assert r["M5 improvement over M4 [%]"]["thesis"] == 26.0
+    expect = (1 - res["models"]["M5"]["validation"]["mae"] / res["models"]["M4"]["validation"]["mae"]) * 100
+    assert r["M5 improvement over M4 [%]"]["ours"] == pytest.approx(expect)
+    assert math.isnan(r["M1/M2 validation MAE"]["ours"])
+    assert json.dumps(thesis_ratios(res)) == json.dumps(r)  # (NaN != NaN, so compare the text)
+    assert "| M4 |" in results_table(res) and "M5/M3" in ratios_table(res)
+    saved = json.loads((tmp_path / "out/results.json").read_text())
+    assert saved["models"]["M1"]["validation"]["mae"] == pytest.approx(res["models"]["M1"]["validation"]["mae"])
+    res["models_dir"] = str(tmp_path / "out/models")
+    plots = plot_study(res, tmp_path / "out")
+    assert len(plots) == 2 and all((tmp_path / "out" / p.split("/")[-1]).stat().st_size > 1000 for p in plots)
+    assert any("M5" in m for m in msgs)
+
+
+def test_m5_needs_m4(tmp_path):
+    with pytest.raises(ValueError, match="M5 needs M4"):
+        run_study(tmp_path, config=StudyConfig(models=("M5",), n_ood=0, durations=(300.0, 300.0, 300.0)))
+
+
+def test_demo_registered():
+    from tnn_dsl.cli import build_parser
+
+    args = build_parser().parse_args(["demo", "--quick", "--out", "x"])
+    assert args.quick and args.out == "x"
