@@ -1,0 +1,140 @@
+"""Keep the benchmarks working: the report writer, the C reference loop, and a tiny end-to-end run of
+``benchmarks/bench_rollout.py`` (a few hundred steps; timings are not checked, only that every part runs,
+agrees and is reported)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import _report  # noqa: E402
+
+HAS_CC = any(shutil.which(c) for c in ("cc", "gcc", "clang"))
+
+
+# ---------------------------------------------------------------------------------------------
+# _report.write_section
+# ---------------------------------------------------------------------------------------------
+
+
+def test_write_section_creates_replaces_and_appends(tmp_path):
+    path = tmp_path / "B.md"
+    _report.write_section("alpha", "first body", path=path, command="python a.py")
+    text = path.read_text()
+    assert text.startswith("# Benchmarks")
+    assert "<!-- begin alpha -->" in text and "<!-- end alpha -->" in text
+    assert "first body" in text and "python a.py" in text
+    for key in ("cpu", "cores", "python", "jax", "torch"):
+        assert f"{key} " in text.split("<!-- begin alpha -->")[1]
+
+    _report.write_section("beta", "beta body", path=path, command="python b.py")
+    path.write_text(path.read_text() + "\nhand-written note\n")
+    _report.write_section("alpha", "second body", path=path, command="python a.py --quick")
+    text = path.read_text()
+    assert "first body" not in text and "second body" in text
+    assert text.count("<!-- begin alpha -->") == 1 and text.count("<!-- end alpha -->") == 1
+    assert "beta body" in text and "hand-written note" in text
+    assert text.index("second body") < text.index("beta body")  # replaced in place, not appended
+
+
+def test_write_section_refuses_bad_names_and_broken_files(tmp_path):
+    path = tmp_path / "B.md"
+    with pytest.raises(ValueError):
+        _report.write_section("bad name", "x", path=path)
+    path.write_text("<!-- begin gamma -->\nno end marker\n")
+    with pytest.raises(ValueError, match="no"):
+        _report.write_section("gamma", "x", path=path)
+    assert path.read_text() == "<!-- begin gamma -->\nno end marker\n"  # untouched
+
+
+def test_machine_info_names_versions():
+    info = _report.machine_info()
+    assert int(info["cores"]) >= 1
+    assert info["python"].count(".") == 2
+    assert info["jax"] != "" and info["torch"] != ""
+
+
+# ---------------------------------------------------------------------------------------------
+# The C loop against the numpy reference backend
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not HAS_CC, reason="no C compiler")
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_c_loop_matches_numpy_backend(integrator):
+    import tnn_dsl
+    from _c_loop import build_c_rollout
+    from bench_rollout import NET, case_inputs, random_weights
+
+    net = tnn_dsl.load(NET)
+    model = tnn_dsl.compile(net, "numpy")
+    params = random_weights(model, seed=3)
+    U = case_inputs(model, 300, 1.0, seed=3)
+    U[:, 0] = np.linspace(0.0, 3.0, len(U))  # make the Peltier current vary within the short window
+    T0 = np.full(len(model.state_names), 300.0)
+    states, _ = model.rollout(params, T0, U, 1.0, integrator, substeps=1)
+    c = build_c_rollout(model, params, 1.0, integrator, 1)
+    try:
+        S = c.rollout(T0, U)
+        assert np.max(np.abs(S - states)) < 1e-9
+        assert np.max(np.abs(S[-1] - S[0])) > 1e-3  # the states moved: the comparison means something
+        Sb = c.rollout_batch(np.stack([T0, T0 + 1.0]), np.stack([U, U]))
+        assert np.max(np.abs(Sb[0] - S)) < 1e-12
+        assert np.max(np.abs(Sb[1] - S)) > 1e-3
+    finally:
+        c.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end (tiny sizes)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_bench_rollout_tiny_run(tmp_path):
+    out_md = tmp_path / "BENCHMARKS.md"
+    out_json = tmp_path / "r.json"
+    cmd = [sys.executable, str(BENCH / "bench_rollout.py"), "--steps", "300", "--batch", "4", "--slow-steps", "60",
+           "--repeats", "1", "--only", "jax,torch,numpy,c", "--output", str(out_md), "--json", str(out_json)]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    data = json.loads(out_json.read_text())
+    impls = {(r["impl"], r["case"]) for r in data["rows"]}
+    expected = {("JAX", "single"), ("JAX", "batch"), ("torch (eager)", "single"), ("torch (eager)", "batch"),
+                ("numpy reference", "single"), ("numpy reference", "batch")}
+    if HAS_CC:
+        expected |= {("C loop", "single"), ("C loop", "batch")}
+    assert expected <= impls
+    for r in data["rows"]:
+        assert r["fwd_us_per_step"] is not None and math.isfinite(r["fwd_us_per_step"]) and r["fwd_us_per_step"] > 0
+        if r["impl"] in ("JAX", "torch (eager)"):
+            assert r["grad_us_per_step"] > 0
+    if HAS_CC:
+        assert data["c_max_abs_diff_K"] <= 1e-9
+    agree = data["agreement"]
+    assert agree["torch_vs_jax_states_single_K"] <= 1e-9
+    assert agree["torch_vs_jax_states_batch_K"] <= 1e-9
+    assert agree["torch_vs_jax_grad_batch_rel"] <= 1e-6
+    whats = [t["what"] for t in data["targets"]]
+    assert any("JAX single sequence" in w for w in whats) and any("torch / JAX" in w for w in whats)
+    text = out_md.read_text()
+    assert "<!-- begin rollout -->" in text and "<!-- end rollout -->" in text
+    assert "Machine:" in text and "bench_rollout.py" in text
+
+
+def test_run_all_discovers_benchmarks():
+    res = subprocess.run([sys.executable, str(BENCH / "run_all.py"), "--list"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0
+    assert "benchmarks/bench_rollout.py" in res.stdout.split()
+    assert "_report" not in res.stdout and "run_all" not in res.stdout
