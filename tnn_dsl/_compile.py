@@ -28,6 +28,8 @@ Flow names: ``"<link>.Q"`` (into the link's ``a``), ``"<radiation>.Q"`` (into ``
 
 from __future__ import annotations
 
+import os
+
 import graphlib
 import math
 from dataclasses import dataclass
@@ -157,6 +159,7 @@ class _Plan:
     def _classify(self):
         deps: dict[tuple[str, str], set] = {}
         dyn_direct: set = set()
+        node_direct: set = set()  # items that read a node temperature themselves
         for p in self.net.params:
             item = ("p", p.name)
             d = set()
@@ -171,6 +174,7 @@ class _Plan:
             for t in temps:
                 if t in self.node_idx:
                     dyn_direct.add(item)
+                    node_direct.add(item)
                 elif t in self.bnd_idx:
                     d.add(("p", self.bnd_param[t]))
                 else:
@@ -184,6 +188,8 @@ class _Plan:
             for kind, name in self.fn_inputs[fn.name]:
                 if kind in ("node", "input"):
                     dyn_direct.add(item)
+                    if kind == "node":
+                        node_direct.add(item)
                 else:
                     d.add(("p", name))
             deps[item] = d
@@ -194,8 +200,11 @@ class _Plan:
             raise _err(f"circular definition: {cyc}",
                        hint="a parameter (or learned function) cannot depend on itself") from None
         static: dict = {}
+        tdep: dict = {}  # depends (transitively) on a node temperature: evaluated every rhs call
         for item in order:
             static[item] = item not in dyn_direct and all(static[x] for x in deps[item])
+            tdep[item] = item in node_direct or any(tdep[x] for x in deps[item])
+        self.tdep = tdep
         self.deps = deps
         self.order = order
         self.static = static
@@ -289,17 +298,19 @@ class _Plan:
 
 class _Prep:
     __slots__ = ("vals", "z", "arrays", "scales", "yscale", "fnlin", "M_nn", "M_bn", "Mr_nn", "Mr_bn", "cQ",
-                 "Tb", "g_static_d", "invC", "inv_tau", "offsets", "diag_static", "diag_rad", "lin_fluid")
+                 "Tb", "g_static_d", "invC", "inv_tau", "offsets", "diag_static", "diag_rad", "lin_fluid",
+                 "tnom", "tscale")
 
 
 class _Env:
-    __slots__ = ("vals", "z", "T", "u")
+    __slots__ = ("vals", "z", "T", "u", "cx")
 
-    def __init__(self, vals, z, T, u):
+    def __init__(self, vals, z, T, u, cx=None):
         self.vals = vals
         self.z = z
         self.T = T
         self.u = u
+        self.cx = cx  # {fn: input-only part of the normalised input} when precomputed
 
 
 class _Core:
@@ -325,6 +336,22 @@ class _Core:
                 return lambda env: env.T[..., i]
             bp = P.bnd_param[node]
             return lambda env: env.vals[bp]
+
+        # learned functions whose targets are all constant parameters of one positivity: their targets are
+        # evaluated as one vector (a few array ops instead of a handful per target)
+        self._vec_fns: dict[str, tuple[list[str], bool]] = {}
+        for fn in P.net.learned:
+            names = [t.name for t in fn.targets]
+            if not names or any(t.kind != "param" for t in fn.targets) or len(set(names)) != len(names):
+                continue
+            if any(P.param_targets.get(nm, (None,))[0] is not fn for nm in names):
+                continue
+            if not all(P.params[nm].is_constant for nm in names):
+                continue
+            pos = {P.params[nm].role in POSITIVE_ROLES for nm in names}
+            if len(pos) == 1:
+                self._vec_fns[fn.name] = (names, pos.pop())
+        self._vec_targets = {nm for names, _ in self._vec_fns.values() for nm in names}
 
         self._items = {}
         for p in P.net.params:
@@ -380,38 +407,110 @@ class _Core:
         self.Ar_neg4 = asn(-4.0 * np.abs(Inc))
         self.has_links_s = bool(self.links_s) or bool(self.fluids_lin)
 
-        # point flows (dynamic): rows and their nodes
+        # Input-only vs state-dependent work. Items that do not read a node temperature (directly or through
+        # other items) depend on the inputs alone; ``rhs_u`` evaluates them once per sample (a rollout does it
+        # for the whole input sequence at once, outside the time loop) together with every heat flow whose
+        # coefficients are input-only, reduced to an affine form ``q + d·T`` per node. ``rhs_T`` then does only
+        # the state-dependent work per right-hand-side evaluation.
+        td = P.tdep
+        self._u_items = [self._items[it] for it in P.dyn_order if not td[it]]
+        self._t_items = [self._items[it] for it in P.dyn_order if td[it]]
+        self._u_pnames = [nm for kd, nm in P.dyn_order if kd == "p" and not td[(kd, nm)]]
+        self._u_fnames = [nm for kd, nm in P.dyn_order if kd == "f" and not td[(kd, nm)]]
+        self._t_fnames = [nm for kd, nm in P.dyn_order if kd == "f" and td[(kd, nm)]]
+
+        def tp(pname):  # parameter depends on a node temperature
+            return td[("p", pname)]
+
+        self.tb_u = not any(tp(P.bnd_param[b]) for b in P.bnds)  # boundary temperatures input-only
+        ft = P.flow_targets
+        self.pe_aff = [(pe, h, c) for pe, h, c in P.peltiers
+                       if f"{pe.name}.Q_hot" not in ft and f"{pe.name}.Q_cold" not in ft
+                       and not any(tp(q) for q in (pe.current, pe.seebeck, pe.resistance))
+                       and (self.tb_u or (h[0] == "n" and c[0] == "n"))]
+        self.pe_gen = [x for x in P.peltiers if x not in self.pe_aff]
+        self.fnl_aff = [f for f in self.fluids_nl if f"{f.name}.Q" not in ft
+                        and not any(tp(q) for q in (f.mdot, f.cp, f.ua, f.inlet))]
+        self.fnl_gen = [f for f in self.fluids_nl if f not in self.fnl_aff]
+        self.flin_u = [f for f in self.fluids_lin if not P.is_static(f.inlet) and not tp(f.inlet)]
+        self.flin_t = [f for f in self.fluids_lin if not P.is_static(f.inlet) and tp(f.inlet)]
+        self.src_u = [s for s in self.sources_d if not tp(s.value)]
+        self.src_t = [s for s in self.sources_d if tp(s.value)]
+        self.hl_u = [(node, fn, i) for node, (fn, i) in P.heat_loads.items()
+                     if not P.static[("f", fn.name)] and not td[("f", fn.name)]]
+        self.hl_t = [(node, fn, i) for node, (fn, i) in P.heat_loads.items() if td[("f", fn.name)]]
+
+        def rows_matrix(rows):
+            M = np.zeros((len(rows), n))
+            for k, v in enumerate(rows):
+                if v[0] == "n":
+                    M[k, v[1]] = 1.0
+            return asn(M)
+
+        # input-only affine terms: rows of q (W) and of d (W/K) and their nodes
+        qrows, drows = [], []
+        for pe, h, c in self.pe_aff:
+            qrows += [h, c]
+            drows += [h, c]
+        for f in self.fnl_aff:
+            qrows.append(("n", P.node_idx[f.node]))
+            drows.append(("n", P.node_idx[f.node]))
+        qrows += [("n", P.node_idx[f.node]) for f in self.flin_u]
+        qrows += [("n", P.node_idx[s.node]) for s in self.src_u]
+        qrows += [("n", P.node_idx[node]) for node, _, _ in self.hl_u]
+        self.Eq = rows_matrix(qrows) if qrows else None
+        self.Ed = rows_matrix(drows) if drows else None
+        self.has_ctx_q = bool(qrows) or (not self.bnd_static and self.tb_u and nb > 0
+                                         and (bool(self.links_s) or bool(self.rads_s)))
+
+        # point flows evaluated per rhs call (state-dependent): rows and their nodes
         rows = []
-        for pe, h, c in P.peltiers:
+        for pe, h, c in self.pe_gen:
             rows.append(h)
             rows.append(c)
-        for f in self.fluids_nl:
-            rows.append(("n", P.node_idx[f.node]))
-        for f in self.fluids_lin:
-            if not P.is_static(f.inlet):
-                rows.append(("n", P.node_idx[f.node]))
-        for s in self.sources_d:
-            rows.append(("n", P.node_idx[s.node]))
-        for node, (fn, i) in P.heat_loads.items():
-            if not P.static[("f", fn.name)]:
-                rows.append(("n", P.node_idx[node]))
-        Pm = np.zeros((len(rows), n))
-        for k, v in enumerate(rows):
-            if v[0] == "n":
-                Pm[k, v[1]] = 1.0
+        rows += [("n", P.node_idx[f.node]) for f in self.fnl_gen]
+        rows += [("n", P.node_idx[f.node]) for f in self.flin_t]
+        rows += [("n", P.node_idx[s.node]) for s in self.src_t]
+        rows += [("n", P.node_idx[node]) for node, _, _ in self.hl_t]
         self.n_point = len(rows)
-        self.Pm = asn(Pm)
-        # diagonal terms (expeuler): Peltier sides and non-linear fluids
+        self.Pm = rows_matrix(rows)
+        # diagonal terms (expeuler) of the state-dependent Peltier sides and non-linear fluids
         drows = []
-        for pe, h, c in P.peltiers:
+        for pe, h, c in self.pe_gen:
             drows += [h, c]
-        for f in self.fluids_nl:
-            drows.append(("n", P.node_idx[f.node]))
-        Pd = np.zeros((len(drows), n))
-        for k, v in enumerate(drows):
-            if v[0] == "n":
-                Pd[k, v[1]] = 1.0
-        self.Pd = asn(Pd)
+        drows += [("n", P.node_idx[f.node]) for f in self.fnl_gen]
+        self.Pd = rows_matrix(drows)
+        # what rhs_T reads from the context: input-only parameters used by state-dependent work
+        need = set()
+        for it in P.dyn_order:
+            if td[it]:
+                need |= {nm for kd, nm in P.deps[it] if kd == "p"}
+        need |= {lk[3] for lk in self.links_d}
+        need |= {q for r in self.rads_d for q in r[3]}
+        need |= {q for pe, _, _ in self.pe_gen for q in (pe.current, pe.seebeck, pe.resistance)}
+        need |= {q for f in self.fnl_gen for q in (f.mdot, f.cp, f.ua, f.inlet)}
+        if not self.C_static:
+            need |= {nd.capacitance for nd in P.net.nodes}
+        if not self.tau_static:
+            need |= {s.lag for s in P.lagged}
+        if not self.tb_u:
+            need |= {P.bnd_param[b] for b in P.bnds}
+        self._ctx_s = [nm for nm in self._u_pnames if nm in need]
+        # links whose conductances are the targets of one vectorised, state-dependent learned function:
+        # their conductance vector is a gather of the function's target vector
+        self._links_vec = None
+        self._links_d_keys = [lk[0] for lk in self.links_d]
+        if self.links_d:
+            ps = [lk[3] for lk in self.links_d]
+            forms = {lk[4] for lk in self.links_d}
+            owners = {P.param_targets[q][0].name if q in self._vec_targets else None for q in ps}
+            if len(owners) == 1 and None not in owners and len(forms) == 1:
+                fname = owners.pop()
+                if td[("f", fname)]:
+                    names = self._vec_fns[fname][0]
+                    idx = [names.index(q) for q in ps]
+                    self._links_vec = (fname, None if idx == list(range(len(names))) else idx, forms.pop())
+        self._Tb_in_ctx = P.nb > 0 and self.tb_u and any(h[0] == "b" or c[0] == "b" for _, h, c in self.pe_gen)
 
         # lag states and outputs
         nl = len(P.lagged)
@@ -450,6 +549,8 @@ class _Core:
         name = p.name
         target = self.plan.param_targets.get(name)
         positive = p.role in POSITIVE_ROLES
+        if name in self._vec_targets:  # set by its function's item (vectorised)
+            return _noop_item
         if target is None:
             def item(prep, env):
                 v = expr_fn(env)
@@ -472,14 +573,15 @@ class _Core:
 
         def item(prep, env):
             if fname in prep.fnlin:  # dynamic: matmul gather + normalisation prepared once
-                A_T, A_u, bias, dyn_p, A_p = prep.fnlin[fname]
-                xn = bias
+                A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT = prep.fnlin[fname]
+                cx = env.cx.get(fname) if env.cx is not None else None
+                if cx is None:  # the input-only part
+                    cx = self._fn_cx(prep, env, fname)
+                xn = cx
                 if A_T is not None:
                     xn = xn + xp.matmul(env.T, A_T)
-                if A_u is not None:
-                    xn = xn + xp.matmul(env.u, A_u)
-                if dyn_p:
-                    xn = xn + xp.matmul(xp.stack([env.vals[q] for q in dyn_p], axis=-1), A_p)
+                if dyn_pT:
+                    xn = xn + xp.matmul(xp.stack([env.vals[q] for q in dyn_pT], axis=-1), A_pT)
             else:  # static: all inputs are static parameters
                 arrays = prep.arrays[fname]
                 ins = self.plan.fn_inputs[fname]
@@ -488,8 +590,32 @@ class _Core:
                     xn = _learned.normalise(x, arrays)
                 else:
                     xn = None
-            env.z[fname] = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
+            z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
+            env.z[fname] = z
+            if vec is not None:
+                V = _learned.target_value(xp, z, prep.tnom[fname], positive, prep.arrays[fname]["y_scale"])
+                sv = prep.tscale[fname]
+                if sv is not None:
+                    V = V * sv
+                env.z[("V", fname)] = V
+                for i, nm in enumerate(names):
+                    env.vals[nm] = V[..., i]
+
+        vec = self._vec_fns.get(fname)
+        names, positive = vec if vec is not None else ((), False)
         return item
+
+    def _fn_cx(self, prep, env, fname):
+        """The input-only part of a dynamic function's normalised input: ``bias + u @ A_u + stack(input-only
+        parameters) @ A_pu`` (``(..., n_in)``, or the bias alone)."""
+        xp = self.xp
+        A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT = prep.fnlin[fname]
+        cx = bias
+        if A_u is not None:
+            cx = cx + xp.matmul(env.u, A_u)
+        if dyn_pu:
+            cx = cx + xp.matmul(xp.stack([env.vals[q] for q in dyn_pu], axis=-1), A_pu)
+        return cx
 
     # -- prepare ---------------------------------------------------------------------------------
 
@@ -506,6 +632,13 @@ class _Core:
             prep.arrays[fn.name] = arrs
             prep.yscale[fn.name] = [arrs["y_scale"][i] for i in range(len(fn.targets))]
         vals = {p.name: xp.asarray(params[p.name]) for p in P.net.params if p.is_constant}
+        prep.tnom, prep.tscale = {}, {}
+        for fname, (names, _) in self._vec_fns.items():
+            prep.tnom[fname] = xp.stack([vals[nm] for nm in names], axis=-1)
+            if any(nm in prep.scales for nm in names):
+                prep.tscale[fname] = xp.stack([prep.scales.get(nm, 1.0) for nm in names], axis=-1)
+            else:
+                prep.tscale[fname] = None
         env = _Env(vals, {}, None, None)
         prep.fnlin = {}
         for it in P.static_order:
@@ -598,7 +731,7 @@ class _Core:
 
     def _fnlin(self, fn, prep):
         """Matrices that gather and normalise a dynamic function's inputs: ``xn = T @ A_T + u @ A_u +
-        bias + stack(dynamic params) @ A_p``."""
+        bias + stack(input-only params) @ A_pu + stack(state-dependent params) @ A_pT``."""
         xp, P = self.xp, self.plan
         arrs = prep.arrays[fn.name]
         ins = P.fn_inputs[fn.name]
@@ -607,8 +740,8 @@ class _Core:
         ST = np.zeros((P.ns, k))
         SU = np.zeros((len(P.inputs), k))
         static_vals: dict[int, str] = {}
-        dyn_p = []
-        SP_rows = []
+        dyn_pu, dyn_pT = [], []
+        SPu_rows, SPT_rows = [], []
         for j, (kind, name) in enumerate(ins):
             if kind == "node":
                 ST[P.node_idx[name], j] = 1.0
@@ -619,16 +752,21 @@ class _Core:
             else:
                 row = np.zeros(k)
                 row[j] = 1.0
-                dyn_p.append(name)
-                SP_rows.append(row)
+                if P.tdep[("p", name)]:
+                    dyn_pT.append(name)
+                    SPT_rows.append(row)
+                else:
+                    dyn_pu.append(name)
+                    SPu_rows.append(row)
         bias = -arrs["x_mean"] * inv
         if static_vals:
             sv = [prep.vals[static_vals[j]] if j in static_vals else 0.0 for j in range(k)]
             bias = bias + xp.stack(sv, axis=-1) * inv
         A_T = xp.asarray(ST) * inv if ST.any() else None
         A_u = xp.asarray(SU) * inv if SU.any() else None
-        A_p = xp.asarray(np.asarray(SP_rows)) * inv if dyn_p else None
-        return (A_T, A_u, bias, dyn_p, A_p)
+        A_pu = xp.asarray(np.asarray(SPu_rows)) * inv if dyn_pu else None
+        A_pT = xp.asarray(np.asarray(SPT_rows)) * inv if dyn_pT else None
+        return (A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT)
 
     # -- shared helpers ----------------------------------------------------------------------------
 
@@ -679,13 +817,121 @@ class _Core:
 
     def rhs(self, prep, T, u, with_diag=False):
         """``dT/dt (..., n_states)`` K/s; with ``with_diag`` also the diagonal of the linear part (1/s)."""
+        return self.rhs_T(prep, self.rhs_u(prep, u), T, with_diag)
+
+    def rhs_u(self, prep, u) -> dict:
+        """The input-only part of the right-hand side for inputs ``u (..., n_inputs)`` (any leading axes, e.g.
+        a whole input sequence ``(..., N, n_inputs)``): a dict with ``"s"`` (input-only parameter values,
+        shape ``u.shape[:-1]``), ``"v"`` (vectors ``(..., k)``: ``"q"`` heat (W) and ``"d"`` coefficients (W/K)
+        of the affine node terms ``q + d·T``, ``"Tb"`` boundary temperatures and their products with the
+        gather matrices, ``"cx:<fn>"`` input-only part of a learned function's normalised input,
+        ``"z:<fn>"`` outputs of input-only learned functions) and ``"u"``. ``rhs_T`` reads one sample of it."""
+        xp, P = self.xp, self.plan
+        env = _Env(dict(prep.vals), dict(prep.z), None, u)
+        for item in self._u_items:
+            item(prep, env)
+        vals = env.vals
+        vec: dict = {}
+        bshape = tuple(xp.shape(u)[:-1])
+
+        def per_sample(v):  # every context array carries the samples' leading axes
+            return xp.broadcast_to(v, (*bshape, *xp.shape(v)[-1:]))
+
+        for fname in self._u_fnames:
+            vec[f"z:{fname}"] = per_sample(env.z[fname])
+        for fname in self._t_fnames:
+            vec[f"cx:{fname}"] = per_sample(self._fn_cx(prep, env, fname))
+        Tb = None
+        if P.nb and self.tb_u:
+            Tb = self._Tb(prep, vals)
+            if prep.Tb is None:  # input-dependent boundaries: broadcast to the samples
+                Tb = xp.broadcast_to(Tb, (*bshape, P.nb))
+                if self._Tb_in_ctx:
+                    vec["Tb"] = Tb
+                if self.links_d:
+                    vec["tbD"] = xp.matmul(Tb, self.Dd_b)
+                if self.rads_d:
+                    vec["tbR"] = xp.matmul(Tb**4, self.Dr_b)
+                if self.nl and self.lag_from_bnd:
+                    vec["tbL"] = xp.matmul(Tb, self.Sl_b)
+        q = None
+
+        def add(a, b):
+            return b if a is None else a + b
+
+        if Tb is not None and prep.Tb is None:
+            if prep.M_bn is not None:
+                q = add(q, xp.matmul(Tb, prep.M_bn))
+            if prep.Mr_bn is not None:
+                q = add(q, xp.matmul(Tb**4, prep.Mr_bn))
+        if self.Eq is not None:
+            qs, ds = [], []
+            for pe, h, c in self.pe_aff:
+                I, S, R = vals[pe.current], vals[pe.seebeck], vals[pe.resistance]
+                # Q_hot = S·T_hot·I + ½R I² (eq. 2.12–2.13) = d·T + q; a boundary side is a known temperature
+                q_h, q_c = _physics.peltier_heat_flows(S, R, I, 0.0, 0.0)
+                SI = S * I
+                sh = prep.scales.get(f"{pe.name}.Q_hot")
+                sc = prep.scales.get(f"{pe.name}.Q_cold")
+                dh, dc = SI, -SI
+                if h[0] == "b":
+                    q_h = q_h + SI * Tb[..., h[1]]
+                if c[0] == "b":
+                    q_c = q_c - SI * Tb[..., c[1]]
+                if sh is not None:
+                    q_h, dh = q_h * sh, dh * sh
+                if sc is not None:
+                    q_c, dc = q_c * sc, dc * sc
+                qs += [q_h, q_c]
+                ds += [dh, dc]
+            for f in self.fnl_aff:
+                G = self._flow_scaled(prep, f"{f.name}.Q", self._fluid_G(vals, f))
+                qs.append(G * vals[f.inlet])
+                ds.append(-G)
+            lin_G = {f.name: G for f, G in prep.lin_fluid}
+            for f in self.flin_u:
+                qs.append(lin_G[f.name] * vals[f.inlet])
+            for s in self.src_u:
+                qs.append(self._flow_scaled(prep, f"{s.name}.Q", vals[s.value]))
+            for node, fn, i in self.hl_u:
+                qs.append(self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i)))
+            q = add(q, xp.matmul(xp.broadcast_to(xp.stack(qs, axis=-1), (*bshape, len(qs))), self.Eq))
+            if ds:
+                vec["d"] = xp.matmul(xp.broadcast_to(xp.stack(ds, axis=-1), (*bshape, len(ds))), self.Ed)
+        if q is not None:
+            vec["q"] = per_sample(q if prep.cQ is None else q + prep.cQ)
+        scal = {k: xp.broadcast_to(vals[k], bshape) for k in self._ctx_s}
+        return {"s": scal, "v": vec, "u": u}
+
+    def ctx_at(self, ctx, k):
+        """Sample ``k`` of a sequence context from :meth:`rhs_u` (inputs ``(..., N, n_inputs)``)."""
+        return {"s": {name: v[..., k] for name, v in ctx["s"].items()},
+                "v": {name: v[..., k, :] for name, v in ctx["v"].items()},
+                "u": ctx["u"][..., k, :]}
+
+    def rhs_T(self, prep, ctx, T, with_diag=False):
+        """The right-hand side from one sample's input-only context (:meth:`rhs_u`) and ``T (..., n_states)``."""
         xp, P = self.xp, self.plan
         n = P.n
-        env = self.values(prep, T, u)
-        vals = env.vals
+        vec = ctx["v"]
+        u = ctx["u"]
+        vals = dict(prep.vals)
+        vals.update(ctx["s"])
+        z = dict(prep.z)
+        cx = None
+        if self._u_fnames or self._t_fnames:
+            for fname in self._u_fnames:
+                z[fname] = vec[f"z:{fname}"]
+            cx = {fname: vec[f"cx:{fname}"] for fname in self._t_fnames}
+        env = _Env(vals, z, T, u, cx)
+        for item in self._t_items:
+            item(prep, env)
         Tn = T[..., :n] if self.nl else T
-        Tb = self._Tb(prep, vals)
-        dQ = prep.cQ
+        dyn_b = not self.tb_u  # boundary terms not folded into the context
+        Tb = vec.get("Tb")
+        if Tb is None and P.nb and (dyn_b or prep.Tb is not None):
+            Tb = self._Tb(prep, vals)
+        dQ = vec.get("q", prep.cQ)
         diag = prep.diag_static if with_diag else None
 
         def add(a, b):
@@ -693,21 +939,34 @@ class _Core:
 
         if prep.M_nn is not None:
             dQ = add(dQ, xp.matmul(Tn, prep.M_nn))
-            if prep.M_bn is not None:
+            if dyn_b and prep.M_bn is not None:
                 dQ = add(dQ, xp.matmul(Tb, prep.M_bn))
+        d = vec.get("d")
+        if d is not None:
+            dQ = add(dQ, Tn * d)
+            if with_diag:
+                diag = add(diag, d)
         if prep.Mr_nn is not None:
             Tn3 = Tn * Tn * Tn
             dQ = add(dQ, xp.matmul(Tn3 * Tn, prep.Mr_nn))
-            if prep.Mr_bn is not None:
+            if dyn_b and prep.Mr_bn is not None:
                 dQ = add(dQ, xp.matmul(Tb**4, prep.Mr_bn))
             if with_diag:
                 diag = add(diag, Tn3 * prep.diag_rad)
         if self.links_d:
-            g = xp.stack([self._flow_scaled(prep, k, self._g(vals, p, form)) for k, _, _, p, form in self.links_d],
-                         axis=-1)
+            lv = self._links_vec
+            if lv is not None and not any(k in prep.scales for k in self._links_d_keys):
+                V = env.z[("V", lv[0])]
+                if lv[1] is not None:
+                    V = V[..., lv[1]]
+                g = 1.0 / V if lv[2] == "R" else V
+            else:
+                g = xp.stack([self._flow_scaled(prep, k, self._g(vals, p, form))
+                              for k, _, _, p, form in self.links_d], axis=-1)
             dX = xp.matmul(Tn, self.Dd_n)
             if P.nb:
-                dX = dX + xp.matmul(Tb, self.Dd_b)
+                tbD = vec.get("tbD")
+                dX = dX + (tbD if tbD is not None else xp.matmul(Tb, self.Dd_b))
             dQ = add(dQ, xp.matmul(g * dX, self.Id))
             if with_diag:
                 diag = add(diag, xp.matmul(g, self.Ad_neg))
@@ -716,33 +975,34 @@ class _Core:
                           for k, _, _, (a, e, f) in self.rads_d], axis=-1)
             dX = xp.matmul(Tn**4, self.Dr_n)
             if P.nb:
-                dX = dX + xp.matmul(Tb**4, self.Dr_b)
+                tbR = vec.get("tbR")
+                dX = dX + (tbR if tbR is not None else xp.matmul(Tb**4, self.Dr_b))
             dQ = add(dQ, xp.matmul(c * dX, self.Ir))
             if with_diag:
                 diag = add(diag, Tn**3 * xp.matmul(c, self.Ar_neg4))
         if self.n_point:
             pts = []
             dterms = []
-            for pe, h, c in P.peltiers:
+            for pe, h, c in self.pe_gen:
                 qh, qc, SI = self._peltier(prep, env, pe, h, c, Tn, Tb)
                 pts += [qh, qc]
                 if with_diag:
                     dterms += [self._diag_term(prep, f"{pe.name}.Q_hot", SI),
                                self._diag_term(prep, f"{pe.name}.Q_cold", -SI)]
-            for f in self.fluids_nl:
+            for f in self.fnl_gen:
                 G = self._fluid_G(vals, f)
                 q = G * (vals[f.inlet] - Tn[..., P.node_idx[f.node]])
                 pts.append(self._flow_target(prep, env, f"{f.name}.Q", q))
                 if with_diag:
                     dterms.append(self._diag_term(prep, f"{f.name}.Q", -G))
-            for f, G in prep.lin_fluid:
-                if not P.is_static(f.inlet):
-                    pts.append(G * vals[f.inlet])
-            for s in self.sources_d:
+            if self.flin_t:
+                lin_G = {f.name: G for f, G in prep.lin_fluid}
+                for f in self.flin_t:
+                    pts.append(lin_G[f.name] * vals[f.inlet])
+            for s in self.src_t:
                 pts.append(self._flow_scaled(prep, f"{s.name}.Q", vals[s.value]))
-            for node, (fn, i) in P.heat_loads.items():
-                if not P.static[("f", fn.name)]:
-                    pts.append(self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i)))
+            for node, fn, i in self.hl_t:
+                pts.append(self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i)))
             dQ = add(dQ, xp.matmul(xp.stack(pts, axis=-1), self.Pm))
             if with_diag and dterms:
                 diag = add(diag, xp.matmul(xp.stack(dterms, axis=-1), self.Pd))
@@ -758,9 +1018,10 @@ class _Core:
                 [vals[s.lag] for s in P.lagged], axis=-1)
             src = xp.matmul(Tn, self.Sl_n)
             if self.lag_from_bnd:
-                src = src + xp.matmul(Tb, self.Sl_b)
+                tbL = vec.get("tbL")
+                src = src + (tbL if tbL is not None else xp.matmul(Tb, self.Sl_b))
             dTl = (src - T[..., n:]) * inv_tau
-            dT = xp.concat([dT, dTl], axis=-1)
+            dT = xp.concat([xp.broadcast_to(dT, (*xp.shape(dTl)[:-1], n)), dTl], axis=-1)
             if with_diag:
                 diag = xp.concat([xp.broadcast_to(diag, xp.shape(dT[..., :n])),
                                   xp.broadcast_to(-inv_tau, xp.shape(dTl))], axis=-1)
@@ -820,6 +1081,10 @@ class _Core:
             out[f"Q[{node}]"] = self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i))
         shape = xp.shape(Tn)[:-1]
         return {k: xp.broadcast_to(xp.asarray(v) if isinstance(v, float) else v, shape) for k, v in out.items()}
+
+
+def _noop_item(prep, env):
+    return None
 
 
 def _diag(xp, M, n):
@@ -1061,28 +1326,30 @@ class Model:
         return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
 
     def _stepper(self, prep, dt, integrator, sub):
+        """``step(T, ctx) -> T_next`` over one sample interval; ``ctx`` is one sample of
+        :meth:`_Core.rhs_u` (the input-only work is done once per sample, not per stage)."""
         core, xp = self._core, self.xp
         h = dt / sub
         if integrator == "expeuler":
-            def one(T, u):
-                return expeuler(lambda x: core.rhs(prep, x, u, with_diag=True), T, h, xp)
+            def one(T, c):
+                return expeuler(lambda x: core.rhs_T(prep, c, x, with_diag=True), T, h, xp)
         else:
             method = euler if integrator == "euler" else rk4
 
-            def one(T, u):
-                return method(lambda x: core.rhs(prep, x, u), T, h)
+            def one(T, c):
+                return method(lambda x: core.rhs_T(prep, c, x), T, h)
         if sub == 1:
             return one
         if self.backend == "jax" and sub > 4:
             import jax
 
-            def many(T, u):
-                return jax.lax.fori_loop(0, sub, lambda i, x: one(x, u), T)
+            def many(T, c):
+                return jax.lax.fori_loop(0, sub, lambda i, x: one(x, c), T)
             return many
 
-        def many_py(T, u):
+        def many_py(T, c):
             for _ in range(sub):
-                T = one(T, u)
+                T = one(T, c)
             return T
         return many_py
 
@@ -1093,29 +1360,43 @@ class Model:
         N = xp.shape(inputs)[-2]
         batch = np.broadcast_shapes(xp.shape(T0)[:-1], xp.shape(inputs)[:-2])
         T0 = xp.broadcast_to(T0, (*batch, xp.shape(T0)[-1]))
+        # the input-only part of the right-hand side, for every sample at once (outside the time loop)
+        ctx = self._core.rhs_u(prep, inputs[..., : max(N - 1, 0), :]) if N > 1 else None
         if self.backend == "jax":
             import jax
             import jax.numpy as jnp
 
-            us = jnp.moveaxis(inputs, -2, 0)
-
-            def body(T, u):
-                Tn = step(T, u)
+            def body(T, c):
+                Tn = step(T, c)
                 return Tn, Tn
 
             if N > 1:
-                _, rest = jax.lax.scan(body, T0, us[:-1])
+                xs = {"s": {k: jnp.moveaxis(v, -1, 0) for k, v in ctx["s"].items()},
+                      "v": {k: jnp.moveaxis(v, -2, 0) for k, v in ctx["v"].items()},
+                      "u": jnp.moveaxis(ctx["u"], -2, 0)}
+                _, rest = jax.lax.scan(body, T0, xs)
                 states = jnp.concatenate([T0[None], rest], axis=0)
             else:
                 states = T0[None][:N]
             states = jnp.moveaxis(states, 0, -2)
         else:
-            us = [inputs[..., k, :] for k in range(N - 1)] if self.backend == "numpy" else inputs.unbind(-2)
             T = T0
             states = [T]
-            for k in range(N - 1):
-                T = step(T, us[k])
-                states.append(T)
+            if N > 1:
+                if self.backend == "numpy":
+                    def split(v, ax):
+                        return [np.take(v, k, axis=ax) for k in range(N - 1)]
+                else:
+                    def split(v, ax):
+                        return v.unbind(ax)
+                s_l = {k: split(v, -1) for k, v in ctx["s"].items()}
+                v_l = {k: split(v, -2) for k, v in ctx["v"].items()}
+                u_l = split(ctx["u"], -2)
+                for k in range(N - 1):
+                    c = {"s": {name: a[k] for name, a in s_l.items()},
+                         "v": {name: a[k] for name, a in v_l.items()}, "u": u_l[k]}
+                    T = step(T, c)
+                    states.append(T)
             states = xp.stack(states[:N], axis=-2) if N > 0 else xp.zeros((*batch, 0, xp.shape(T0)[-1]))
         outputs = self._core.outputs(prep, states, inputs)
         return states, outputs
@@ -1224,13 +1505,31 @@ class Model:
         return x
 
 
-def compile(net: Network, backend: str = "jax", dtype: str = "float64") -> Model:  # noqa: A001
+def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa: A001
+            torch_threads: int | None = 1) -> Model:
     """Compile a validated network for ``backend`` (``"jax"`` or ``"torch"``; ``"numpy"`` is a reference
-    backend without autodiff) in ``dtype`` (``"float64"`` default, or ``"float32"``)."""
+    backend without autodiff) in ``dtype`` (``"float64"`` default, or ``"float32"``).
+
+    ``torch_threads``: for the torch backend, the number of intra-op threads torch is set to
+    (``torch.set_num_threads``; a process-wide setting). Thermal networks are small, so extra threads only
+    add synchronisation: a batched case-study step measured 47× slower with torch's default 2 threads than
+    with 1 on a 2-core machine (benchmarks/bench_rollout.py ``--torch-threads``). ``None`` leaves torch's
+    setting alone. The environment variable ``TNN_TORCH_THREADS`` overrides the default."""
     if backend not in ("jax", "torch", "numpy"):
         raise TnnError([Diagnostic(f"unknown backend {backend!r}", hint="use backend='jax' or backend='torch'")])
     if dtype not in ("float64", "float32"):
         raise TnnError([Diagnostic(f"unknown dtype {dtype!r}", hint="use dtype='float64' or dtype='float32'")])
+    if backend == "torch":
+        env = os.environ.get("TNN_TORCH_THREADS")
+        if env:
+            if not env.isdigit() or int(env) < 1:
+                raise TnnError([Diagnostic(f"TNN_TORCH_THREADS must be a positive integer, got {env!r}")])
+            torch_threads = int(env)
+        if torch_threads is not None:
+            import torch
+
+            if torch.get_num_threads() != int(torch_threads):
+                torch.set_num_threads(int(torch_threads))
     return Model(net, backend, dtype)
 
 
