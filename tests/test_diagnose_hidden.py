@@ -1,0 +1,204 @@
+"""The model doctor's hidden-effect suite (issue 6 acceptance), as tests.
+
+One known deficiency is planted in simulated data (``benchmarks/diagnose_suite.py`` defines the networks, the
+planted effects and the scoring; ``tnn_dsl._planted.plant`` simulates candidate kinds, edited ``.thn`` truths
+the structural ones); ``tnn_dsl.diagnose`` sees only the nominal network and the data.
+
+* Fast seeded variants (run in CI): every kind once on the small TCLab-like board
+  (``tests/hidden_nets/tclab_board.thn``, fixed realistic values), sensor noise 0.01 K, short data. Each
+  asserts that the doctor's first answer is the planted cause (or a candidate with identical equations, listed
+  in the suite with its reason), that it is accepted, that the dependence variable is named where there is
+  one, and that the held-out MAE is at least halved. The null run asserts that nothing is accepted. A kind
+  the doctor cannot find yet is ``xfail(strict=True)`` with the reason, so that it fails loudly once fixed.
+* The full grid (three networks × every kind × noise 0, 0.01, 0.05 K × two seeds + null runs) is
+  ``@pytest.mark.slow`` and checks the issue's targets on the totals; the same grid is the benchmark
+  ``python benchmarks/diagnose_suite.py`` whose table is in BENCHMARKS.md.
+
+The JAX persistent compilation cache is switched on for this module (a temporary directory, restored after):
+the runs share networks and data shapes, so most compilations are reused.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def _load_suite():
+    spec = importlib.util.spec_from_file_location("diagnose_suite", os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("diagnose_suite", mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+S = _load_suite()
+CASES = {c.name: c for c in S.CASES}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _jax_compilation_cache(tmp_path_factory):
+    import jax
+
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    old = {n: getattr(jax.config, n) for n in names}
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    yield
+    for n, v in old.items():
+        jax.config.update(n, v)
+
+
+# ---------------------------------------------------------------------------------------------
+# the suite's own machinery (cheap, no diagnosis)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_every_candidate_kind_is_planted_on_every_network():
+    kinds = {"dependence", "heat_load", "missing_link", "radiation", "sensor_offset", "wrong_constant",
+             "unused_column", "sensor_lag", "thermal_mass", "null"}
+    for net in ("tclab", "building", "casestudy"):
+        have = {c.kind for c in S.CASES if c.net.split("_")[0] == net.split("_")[0]}
+        assert kinds <= have, (net, kinds - have)
+
+
+def test_planted_candidates_exist_in_the_networks():
+    """Every planted candidate and every listed equivalent is a candidate the doctor builds (a renamed
+    candidate key would otherwise turn the suite into silent misses)."""
+    import tnn_dsl
+    from tnn_dsl._candidates import build_extended
+
+    for c in S.CASES:
+        if c.plant is None:
+            continue
+        spec = S.NETWORKS[c.net]
+        net = tnn_dsl.load(spec.path)
+        varying = [n for n in net.input_names if spec.bounds[n][1] > spec.bounds[n][0]]
+        keys = {x.key for x in build_extended(net, varying).candidates}
+        kind, target, dep, _ = c.plant
+        assert f"{kind}:{target}:{dep or ''}" in keys, c.name
+        assert ":".join(c.truth) in keys, c.name
+        for e in c.equivalent:
+            if e[2] not in ("fan", "Pocc", "pump"):  # column-driven ones exist only with the column
+                assert ":".join(e) in keys, (c.name, e)
+
+
+@pytest.mark.parametrize("name", ["tclab/sensor_lag", "tclab/thermal_mass", "building/thermal_mass",
+                                  "casestudy/thermal_mass"])
+def test_structural_truths_differ_from_the_model_but_keep_its_steady_state(name):
+    """The edited truths are valid networks whose outputs differ from the nominal model's in transients
+    (a lag, an extra mass) but, being series elements, not at steady state."""
+    import numpy as np
+
+    import tnn_dsl
+
+    c = CASES[name]
+    spec = S.NETWORKS[c.net]
+    net = tnn_dsl.load(spec.path)
+    truth = (tnn_dsl.load(c.edit[1]) if c.edit[0] == "truth"
+             else tnn_dsl.loads(S._edit_text(open(spec.path, encoding="utf-8").read(), c.edit), "truth.thn"))
+    u = S._inputs(spec, net.input_names, 6 * spec.hold[1], 7)  # several steps
+    rng = np.random.default_rng(0)
+    y0 = S._simulate(net, u, spec.dt, 0.0, rng)
+    y1 = S._simulate(truth, u, spec.dt, 0.0, rng)
+    assert np.max(np.abs(y1 - y0)) > 0.05
+    if c.edit[0] != "truth":  # same total resistance: same steady state
+        from tnn_dsl._compile import compile as _compile
+
+        m0, m1 = _compile(net, backend="numpy"), _compile(truth, backend="numpy")
+        p0, p1 = m0.init_params(), m1.init_params()
+        s0 = m0.outputs(p0, m0.steady_state(p0, u[0]), u[0])
+        s1 = m1.outputs(p1, m1.steady_state(p1, u[0]), u[0])
+        assert np.allclose(s0, s1, atol=1e-8)
+
+
+def test_scoring_counts_identical_equivalents_and_nulls():
+    from types import SimpleNamespace as NS
+
+    def diag(findings, before=1.0, after=0.1):
+        return NS(findings=findings, accepted=[f for f in findings if f.accepted],
+                  baseline={"val_mae": before}, extended={"val_mae": after}, timings={"total": 1.0})
+
+    def f(kind, target, dep, accepted, rank=1):
+        return NS(kind=kind, target=target, depends_on=dep, accepted=accepted, rank=rank, round=1)
+
+    c = CASES["tclab/heat_load"]
+    r = S.score(c, diag([f("param_dependence", "Q_src_h2", ["Q1"], True)]), 0.01)
+    assert not r["first"] and r["first_eq"] and r["accepted"] and r["dep"] and r["ratio"] == pytest.approx(10)
+    r = S.score(c, diag([f("heat_load", "Q[h1]", ["Q1"], False, 1), f("heat_load", "Q[h2]", ["Q1"], False, 2)],
+                        after=1.0), 0.01)
+    assert not r["first_eq"] and not r["accepted"] and r["dep"]  # first answer is the best fit of round 1
+    r = S.score(CASES["tclab/null"], diag([f("heat_load", "Q[h1]", [], True)]), 0.01)
+    assert r["false_accept"]
+    md = S.table([r, S.score(c, diag([f("heat_load", "Q[h2]", ["Q1"], True)]), 0.0)])
+    assert "false acceptance 100 %" in md and "| tclab | heat_load | 0 | 1 | 100 % (1/1)" in md
+
+
+# ---------------------------------------------------------------------------------------------
+# fast seeded variants: every kind once on the TCLab-like board (CI)
+# ---------------------------------------------------------------------------------------------
+
+_NOT_YET = {
+    # kinds the doctor has no candidate for yet (see docs/architecture.md, "Diagnosis")
+    "tclab/sensor_lag": "no sensor-lag candidate in the doctor yet (not exactly null: needs a ranking by a short fit)",
+    "tclab/thermal_mass": "no missing-thermal-mass candidate in the doctor yet (not exactly null)",
+}
+_MISSES = {
+    # kinds the doctor has candidates for but misses on the fast run; the reason is what the run showed
+    "tclab/dependence": "U1 depending on T(h1) (convection growing with temperature): the score test ranks the "
+                        "heat load Q[h1] ~ T(h1) first and no fit passes the held-out test on the short run",
+    "tclab/wrong_constant": "U12 is ranked first and its fit cuts the held-out MAE 75x, but the Diebold-Mariano "
+                            "test sees N_eff = 5 on 450 smooth held-out samples (p = 0.014 > 0.01): not accepted",
+    "tclab/unused_column": "the score test ranks spurious dependences (Q_src_h1 ~ T(h1), U1 ~ Q2) above the "
+                           "column `fan`; a spurious one is accepted in round 1, the column only in round 2",
+}
+
+FAST = ["tclab/dependence", "tclab/heat_load", "tclab_nolink/missing_link", "tclab/radiation", "tclab/sensor_offset",
+        "tclab/wrong_constant", "tclab/unused_column", "tclab/sensor_lag", "tclab/thermal_mass"]
+
+
+def _marks(name):
+    why = _NOT_YET.get(name) or _MISSES.get(name)
+    return [pytest.mark.xfail(strict=True, reason=why)] if why else []
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=_marks(n)) for n in FAST])
+def test_fast_planted_effect_is_found(name):
+    c = CASES[name]
+    r = S.run_case(c, noise=0.01, seed=0, quick=True)
+    msg = f"{name}: first answer {r['first_answer']} (accepted {r['first_accepted']}); {r['verdict']}"
+    assert r["first_eq"], msg
+    assert r["accepted"], msg
+    if "dep" in r:
+        assert r["dep"], msg
+    assert r["above_noise"] and r["ratio"] >= 2.0, f"{msg}; MAE {r['mae_before']:.3g} → {r['mae_after']:.3g} K"
+
+
+def test_fast_null_data_set_gives_no_finding():
+    r = S.run_case(CASES["tclab/null"], noise=0.01, seed=0, quick=True)
+    assert not r["false_accept"], r["verdict"]
+    assert r["mae_after"] == pytest.approx(r["mae_before"])
+
+
+# ---------------------------------------------------------------------------------------------
+# the full grid (slow; the benchmark runs the same grid and writes BENCHMARKS.md)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_full_hidden_effect_grid_meets_the_targets():
+    rows = [S.run_case(c, noise, seed, quick=False) for c in S.CASES for noise in S.NOISES for seed in range(2)]
+    eff = [r for r in rows if r["kind"] != "null"]
+    nul = [r for r in rows if r["kind"] == "null"]
+    table = S.table(rows)
+    dep = [r["dep"] for r in eff if "dep" in r]
+    assert sum(r["first_eq"] for r in eff) >= 0.9 * len(eff), table
+    assert sum(dep) >= 0.8 * len(dep), table
+    assert sum(not r["false_accept"] for r in nul) >= 0.95 * len(nul), table
+    assert all(r["ratio"] >= 2 for r in eff if r["above_noise"]), table
