@@ -49,6 +49,8 @@ def fluid_conductance(xp, mdot, cp, ua):
     ``ṁ·cp·(1 − a)``, ``a = exp(−UA/(ṁ·cp))``; ṁ kg/s, cp J/(kg·K), UA W/K. Uses ``expm1`` so it stays
     accurate when ``UA ≪ ṁ·cp``."""
     mcp = mdot * cp
+    if isinstance(mcp, (int, float)) and mcp == 0:
+        return 0.0  # no flow: ṁ·cp·(1 − e^(−UA/ṁcp)) → 0 as ṁ → 0
     return -mcp * _expm1(xp, -ua / mcp)
 
 
