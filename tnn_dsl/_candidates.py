@@ -18,6 +18,12 @@ Candidates come from the IR (not from a list of names):
 * ``radiation`` — grey-body radiation node–boundary: emissivity·area starting at 0.
 * ``sensor_offset`` — a constant offset on a sensor (its ``offset`` parameter, 0).
 
+Not exactly null (a structural edit, :func:`structural_candidates` / :func:`apply_structural`):
+
+* ``sensor_lag`` — a sensor without a lag reads its node through a first-order lag ``τ dT_s/dt = T_n − T_s``.
+  At small τ the reading is ``T_n − τ·dT_n/dt``, so its score-test column is ``−dT_n/dt`` (a direct
+  output term); the proper fit runs on the network with ``lag τ s free``.
+
 All edited networks are built as IR directly (the validation pass would refuse a zero conductance);
 :func:`clause_text` gives the ``.thn`` text of a candidate at its fitted value.
 """
@@ -32,7 +38,10 @@ from ._ir import (
     Temp, Unary,
 )
 
-__all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name"]
+__all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name",
+           "structural_candidates", "apply_structural", "STRUCTURAL_KINDS"]
+
+STRUCTURAL_KINDS = ("sensor_lag",)
 
 # parameter roles a dependence / wrong-constant candidate may target
 _DEP_ROLES = ("resistance", "conductance", "capacitance", "component", "heat_flow", "generic")
@@ -82,6 +91,7 @@ class Candidate:
             "missing_link": f"missing conduction path {self.target}",
             "radiation": f"missing radiation {self.target}",
             "sensor_offset": f"offset on sensor {self.target}",
+            "sensor_lag": f"sensor {self.target} lags its node {self.element.get('node', '')}",
             "unused_column": f"heat load at {self.target[2:-1]} driven by unused data column"
             f" {', '.join(self.depends_on)}",
         }
@@ -421,3 +431,34 @@ def _btemp(net: Network, boundary: str) -> str | None:
         if b.name == boundary:
             return b.temperature
     return None
+
+
+def structural_candidates(net: Network, kinds: tuple[str, ...] | None = None) -> list[Candidate]:
+    """Candidates that are not exactly null (see module doc): one ``sensor_lag`` per sensor without a lag.
+    Their ``columns`` name the parameter the edited network gets (:func:`apply_structural`)."""
+    kinds = kinds or STRUCTURAL_KINDS
+    out: list[Candidate] = []
+    if "sensor_lag" in kinds:
+        names = {p.name for p in net.params}
+        for sn in net.sensors:
+            if sn.lag is not None or sn.node not in net.node_names:
+                continue
+            lag = f"{sn.name}.lag"
+            if lag in names:
+                continue
+            out.append(Candidate("sensor_lag", sn.name, [], [Column(lag, 0)],
+                                 element={"sensor": sn.name, "node": sn.node, "param": lag}))
+    return out
+
+
+def apply_structural(net: Network, cand: Candidate, value: float, lower: float | None = None) -> Network:
+    """``net`` with the structural candidate ``cand`` built in, its new parameter ``free`` at ``value``
+    (SI: seconds for a sensor lag), bounded below by ``lower``."""
+    if cand.kind == "sensor_lag":
+        lag = cand.element["param"]
+        dim = {"s": 1.0}
+        p = Param(name=lag, expr=Num(value=float(value), dim=dim, unit="s"), dim=dim, unit="s", role="time_constant",
+                  free=True, lower=lower, owner=f"sensor {cand.target}")
+        sensors = [s.model_copy(update={"lag": lag}) if s.name == cand.target else s for s in net.sensors]
+        return net.model_copy(update={"params": list(net.params) + [p], "sensors": sensors}, deep=True)
+    raise ValueError(f"not a structural candidate kind: {cand.kind}")

@@ -13,9 +13,13 @@ Steps (see docs/architecture.md, "Diagnosis"):
 2. **Residuals** on the held-out rows (``val`` files, else the last 30 % of each training file, simulated
    as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (``_residuals``).
-3. **Candidates** from the IR (``_candidates``), all exactly null, in ONE extended network compiled once.
-   **Score test** at the fitted point: Jacobian ``J`` of the training outputs w.r.t. every candidate column
-   and every free column; the free directions are projected out (``P = I − J_f J_f⁺``) and for candidate c
+3. **Candidates** from the IR (``_candidates``), all exactly null, in ONE extended network, plus structural
+   ones (a sensor lag) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
+   outputs w.r.t. every candidate column and every free column. Candidates enter as extra heat flows per
+   node (``C·∂rhs_big/∂θ`` at the current trajectory, pointwise) pushed through ONE batched forward-mode
+   derivative of the current network's simulation w.r.t. forcing inputs (``_with_forcing``), plus direct
+   output terms; a sensor lag's column is ``−dT_node/dt``. The free directions are projected out
+   (``P = I − J_f J_f⁺``) and for candidate c
    ``S_c = N_eff · rᵀ Ĵ_c (Ĵ_cᵀĴ_c)⁻¹ Ĵ_cᵀ r / rᵀr`` (the LM statistic ``N·R²`` with the sample size corrected
    for residual autocorrelation), p-value from χ²(k_c). The Gauss–Newton step gives the initial value.
 4. **Fit the best few** (free + candidate columns, LM from the GN step) and measure on held-out rows.
@@ -42,19 +46,23 @@ import numpy as np
 from scipy import stats
 
 from . import _residuals as R
-from ._candidates import Candidate, Column, Extended, build_extended, fn_name, var_label
+from ._candidates import (
+    STRUCTURAL_KINDS, Candidate, Column, Extended, apply_structural, build_extended, fn_name, structural_candidates,
+    var_label,
+)
 from ._errors import Diagnostic, TnnError
-from ._ir import POSITIVE_ROLES, Input, Network
+from ._ir import POSITIVE_ROLES, Input, Network, Param
 
 __all__ = ["diagnose", "Diagnosis", "Finding"]
 
 # placement preference for the compensation guard: lower is more physical/specific
 _PLACEMENT = {
     "param_dependence": 0, "wrong_constant": 0, "missing_link": 1, "radiation": 1, "sensor_offset": 2,
-    "heat_load": 3, "unused_column": 3,
+    "heat_load": 3, "unused_column": 3, "sensor_lag": 2,
 }
 P_ACCEPT = 0.01
 MIN_GAIN = 0.10  # minimum relative MAE reduction on held-out data
+MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 
 # ---------------------------------------------------------------------------------------------
@@ -153,6 +161,12 @@ class Diagnosis:
             lines.append(f"      held-out MAE {ev.get('val_mae_before', float('nan')):.4g} → {f.val_mae_after:.4g} K"
                          f", held-out test p = {ev.get('p_value', float('nan')):.2g} (N_eff = {ev.get('n_eff', 0):.0f})"
                          + (f"; {ev['reason']}" if ev.get("reason") else ""))
+            if f.accepted and ev.get("indistinguishable_from"):
+                tw = ev["indistinguishable_from"]
+                lines.append("      caution: to first order the data cannot tell this apart from "
+                             + "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})" for t in tw[:3])
+                             + " — the named element is the best-scoring, most physical choice; the others"
+                             " could compensate for it (not separately identifiable from these sensors)")
         lines.append("  verdict: " + self.verdict)
         if self.accepted:
             g = self.gain
@@ -186,13 +200,17 @@ class _Engine:
     value is ``base·exp(θ)`` (log) or ``base + θ``."""
 
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
-                 params: dict[str, np.ndarray] | None = None, model=None):
+                 params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0):
         from ._compile import compile as _compile
 
         self.net = net
         self.backend = backend
         self.model = model if model is not None else _compile(net, backend=backend, dtype="float64")
         self.exps = experiments
+        self.n_force = n_force  # trailing forcing inputs (W, one per node; zero in every simulation)
+        # the experiments holding training rows come first: the score test simulates only those
+        has_train = [bool(m.any()) for m in np.split(train_mask, np.cumsum([e.n_steps for e in experiments])[:-1])]
+        self.n_score_exps = max(i + 1 for i, h in enumerate(has_train) if h) if any(has_train) else len(experiments)
         self.cols = cols
         self.col_index = {(c.key, c.index): i for i, c in enumerate(cols)}
         self.params = params if params is not None else {
@@ -229,10 +247,13 @@ class _Engine:
             import jax
             import jax.numpy as jnp
 
-            u_list = [jnp.asarray(e.inputs) for e in exps]
+            nf = self.n_force
+            u_list = [jnp.asarray(_pad(e.inputs, nf)) for e in exps]
             dts = [float(e.dt) for e in exps]
             m_lin = {k: jnp.asarray(v) for k, v in self.m_lin.items()}
             m_log = {k: jnp.asarray(v) for k, v in self.m_log.items()}
+            n_sc = self.n_score_exps
+            lens = [e.n_steps for e in exps[:n_sc]]
 
             def with_theta(base, theta):
                 p = dict(base)
@@ -252,24 +273,64 @@ class _Engine:
                 return jnp.concatenate(ys, 0), jnp.concatenate(xs, 0)
 
             def out_flat(base, theta, idx):
-                return simulate(with_theta(base, theta))[0].reshape(-1)[idx]
+                """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
+                p = with_theta(base, theta)
+                ys = []
+                for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
+                    _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                    ys.append(y)
+                return jnp.concatenate(ys, 0).reshape(-1)[idx]
 
             def jac_chunk(base, tangents, idx):
                 theta0 = jnp.zeros(tangents.shape[1])
                 f = lambda th: out_flat(base, th, idx)  # noqa: E731
                 return jax.vmap(lambda v: jax.jvp(f, (theta0,), (v,))[1])(tangents)
 
+            def out_forced(base, theta, F, idx):
+                """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
+                p = with_theta(base, theta)
+                ys, s0 = [], 0
+                for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
+                    uu = jnp.concatenate([u[:, : u.shape[1] - nf], F[s0: s0 + n]], axis=1)
+                    s0 += n
+                    _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
+                    ys.append(y)
+                return jnp.concatenate(ys, 0).reshape(-1)[idx]
+
+            def jac_forced(base, tan_theta, tan_F, idx):
+                theta0 = jnp.zeros(tan_theta.shape[1])
+                F0 = jnp.zeros(tan_F.shape[1:])
+                f = lambda th, F: out_forced(base, th, F, idx)  # noqa: E731
+                return jax.vmap(lambda a, b: jax.jvp(f, (theta0, F0), (a, b))[1])(tan_theta, tan_F)
+
+            def point(base, tangents, X, U):
+                """∂rhs/∂θ and ∂outputs/∂θ at given states/inputs (no time loop): (m, N, ns), (m, N, n_out)."""
+                theta0 = jnp.zeros(tangents.shape[1])
+                f = lambda th: (model.rhs(with_theta(base, th), X, U), model.outputs(with_theta(base, th), X, U))  # noqa: E731
+                return jax.vmap(lambda v: jax.jvp(f, (theta0,), (v,))[1])(tangents)
+
+            def inv_cap(base, X, U):
+                """∂rhs/∂(forcing) with every forcing input at 1 W: 1/C per node state (N, ns)."""
+                dU = jnp.concatenate([jnp.zeros(U.shape[:-1] + (U.shape[-1] - nf,)), jnp.ones(U.shape[:-1] + (nf,))], -1)
+                return jax.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
+
             self._sim = jax.jit(simulate)
             self._jac = jax.jit(jac_chunk)
+            self._jac_forced = jax.jit(jac_forced)
+            self._point = jax.jit(point)
+            self._inv_cap = jax.jit(inv_cap)
             self._to = lambda d: {k: jnp.asarray(v) for k, v in d.items()}  # noqa: E731
             self._np = np.asarray
         else:
             import torch
 
-            u_list = [torch.as_tensor(e.inputs, dtype=torch.float64) for e in exps]
+            nf = self.n_force
+            u_list = [torch.as_tensor(_pad(e.inputs, nf), dtype=torch.float64) for e in exps]
             dts = [float(e.dt) for e in exps]
             m_lin = {k: torch.as_tensor(v) for k, v in self.m_lin.items()}
             m_log = {k: torch.as_tensor(v) for k, v in self.m_log.items()}
+            n_sc = self.n_score_exps
+            lens = [e.n_steps for e in exps[:n_sc]]
 
             def with_theta(base, theta):
                 p = dict(base)
@@ -293,7 +354,13 @@ class _Engine:
 
                 idx_t = torch.as_tensor(idx)
                 theta0 = torch.zeros(tangents.shape[1], dtype=torch.float64)
-                f = lambda th: simulate(with_theta(base, th))[0].reshape(-1)[idx_t]  # noqa: E731
+                def f(th):
+                    p = with_theta(base, th)
+                    ys = []
+                    for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
+                        _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                        ys.append(y)
+                    return torch.cat(ys, 0).reshape(-1)[idx_t]
                 try:
                     return tf.vmap(lambda v: tf.jvp(f, (theta0,), (v,))[1])(tangents)
                 except Exception:  # noqa: BLE001 - a model not vmap-able: one JVP per direction
@@ -303,7 +370,50 @@ class _Engine:
                 with torch.no_grad():
                     return simulate(p)
 
+            def out_forced(base, theta, F, idx_t):
+                p = with_theta(base, theta)
+                ys, s0 = [], 0
+                for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
+                    uu = torch.cat([u[:, : u.shape[1] - nf], F[s0: s0 + n]], dim=1)
+                    s0 += n
+                    _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
+                    ys.append(y)
+                return torch.cat(ys, 0).reshape(-1)[idx_t]
+
+            def jac_forced(base, tan_theta, tan_F, idx):
+                import torch.func as tf
+
+                idx_t = torch.as_tensor(idx)
+                theta0 = torch.zeros(tan_theta.shape[1], dtype=torch.float64)
+                F0 = torch.zeros(tan_F.shape[1:], dtype=torch.float64)
+                f = lambda th, F: out_forced(base, th, F, idx_t)  # noqa: E731
+                try:
+                    return tf.vmap(lambda a, b: tf.jvp(f, (theta0, F0), (a, b))[1])(tan_theta, tan_F)
+                except Exception:  # noqa: BLE001 - not vmap-able: one JVP per direction
+                    return torch.stack([tf.jvp(f, (theta0, F0), (a, b))[1] for a, b in zip(tan_theta, tan_F)])
+
+            def point(base, tangents, X, U):
+                import torch.func as tf
+
+                theta0 = torch.zeros(tangents.shape[1], dtype=torch.float64)
+                f = lambda th: (model.rhs(with_theta(base, th), X, U), model.outputs(with_theta(base, th), X, U))  # noqa: E731
+                try:
+                    return tf.vmap(lambda v: tf.jvp(f, (theta0,), (v,))[1])(tangents)
+                except Exception:  # noqa: BLE001
+                    outs = [tf.jvp(f, (theta0,), (v,))[1] for v in tangents]
+                    return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs])
+
+            def inv_cap(base, X, U):
+                import torch.func as tf
+
+                dU = torch.cat([torch.zeros(*U.shape[:-1], U.shape[-1] - nf, dtype=torch.float64),
+                                torch.ones(*U.shape[:-1], nf, dtype=torch.float64)], -1)
+                return tf.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
+
             self._sim = sim_nograd
+            self._jac_forced = lambda b, a, F, idx: jac_forced(b, a, F, idx).detach()  # noqa: E731
+            self._point = lambda b, t, X, U: tuple(x.detach() for x in point(b, t, X, U))  # noqa: E731
+            self._inv_cap = lambda b, X, U: inv_cap(b, X, U).detach()  # noqa: E731
             self._jac = lambda base, tangents, idx: jac_chunk(base, torch.as_tensor(tangents), idx).detach()  # noqa: E731
             self._to = lambda d: {k: torch.as_tensor(np.asarray(v), dtype=torch.float64) for k, v in d.items()}  # noqa: E731
             self._np = lambda x: x.detach().cpu().numpy()  # noqa: E731
@@ -325,7 +435,7 @@ class _Engine:
         base = self._to(self.params)
         n = len(self.cols)
         out = []
-        size = chunk
+        size = 8 if len(active) <= 8 else chunk
         for s in range(0, len(active), size):
             part = active[s: s + size]
             tan = np.zeros((size, n))
@@ -335,6 +445,67 @@ class _Engine:
             jc = np.asarray(self._np(self._jac(base, tan_b, self.train_idx)))
             out.append(jc[: len(part)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    @property
+    def n_score_rows(self) -> int:
+        """Rows of the experiments the score test simulates (those holding training rows)."""
+        return int(sum(e.n_steps for e in self.exps[: self.n_score_exps]))
+
+    def forced_jacobian(self, active: list[int], forcing: np.ndarray | None = None, chunk: int = 32) -> np.ndarray:
+        """∂ y_model[train rows] w.r.t. the columns ``active`` (first block) and w.r.t. the forcing heat-flow
+        time series ``forcing (m, N_score, n_force)`` W (second block): shape (n_train, len(active) + m).
+        One compiled shape: ``chunk`` tangents per call."""
+        base = self._to(self.params)
+        n = len(self.cols)
+        nsr, nf = self.n_score_rows, self.n_force
+        m = 0 if forcing is None else forcing.shape[0]
+        total = len(active) + m
+        out = []
+        for s0 in range(0, total, chunk):
+            ta = np.zeros((chunk, n))
+            tf_ = np.zeros((chunk, nsr, nf))
+            for r in range(chunk):
+                j = s0 + r
+                if j >= total:
+                    break
+                if j < len(active):
+                    ta[r, active[j]] = 1.0
+                else:
+                    tf_[r] = forcing[j - len(active)]
+            t = self._to({"a": ta, "f": tf_})
+            jc = np.asarray(self._np(self._jac_forced(base, t["a"], t["f"], self.train_idx)))
+            out.append(jc[: min(chunk, total - s0)].T)
+        return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    def point_derivs(self, active: list[int], X: np.ndarray, U: np.ndarray, chunk: int = 32):
+        """(∂rhs/∂θ (m, N, ns), ∂outputs/∂θ (m, N, n_out)) for the columns ``active`` at states ``X (N, ns)`` K
+        and inputs ``U (N, n_in)`` SI (vectorised over time, no simulation)."""
+        base = self._to(self.params)
+        n = len(self.cols)
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        d_rhs, d_out = [], []
+        for s0 in range(0, len(active), chunk):
+            ta = np.zeros((chunk, n))
+            part = active[s0: s0 + chunk]
+            for r, j in enumerate(part):
+                ta[r, j] = 1.0
+            a, b = self._point(base, self._to({"a": ta})["a"], t["X"], t["U"])
+            d_rhs.append(np.asarray(self._np(a))[: len(part)])
+            d_out.append(np.asarray(self._np(b))[: len(part)])
+        ns, no = X.shape[1], len(self.model.output_names)
+        return (np.concatenate(d_rhs) if d_rhs else np.zeros((0, X.shape[0], ns)),
+                np.concatenate(d_out) if d_out else np.zeros((0, X.shape[0], no)))
+
+    def rates(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """``dT/dt (N, ns)`` K/s at states ``X`` and inputs ``U`` (current parameters, forcing 0)."""
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        return np.asarray(self._np(self.model.rhs(self._to(self.params), t["X"], t["U"])))
+
+    def inv_capacity(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """``∂(dT/dt)/∂Q`` for a heat flow into each node's own forcing input: ``1/C`` (N, ns) 1/(J/K); 0 for
+        lag states."""
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        return np.asarray(self._np(self._inv_cap(self._to(self.params), t["X"], t["U"])))
 
     def apply(self, params, active: list[int], delta: np.ndarray) -> dict[str, np.ndarray]:
         """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped)."""
@@ -407,6 +578,37 @@ class _Engine:
 # ---------------------------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------------------------
+
+
+def _pad(u: np.ndarray, n: int) -> np.ndarray:
+    """Inputs ``(N, n_in)`` with ``n`` zero columns appended (the forcing inputs)."""
+    u = np.asarray(u, dtype=float)
+    return np.concatenate([u, np.zeros(u.shape[:-1] + (n,))], axis=-1) if n else u
+
+
+FORCE_PREFIX = "dxF_"
+
+
+def _with_forcing(net: Network) -> Network:
+    """``net`` plus one heat source per node driven by a new input ``dxF_<node>`` (W). With those inputs at 0
+    it is exactly ``net``; the score test differentiates the simulation w.r.t. them (the response to any
+    candidate's extra heat flow through the same linearised dynamics)."""
+    from ._ir import Ref, Source
+
+    w = {"kg": 1.0, "m": 2.0, "s": -3.0}
+    names = set(net.input_names) | set(net.param_names) | {s.name for s in net.sources}
+    inputs, params, sources = list(net.inputs), list(net.params), list(net.sources)
+    for n in net.node_names:
+        base = FORCE_PREFIX + re.sub(r"[^A-Za-z0-9_]", "_", n)
+        name = base
+        while name in names:
+            name += "_"
+        names.add(name)
+        inputs.append(Input(name=name, column=name, dim=w, unit="W"))
+        params.append(Param(name=name + ".q", expr=Ref(name=name, kind="input"), dim=w, unit="W", role="heat_flow",
+                            owner=f"source {name}"))
+        sources.append(Source(name=name, node=n, value=name + ".q"))
+    return net.model_copy(update={"inputs": inputs, "params": params, "sources": sources}, deep=True)
 
 
 def _load(net_or_path) -> tuple[Network, str | None, str]:
@@ -673,14 +875,22 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     accepted: list[Candidate] = []
     current_val = (res.mae, res.max, eng.sse(which="val"))
     final_eng, final_ext = eng, ext0
-    remaining = list(ext.candidates)
+    with_struct = kinds is None or any(k in STRUCTURAL_KINDS for k in kinds)
+    dt_min = min(float(e.dt) for e in exps)
+
+    def candidates_now() -> list[Candidate]:
+        done = {a.key for a in accepted}
+        struct = structural_candidates(net_x, kinds if kinds else None) if with_struct else []
+        return [c for c in list(ext.candidates) + struct if c.key not in done]
+
+    remaining = candidates_now()
     big = None
     for rnd in range(1, max_rounds + 1):
         if deadline is not None and _time.monotonic() > deadline:
             say("budget spent; stopping the forward selection")
             break
         t0 = _time.monotonic()
-        acc_keys = [c.key for c in accepted]
+        acc_keys = [c.key for c in accepted if c.kind not in STRUCTURAL_KINDS]  # structural ones live in net_x
         if big is None:
             say(f"compiling the extended network ({len(ext.candidates)} candidates at their null value) ...")
             big = _make_engine(ext, net_x, exps, train_mask, val_mask, backend, state, ref, [c.key for c in ext.candidates],
@@ -688,9 +898,13 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
         else:
             big[0].params = _params_from_state(big[0], big[1], state, acc_keys)
         b_eng, b_ext, b_free, b_cols = big
-        active_base = list(b_free) + [j for k in acc_keys for j in b_cols.get(k, [])]
         say(f"round {rnd}: score test over {len(remaining)} candidates ...")
-        scored = _score(b_eng, remaining, active_base, b_cols, sigma)
+        scored = _score_forced(final_eng, b_eng, remaining, b_cols, [_cand_in(b_ext, k) for k in acc_keys])
+        if scored is None:
+            remaining = [r for r in remaining if r.kind not in STRUCTURAL_KINDS]
+        if scored is None:
+            active_base = list(b_free) + [j for k in acc_keys for j in b_cols.get(k, [])]
+            scored = _score(b_eng, remaining, active_base, b_cols, sigma)
         lap(f"score_round{rnd}", t0)
         if rnd == 1:
             scores_out = [dict(s["public"]) for s in scored]
@@ -699,20 +913,44 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
         t0 = _time.monotonic()
         fits = []
         e_base_val = final_eng.residual().ravel()[final_eng.val_idx]
+        short = []
         for s_ in _shortlist(scored, top):
+            if s_["r2"] < MIN_R2 and short:
+                continue  # the linearised fit explains too little of the residual to pay
+            short.append(s_)
+        # ONE small network for the round: the original, the accepted and every shortlisted candidate (each
+        # exactly null at zero); each candidate is fitted with only its own columns moving, so the
+        # compiled simulation and Jacobian are shared by all the round's fits
+        sh_keys = [s_["cand"].key for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
+        t_c = _time.monotonic()
+        e_s, x_s, f_s, c_s = small(acc_keys + sh_keys)
+        t_c = _time.monotonic() - t_c
+        start_params = {k: np.array(v, copy=True) for k, v in e_s.params.items()}
+        for s_ in short:
             c: Candidate = s_["cand"]
             if deadline is not None and _time.monotonic() > deadline and fits:
                 break
+            if s_["r2"] < MIN_R2:
+                say(f"  {c.describe()}: the score test explains only {100 * s_['r2']:.2g} % of the residual;"
+                    " not fitted")
+                break
             say(f"  fitting {c.describe()} (k={c.k}) ...")
-            state.cand[c.key] = [float(np.asarray(b_eng.params[col.key]).reshape(-1)[col.index]) for col in c.columns]
-            e_s, x_s, f_s, c_s = small(acc_keys + [c.key])
+            if c.kind in STRUCTURAL_KINDS:
+                f = _fit_structural(c, s_, net_x, varying, extra, kinds_all, acc_keys, exps, train_mask, val_mask,
+                                    backend, state, ref, dt_min, deadline, e_base_val, say)
+                if f is not None:
+                    fits.append(f)
+                continue
+            e_s.params = {k: np.array(v, copy=True) for k, v in start_params.items()}
             act = list(f_s) + [j for k in acc_keys + [c.key] for j in c_s.get(k, [])]
             init = np.zeros(len(act))  # the Gauss–Newton step of the score test (kept only if it helps)
             own = c_s.get(c.key, [])
             for d, j in zip(s_["delta"], own):
                 init[act.index(j)] = d
-            e_s.fit(act, max_iter=15, init_delta=init, deadline=deadline, tol=1e-6)
-            state.cand.pop(c.key, None)
+            t_f = _time.monotonic()
+            info = e_s.fit(act, max_iter=15, init_delta=init, deadline=deadline, tol=1e-4)
+            say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations"
+                + (f", network compiled in {t_c:.1f} s" if len(fits) == 0 else "") + ")")
             e_after = e_s.residual()
             ev = np.where(e_s.val_mask, e_after, np.nan)
             mae = float(np.nanmean(np.abs(ev)))
@@ -721,15 +959,17 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
             e1 = e_after.ravel()[e_s.val_idx]
             F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
             fits.append({"cand": c, "score": s_, "eng": e_s, "ext": x_s, "val_mae": mae, "val_max": mx, "e_val": e1,
-                         "val_sse": sse_v, "F": F, "p": pval, "n_eff": n_eff})
+                         "val_sse": sse_v, "F": F, "p": pval, "n_eff": n_eff, "params": e_s.params,
+                         "e_all": e_after, "net": None})
         lap(f"fit_round{rnd}", t0)
         if not fits:
             break
         chosen = _choose(fits, current_val, e_base_val)
+        twins = _indistinguishable(chosen["score"], scored) if chosen is not None else []
         for rank, f in enumerate(sorted(fits, key=lambda f: f["val_sse"]), start=1):
             c = f["cand"]
-            cf = _cand_in(f["ext"], c.key)
-            prm = f["eng"].params
+            cf = _cand_in(f["ext"], c.key) or c
+            prm = f["params"]
             findings.append(Finding(
                 rank=rank, kind=c.kind, target=c.target, depends_on=list(c.depends_on),
                 clause=_clause(cf, prm, f["ext"], f["eng"]),
@@ -741,21 +981,27 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
                           "val_sse_after": f["val_sse"], "dm_stat": f["F"], "p_value": f["p"], "n_eff": f["n_eff"],
                           "test": "Diebold–Mariano on held-out squared errors, HAC variance, AIC charge for k",
                           "mae_gain": 1 - f["val_mae"] / current_val[0] if current_val[0] else 0.0,
-                          "reason": f.get("reason", "")}))
+                          "reason": f.get("reason", ""),
+                          "indistinguishable_from": twins if f is chosen else []}))
         if chosen is None:
             say(f"round {rnd}: no candidate pays on held-out data")
             break
         c = chosen["cand"]
         say(f"round {rnd}: accepted {c.describe()} (held-out MAE {current_val[0]:.4g} → {chosen['val_mae']:.4g} K)")
         accepted.append(c)
+        chosen["eng"].params = chosen["params"]
         state.harvest(chosen["eng"], chosen["ext"], [k.key for k in accepted])
         final_eng, final_ext = chosen["eng"], chosen["ext"]
         current_val = (chosen["val_mae"], chosen["val_max"], chosen["val_sse"])
-        remaining = [r for r in remaining if r.key != c.key]
+        if chosen["net"] is not None:  # a structural edit becomes part of the base network (its parameter free)
+            net_x = chosen["net"]
+            ext = build_extended(net_x, varying, extra, kinds=kinds)
+            big = None
+        remaining = candidates_now()
 
     # ---- the extension text, re-loaded to check it is valid
     t0 = _time.monotonic()
-    acc_small = [_cand_in(final_ext, c.key) for c in accepted]
+    acc_small = [_cand_in(final_ext, c.key) or c for c in accepted]
     fitted_params = final_eng.params
     clauses = _merged_clauses(acc_small, fitted_params, final_ext, final_eng)
     ext_text, diff = _extend_text(text, clauses, acc_small, net, fitted_params, final_ext, unused)
@@ -800,8 +1046,34 @@ class _State:
                                        for col in cand.columns]
 
 
-def _cand_in(ext: Extended, key: str) -> Candidate:
-    return next(c for c in ext.candidates if c.key == key)
+def _cand_in(ext: Extended, key: str) -> Candidate | None:
+    return next((c for c in ext.candidates if c.key == key), None)
+
+
+def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kinds, acc_keys, exps, train_mask, val_mask,
+                    backend, state, ref, dt_min, deadline, e_base_val, say) -> dict | None:
+    """Fit a structural (not exactly null) candidate on its own network: the base network with the edit
+    built in (:func:`apply_structural`), started from the score test's Gauss–Newton value."""
+    t0 = float(s_["delta"][0]) if len(s_["delta"]) else 0.0
+    if c.kind == "sensor_lag":
+        if not t0 > 0:
+            say("    the linearised fit wants a negative lag: not fitted")
+            return None
+        t0 = float(np.clip(t0, 0.5 * dt_min, 1e4 * dt_min))
+    net_s = apply_structural(net_x, c, t0, lower=0.2 * dt_min)
+    ext_s = build_extended(net_s, varying, extra, kinds=kinds, only=set(acc_keys))
+    eng, x_s, f_s, c_s = _make_engine(ext_s, net_s, exps, train_mask, val_mask, backend, state, ref, acc_keys)
+    act = list(f_s) + [j for k in acc_keys for j in c_s.get(k, [])]
+    t_f = _time.monotonic()
+    info = eng.fit(act, max_iter=15, deadline=deadline, tol=1e-4)
+    say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, own network)")
+    e_after = eng.residual()
+    ev = np.where(eng.val_mask, e_after, np.nan)
+    e1 = e_after.ravel()[eng.val_idx]
+    F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
+    return {"cand": c, "score": s_, "eng": eng, "ext": x_s, "val_mae": float(np.nanmean(np.abs(ev))),
+            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": eng.sse(which="val"), "F": F, "p": pval,
+            "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": net_s}
 
 
 def _alias(key: str, params) -> str | None:
@@ -840,7 +1112,9 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     nominal run (the same for every network, so values carry over)."""
     from ._compile import compile as _compile
 
-    model = _compile(ext_s.network, backend=backend, dtype="float64")
+    n_force = 0 if with_candidates else len(ext_s.network.nodes)
+    model = _compile(ext_s.network if with_candidates else _with_forcing(ext_s.network), backend=backend,
+                     dtype="float64")
     specs = model.param_specs
     params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
     free_cols = _free_columns(net_x, ext_s, specs, params0)
@@ -858,7 +1132,8 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
                 cand_cols.append(_Col(col.key, col.index, False, lower, None))
             idx.append(seen[(col.key, col.index)])
         cols_of[cand.key] = idx
-    eng = _Engine(ext_s.network, exps, train_mask, val_mask, backend, free_cols + cand_cols, params0, model=model)
+    eng = _Engine(model.network, exps, train_mask, val_mask, backend, free_cols + cand_cols, params0, model=model,
+                  n_force=n_force)
     eng.n_free = len(free_cols)
     all_u = np.concatenate([e.inputs for e in exps], 0)
     if "states" not in ref:
@@ -904,14 +1179,74 @@ def _same_columns(a: Candidate, b: Candidate) -> bool:
     return {(c.key, c.index) for c in a.columns} <= {(c.key, c.index) for c in b.columns}
 
 
+def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: dict[str, list[int]],
+                  accepted: list[Candidate]) -> list[dict] | None:
+    """The score test without simulating the big extended network: every candidate enters the dynamics as
+    an extra heat flow per node, ``F_c(t) = C·∂rhs/∂θ_c`` at the current trajectory (the big network's
+    right-hand side differentiated pointwise, vectorised over time), plus a direct output term
+    ``∂h/∂θ_c`` (sensor offsets). The response of the outputs to ``F_c`` is one forward-mode derivative of
+    the *current* network's simulation w.r.t. its forcing inputs (``_with_forcing``), batched over
+    candidates: exact in continuous time, the discrete step holding ``F_c`` over each sample. Returns None
+    when the two networks' states differ (then the caller uses :func:`_score` on the big network)."""
+    if tuple(big.model.state_names) != tuple(cur.model.state_names) or cur.n_force == 0:
+        return None
+    nsr = cur.n_score_rows
+    _, X = cur.simulate()
+    X = X[:nsr]
+    n_in = len(big.model.input_names)
+    U = np.concatenate([e.inputs for e in cur.exps], 0)[:nsr, :n_in]
+    acc_cols = {(col.key, col.index) for a in accepted for col in a.columns}
+    # the base directions: the nominal free columns and the accepted candidates' (the current engine may also
+    # hold last round's rejected candidates, at zero: left out)
+    active_base = [i for i, c in enumerate(cur.cols) if i < cur.n_free or (c.key, c.index) in acc_cols]
+    taken = {(cur.cols[i].key, cur.cols[i].index) for i in active_base}
+    cand_idx = sorted({j for cand in cands for j in cols_of.get(cand.key, [])
+                       if (big.cols[j].key, big.cols[j].index) not in acc_cols | taken})
+    d_rhs, d_out = big.point_derivs(cand_idx, X, U)
+    inv_c = cur.inv_capacity(X, U)  # (N, ns)
+    nn = cur.n_force
+    with np.errstate(divide="ignore", invalid="ignore"):
+        F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
+    J_all = cur.forced_jacobian(active_base, F)
+    direct = d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # (n_train, m)
+    J_all[:, len(active_base):] += direct
+    # structural candidates: their first-order columns, no simulation (a sensor lag τ: ∂y_s/∂τ = −dT_node/dt)
+    struct = [c for c in cands if c.kind in STRUCTURAL_KINDS]
+    if struct:
+        rates = cur.rates(X, U)  # (N, ns) K/s
+        names = list(cur.model.state_names)
+        outs = list(cur.model.output_names)
+        cols_of = dict(cols_of)
+        extra_cols = []
+        for c in struct:
+            col = np.zeros((nsr, len(outs)))
+            if c.kind == "sensor_lag":
+                col[:, outs.index(c.target)] = -rates[:, names.index(c.element["node"])]
+            j = len(big.cols) + len(extra_cols)
+            cols_of[c.key] = [j]
+            cand_idx = cand_idx + [j]
+            extra_cols.append(col.reshape(-1)[cur.train_idx])
+        J_all = np.concatenate([J_all, np.stack(extra_cols, axis=1)], axis=1)
+    r = cur.residual().ravel()[cur.train_idx]
+    return _score_stats(J_all, len(active_base), r, cands, cand_idx, cols_of)
+
+
 def _score(eng: _Engine, cands: list[Candidate], active_base: list[int], cols_of: dict[str, list[int]],
            sigma: float) -> list[dict]:
-    """The score (LM) test of every candidate at the current point; sorted best first."""
+    """The score (LM) test of every candidate at the current point, on the big network's simulation (used
+    where :func:`_score_forced` cannot be); sorted best first."""
     r = eng.residual().ravel()[eng.train_idx]
     cand_idx = sorted({j for cand in cands for j in cols_of.get(cand.key, [])} - set(active_base))
     J_all = eng.jacobian(active_base + cand_idx)
-    Jf = J_all[:, : len(active_base)]
-    Jc_all = J_all[:, len(active_base):]
+    return _score_stats(J_all, len(active_base), r, cands, cand_idx, cols_of)
+
+
+def _score_stats(J_all: np.ndarray, n_base: int, r: np.ndarray, cands: list[Candidate], cand_idx: list[int],
+                 cols_of: dict[str, list[int]]) -> list[dict]:
+    """Score statistics from the Jacobian ``J_all = [J_base | J_candidate columns cand_idx]`` (n_train, ·)
+    and the training residual ``r``; sorted best first."""
+    Jf = J_all[:, :n_base]
+    Jc_all = J_all[:, n_base:]
     pos = {j: i for i, j in enumerate(cand_idx)}
     if Jf.shape[1]:  # project out the free directions: orthonormal basis of span(Jf)
         sc = np.linalg.norm(Jf, axis=0)
@@ -941,14 +1276,37 @@ def _score(eng: _Engine, cands: list[Candidate], active_base: list[int], cols_of
         delta = (Vt.T @ (proj / s)) / sc
         S = n_eff * r2
         p = float(stats.chi2.sf(S, k))
+        fit_dir = Q @ proj  # the training-output change the candidate's linearised fit makes
+        nrm = float(np.linalg.norm(fit_dir))
         out.append({"cand": cand, "r2": r2, "S": S, "p": p, "k": k, "delta": delta,
-                    "adj": S - 2 * k, "place": _PLACEMENT.get(cand.kind, 3)})
+                    "adj": S - 2 * k, "place": _PLACEMENT.get(cand.kind, 3),
+                    "dir": (fit_dir / nrm).astype(np.float32) if nrm > 0 else None})
     out.sort(key=lambda d: (-d["adj"], d["k"], d["place"]))
     for i, d in enumerate(out, start=1):
         c = d["cand"]
         d["public"] = {"rank": i, "kind": c.kind, "target": c.target, "depends_on": c.depends_on, "k": d["k"],
                        "score": d["S"], "r2": d["r2"], "p": d["p"], "words": c.describe()}
     return out
+
+
+def _indistinguishable(chosen: dict, scored: list[dict], cos_min: float = 0.95, most: int = 5) -> list[dict]:
+    """Candidates whose linearised correction of the training outputs is (nearly) the same as the chosen
+    one's (|cos| ≥ ``cos_min`` between the fitted output changes, free directions projected out): the data
+    cannot tell them apart, e.g. two series resistances seen through one sensor (thesis §6.2.4). This is
+    the identifiability test of ``tnn_dsl.sensitivity`` (|corr| > 0.95 between sensitivity columns) applied
+    to the candidates' columns."""
+    d0 = chosen.get("dir")
+    if d0 is None:
+        return []
+    out = []
+    for s in scored:
+        if s is chosen or s.get("dir") is None:
+            continue
+        cos = abs(float(np.dot(d0.astype(float), s["dir"].astype(float))))
+        if cos >= cos_min:
+            out.append({"candidate": s["cand"].describe(), "key": s["cand"].key, "cos": cos, "k": s["k"]})
+    out.sort(key=lambda d: -d["cos"])
+    return out[:most]
 
 
 def _held_out_test(e0: np.ndarray, e1: np.ndarray, k: int) -> tuple[float, float, float]:
@@ -962,6 +1320,8 @@ def _held_out_test(e0: np.ndarray, e1: np.ndarray, k: int) -> tuple[float, float
         return 0.0, 1.0, 0.0
     e0, e1 = e0[ok], e1[ok]
     n = e0.size
+    if np.allclose(e0, e1, rtol=1e-9, atol=1e-12):  # the same predictions: no evidence either way
+        return 0.0, 0.5, float(n)
     d = e0**2 - e1**2 - 2.0 * k * float(np.mean(e1**2)) / n
     dm = d - d.mean()
     var0 = float(dm @ dm) / n
@@ -997,7 +1357,9 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     paying = []
     for f in fits:
         gain = 1 - f["val_mae"] / mae0 if mae0 else 0.0
-        if f["p"] >= P_ACCEPT:
+        if not (math.isfinite(f["val_mae"]) and f["val_mae"] < 1e3):
+            f["reason"] = "its held-out simulation diverges (the fitted law leaves the physical range there)"
+        elif f["p"] >= P_ACCEPT:
             f["reason"] = f"not significant (p = {f['p']:.2g} ≥ {P_ACCEPT})"
         elif gain < MIN_GAIN:
             f["reason"] = f"gain too small ({100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %)"
@@ -1041,6 +1403,14 @@ def _linear_coeffs(c: Candidate, params, ext: Extended):
     return (float(b[j]) if b.size > j else 0.0), terms
 
 
+def _out_scale(params, c: Candidate) -> float:
+    """The output scale of the candidate's own output ``j`` of its learned function (W, or the parameter's
+    unit)."""
+    ys = np.asarray(params.get(f"{c.fn}.y_scale", np.ones(1))).reshape(-1)
+    j = int(c.element.get("output", 0))
+    return float(ys[j] if j < ys.size else ys[0])
+
+
 def _pos1_slope() -> float:
     sp4 = math.log1p(math.exp(4.0))
     return 4.0 / (1.0 + math.exp(-4.0)) / sp4
@@ -1051,7 +1421,17 @@ def _unit_of(net: Network, pname: str) -> str:
         p = net.param(pname)
     except KeyError:
         return ""
-    return p.unit or {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "heat_flow": "W"}.get(p.role, "")
+    # values are shown in SI: the SI unit of the role (a file's own unit, e.g. K/kW, would mislabel them)
+    si = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "heat_flow": "W", "time_constant": "s",
+          "temperature": "K", "offset": "K"}
+    if p.role in si:
+        return si[p.role]
+    from ._units import format_dim
+
+    try:
+        return format_dim(p.dim) if p.dim else ""
+    except Exception:  # noqa: BLE001 - display only
+        return ""
 
 
 def _var_unit(net: Network, label: str) -> tuple[str, float, float]:
@@ -1088,7 +1468,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
             inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r) / (1 + k * z0) if 1 + k * z0 else abs(r))}·({lab} − {_fmt(m if not lab.startswith('T(') else m - 273.15, 3)}{' °C' if lab.startswith('T(') else ''})"
                              for lab, r, m in rel)
             return (f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}")
-        y_scale = float(np.asarray(params.get(f"{c.fn}.y_scale", np.ones(1))).reshape(-1)[0])
+        y_scale = _out_scale(params, c)
         off = y_scale * z0
         if not terms:
             return f"{c.target}{where} is wrong by {_fmt(off)} {unit}"
@@ -1096,7 +1476,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         return f"{c.target}{where} depends on {', '.join(t[0] for t in terms)}: Δ{c.target} ≈ {_fmt(off)} {inner} {unit}"
     if c.kind in ("heat_load", "unused_column"):
         z0, terms = _linear_coeffs(c, params, ext)
-        y_scale = float(np.asarray(params.get(f"{c.fn}.y_scale", np.ones(1))).reshape(-1)[0])
+        y_scale = _out_scale(params, c)
         node = c.target[2:-1]
         if not terms:
             return f"unmodelled constant heat load at {node}: Q ≈ {_fmt(y_scale * z0)} W"
@@ -1113,6 +1493,9 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
     if c.kind == "sensor_offset":
         o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"sensor {c.target} reads {_fmt(o)} K {'high' if o > 0 else 'low'} (offset)"
+    if c.kind == "sensor_lag":
+        tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"sensor {c.target} lags its node {c.element['node']}: first-order lag τ ≈ {_fmt(tau)} s"
     return c.describe()
 
 
@@ -1166,6 +1549,9 @@ def _clause(c: Candidate, params, ext: Extended, eng: _Engine) -> str:
     if c.kind == "sensor_offset":
         o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"offset {o:.4g} K free"
+    if c.kind == "sensor_lag":
+        tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"lag {tau:.4g} s free"
     return ""
 
 
@@ -1213,14 +1599,14 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
         return text, ""
     lines = text.splitlines()
     for c in accepted:
-        if c.kind != "sensor_offset":
+        if c.kind not in ("sensor_offset", "sensor_lag"):
             continue
         s = next(s for s in net.sensors if s.name == c.target)
         o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         if s.span is not None and 1 <= s.span.line <= len(lines):
             ln = lines[s.span.line - 1]
             m = re.search(r"\bcolumn\b", ln)
-            ins = f"offset {o:.4g} K free  "
+            ins = f"offset {o:.4g} K free  " if c.kind == "sensor_offset" else f"lag {o:.4g} s free  "
             lines[s.span.line - 1] = (ln[: m.start()] + ins + ln[m.start():]) if m else ln.rstrip() + "  " + ins.strip()
     # a learned constant of the original network that now depends on something: its clause is replaced
     # (the dependent targets get their own clause; the others stay constant)

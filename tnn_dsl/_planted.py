@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._candidates import Candidate, build_extended
+from ._candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
 from ._data import Experiment
 from ._ir import Network
 
@@ -62,7 +62,7 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     ``strength`` is the effect's size in the candidate's own coordinates: a relative change of the
     parameter at the edge of the variable's range (dependence), the raw output for a wrong constant or a
     heat load (in units of the function's output scale), W/K for a missing link, m² (ε·A) for radiation,
-    K for a sensor offset. Returns training and validation :class:`Experiment` objects (different seeds).
+    K for a sensor offset, seconds for a sensor lag (``kind="sensor_lag"``, ``target`` the sensor). Returns training and validation :class:`Experiment` objects (different seeds).
     """
     from ._compile import compile as _compile
     from ._diagnose import _stats_for
@@ -73,11 +73,15 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     u_tr = step_inputs(rng_tr, n_train, bounds, names, hold)
     u_va = step_inputs(rng_va, n_val, bounds, names, hold)
     varying = [n for n in names if n in bounds and bounds[n][1] > bounds[n][0]]
+    cand = None
+    if kind in STRUCTURAL_KINDS:  # not exactly null: the truth is the network with the edit built in
+        cand = find_candidate(structural_candidates(net), kind, target, depends_on)
+        net = apply_structural(net, cand, strength)
+        kind = None
     ext = build_extended(net, varying)
     model = _compile(ext.network, backend=backend, dtype="float64")
     p = model.to_numpy(model.init_params(0))
-    cand = None
-    values: list[float] = []
+    values: list[float] = [strength] if cand is not None else []
 
     def run(params, u):
         T0 = model.steady_state(model.from_numpy(params), np.asarray(u[0]))

@@ -4,9 +4,9 @@ the model doctor.
 Fits the network's free parameters on TRAIN, shows what the free-run simulation gets wrong on held-out
 data (--val, else the last 30 % of each training file), ranks candidate causes taken from the network
 itself (a parameter depending on an input or a temperature, an unmodelled heat load, a missing link, a
-missing radiation path, a sensor offset, an unused data column, a wrong constant) by a score test, fits
-the best few, keeps one only if it pays on the held-out data (F-test with the effective sample size,
-p < 0.01, and at least 10 % lower MAE), and repeats (forward selection). Writes the extended network
+missing radiation path, a sensor offset or lag, an unused data column, a wrong constant) by a score test, fits
+the best few, keeps one only if it pays on the held-out data (Diebold–Mariano test on the held-out
+squared errors with a charge for the extra parameters, p < 0.01, and at least 10 % lower MAE), and repeats (forward selection). Writes the extended network
 (-o), a JSON document (--json) and a self-contained HTML report (--report).
 """
 
@@ -34,6 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("--budget", type=float, default=None, metavar="S", help="wall-clock budget in seconds")
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
     p.add_argument("--top", type=int, default=3, help="candidates fitted properly per round (default 3)")
+    p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
 
@@ -48,7 +49,7 @@ def run(args) -> int:
             print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
-                 progress=progress, top=args.top, output=args.output)
+                 progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")
