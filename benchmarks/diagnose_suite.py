@@ -146,7 +146,7 @@ def _cases() -> list[Case]:
     # ---- building (Bacher & Madsen Ti) -------------------------------------------------------------
     c += [
         Case("building", "dependence", ("param_dependence", "Ria", "Ta"), plant=("param_dependence", "Ria", "Ta", 0.3)),
-        Case("building", "heat_load", ("heat_load", "Q[ti]", "Ta"), plant=("heat_load", "Q[ti]", "Ta", 0.005),
+        Case("building", "heat_load", ("heat_load", "Q[ti]", "Ta"), plant=("heat_load", "Q[ti]", "Ta", 1.5),
              equivalent=(("param_dependence", "Q_solar", "Ta"),),
              why="the solar source is a derived heat flow at ti: its Ta dependence adds the same linear term; the "
                  "strength is small because the heat load's output scale (C·rms dT/dt) is per sample, not per s"),

@@ -683,11 +683,12 @@ def _split_masks(experiments, val_experiments, frac: float = 0.7):
     return exps, np.concatenate(tm), np.concatenate(vm)
 
 
-def _stats_for(model, params, fn_vars, net, inputs, states, rows):
+def _stats_for(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0):
     """Each learned function's input normalisation from the training rows of the nominal run, as the
     trainer sets it (``x_mean`` the mid-range, ``x_scale`` the half-range, floors 0.5 K for temperatures),
     and its output scale: ``|nominal|`` for a parameter, the node's typical heat throughput ``C·rms(dT/dt)``
-    for a heat load. Returns the updated numpy params."""
+    for a heat load (``dt`` the sample interval, s, so dT/dt is per second). Returns the updated numpy
+    params."""
     p = dict(params)
     in_idx = {n: i for i, n in enumerate(net.input_names)}
     st_idx = {n: i for i, n in enumerate(model.state_names)}
@@ -727,7 +728,8 @@ def _stats_for(model, params, fn_vars, net, inputs, states, rows):
                 except KeyError:
                     C = None
                 x = states[rows, st_idx[t.name]]
-                d = np.diff(x) / max(float(np.median(np.diff(np.flatnonzero(rows)))) if rows.sum() > 1 else 1.0, 1e-12)
+                spacing = float(np.median(np.diff(np.flatnonzero(rows)))) if rows.sum() > 1 else 1.0
+                d = np.diff(x) / max(spacing * float(dt), 1e-12)
                 ysc.append(max(float(C * np.sqrt(np.mean(d ** 2))), 1e-3) if C and d.size else 1.0)
             else:
                 ysc.append(1.0)
@@ -1141,7 +1143,8 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
         ref["states"] = st
         ref["names"] = list(model.state_names)
     rows = train_mask.any(1)
-    eng.params0 = _stats_for(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows)
+    eng.params0 = _stats_for(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows,
+                             dt=float(exps[0].dt))
     eng.params = _params_from_state(eng, ext_s, state, keys)
     return eng, ext_s, list(range(len(free_cols))), cols_of
 

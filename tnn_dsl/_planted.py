@@ -89,7 +89,7 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
         return np.asarray(model.xp.to_numpy(st)), np.asarray(model.xp.to_numpy(y))
 
     st, _ = run(p, u_tr)
-    p = _stats_for(model, p, ext.fn_vars, ext.network, u_tr, st, np.ones(n_train, bool))
+    p = _stats_for(model, p, ext.fn_vars, ext.network, u_tr, st, np.ones(n_train, bool), dt=dt)
     if kind is not None:
         cand = find_candidate(ext.candidates, kind, target, depends_on)
         col = cand.columns[0]
