@@ -25,7 +25,7 @@ check: $(STAMP)
 
 # The fast suite (CI runs this); slow training/diagnosis tests have fast variants that run here.
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(JOBS) -m "not slow" tests
+	$(PY) -m pytest -q -n $(JOBS) -m "not slow" --durations=25 tests
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -n $(JOBS) tests

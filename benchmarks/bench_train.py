@@ -1,0 +1,159 @@
+"""Training-time benchmark (issue 4): how long the trainer takes to reach within 10 % of its final
+validation MAE on the thesis case study, for M2 (linear heat pipe) and M3 (MLP heat pipe), on JAX and
+torch, with the default training options (the ones an engineer gets from ``tnnc train``).
+
+The data are the case study of ``../shared/spec/case-study.md`` (4 h training, 2 h validation, no noise),
+generated once into a cache directory. Each (model, backend) pair trains in its own subprocess, one
+after the other (the timings must not compete for the cores). The clock starts when ``tnn_dsl.train`` is
+called, so it includes compilation (JIT tracing), the nominal simulation and every validation run.
+
+"Time to within 10 %" is the first moment the best validation MAE so far is ≤ 1.1 × the final
+validation MAE of that run (the model ``train`` returns). The target of issue 4 is ≤ 60 s for M2 with JAX.
+
+    python benchmarks/bench_train.py                      # M2 and M3, JAX and torch, full size
+    python benchmarks/bench_train.py --only m2 --backends jax
+    python benchmarks/bench_train.py --quick              # 40 min / 20 min of data, JAX, M2 only (about a minute)
+    python benchmarks/bench_train.py --only m2 --epochs 60   # JAX vs torch on one fixed schedule
+
+Results go to the ``training`` section of ``BENCHMARKS.md`` (``--no-write``: print only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(ROOT))
+
+TARGET_M2_JAX_S = 60.0
+
+
+def _worker(args) -> int:
+    """One training run; prints one JSON line on stdout."""
+    import tnn_dsl
+    from tnn_dsl._casestudy import generate_case_study
+
+    durations = None if not args.quick else (2400.0, 1200.0, 60.0)
+    cs = generate_case_study(args.cache, n_ood=0, widen=(), durations=durations)
+    trace: list[tuple[float, float]] = []
+    t0 = time.perf_counter()
+
+    def cb(info):
+        b = info.get("best_val_mae")
+        if b is not None and b == b:
+            trace.append((time.perf_counter() - t0, float(b)))
+
+    fixed = {} if not args.epochs else {"epochs": args.epochs, "val_every": 10, "lbfgs_iters": 0, "patience": 0}
+    tm = tnn_dsl.train(ROOT / "networks" / "peltier_heatpipe" / f"{args.worker}.thn", cs["train"], cs["val"],
+                       backend=args.backend, seed=0, callback=cb, **fixed)
+    total = time.perf_counter() - t0
+    final = float(tm.meta["metrics"]["validation"]["mae"])
+    reach = next((t for t, b in trace if b <= 1.1 * final), total)
+    adam = [r for r in tm.meta["curve"] if r["phase"] == "adam"]
+    print(json.dumps({"model": args.worker, "backend": args.backend, "final_val_mae": final, "t_reach": reach,
+                      "t_total": total, "epochs": len(adam), "stopped": tm.meta["stopped"],
+                      "rollout": tm.meta["rollout"],
+                      "first_val_mae": tm.meta["curve"][0]["val_mae"] if tm.meta["curve"] else None}))
+    return 0
+
+
+def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
+    lines = ["| model | backend | final val MAE (K) | time to ≤ 1.1 × final (s) | total (s) | Adam epochs | stopped |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['model']} | {r['backend']} | failed: {r['error']} | | | | |")
+            continue
+        lines.append(f"| {r['model'].upper()} | {r['backend']} | {r['final_val_mae']:.4g} | {r['t_reach']:.0f} | "
+                     f"{r['t_total']:.0f} | {r['epochs']} | {r['stopped']} |")
+    m2j = next((r for r in rows if r.get("model") == "m2" and r.get("backend") == "jax" and "t_reach" in r), None)
+    size = "40 min train / 20 min validation (quick mode)" if quick else "4 h train / 2 h validation"
+    if epochs:
+        opts = (f"a fixed schedule for comparing backends (Adam {epochs} epochs, validation every 10, no L-BFGS, "
+                "no early stopping; otherwise defaults)")
+    else:
+        opts = "default options (`rollout auto` = multiple shooting with 600 s windows, Adam 300 epochs then L-BFGS)"
+    out = [f"Case study ({size}, no noise), {opts}, seed 0, float64. The clock includes compilation and validation.",
+           "", *lines, ""]
+    if epochs:
+        fin = {r["backend"]: r["final_val_mae"] for r in rows if "final_val_mae" in r and r["model"] == rows[0]["model"]}
+        if len(fin) == 2:
+            out.append(f"{rows[0]['model'].upper()}: torch / JAX final validation MAE = {fin['torch'] / fin['jax']:.12f} "
+                       "(the one trainer follows the same trajectory on both backends).")
+        return "\n".join(out) + "\n"
+    if m2j is not None:
+        ok = m2j["t_reach"] <= TARGET_M2_JAX_S
+        out.append(f"Issue-4 target (M2, JAX, within 10 % of the final validation MAE in ≤ {TARGET_M2_JAX_S:.0f} s): "
+                   f"**{'met' if ok else 'not met'}** ({m2j['t_reach']:.0f} s)."
+                   + ("" if not quick else " Quick mode: shorter data; the target applies to the full size."))
+    return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="short data, JAX, M2 only")
+    ap.add_argument("--only", nargs="+", default=None, choices=("m2", "m3"), help="models (default m2 m3)")
+    ap.add_argument("--backends", nargs="+", default=None, choices=("jax", "torch"),
+                    help="backends (default jax torch; --quick: jax)")
+    ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "tnn_bench_train_cs"),
+                    help="directory for the generated case-study data (reused when intact)")
+    ap.add_argument("--output", default=str(ROOT / "BENCHMARKS.md"), help="markdown file to update")
+    ap.add_argument("--no-write", action="store_true", help="print the table, do not update BENCHMARKS.md")
+    ap.add_argument("--epochs", type=int, default=None,
+                    help="fixed schedule for a backend comparison: N Adam epochs, no L-BFGS, no early stopping "
+                         "(written to the `training-backends` section)")
+    ap.add_argument("--timeout", type=float, default=None, help="seconds allowed per training run (default: none)")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--backend", default="jax", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        return _worker(args)
+    models = args.only or (["m2"] if args.quick else ["m2", "m3"])
+    backends = args.backends or (["jax"] if args.quick else ["jax", "torch"])
+    cache = args.cache + ("_quick" if args.quick else "")
+    rows = []
+    for model in models:
+        for backend in backends:
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", model, "--backend", backend,
+                   "--cache", cache] + (["--quick"] if args.quick else []) + (
+                      ["--epochs", str(args.epochs)] if args.epochs else [])
+            print(f"training {model} on {backend} ...", file=sys.stderr, flush=True)
+            try:
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT), timeout=args.timeout)
+            except subprocess.TimeoutExpired:
+                rows.append({"model": model, "backend": backend, "error": f"not finished within {args.timeout:.0f} s"})
+                print(f"  {rows[-1]['error']}", file=sys.stderr, flush=True)
+                continue
+            line = next((ln for ln in reversed(proc.stdout.splitlines()) if ln.startswith("{")), None)
+            if proc.returncode != 0 or line is None:
+                tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+                rows.append({"model": model, "backend": backend, "error": tail[:200]})
+            else:
+                rows.append(json.loads(line))
+            r = rows[-1]
+            print("  " + (f"failed: {r['error']}" if "error" in r else
+                          f"final val MAE {r['final_val_mae']:.4g} K, within 10 % after {r['t_reach']:.0f} s, "
+                          f"total {r['t_total']:.0f} s"), file=sys.stderr, flush=True)
+    md = _table(rows, args.quick, args.epochs)
+    print(md)
+    if not args.no_write:
+        from _report import write_section
+
+        if args.epochs:
+            write_section("training-backends", md, path=args.output, title="Training: JAX vs torch, same schedule")
+        else:
+            write_section("training", md, path=args.output, title="Training time (issue 4)")
+    return 0 if all("error" not in r for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
