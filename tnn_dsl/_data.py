@@ -831,6 +831,25 @@ def _show_time(tab: _Table, j: int | None, row: int) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
+
+def as_experiments(net: Network, data) -> list[Experiment]:
+    """Paths (one or many) and/or :class:`Experiment` objects → a list of ``Experiment`` for ``net``
+    (paths are read with :func:`read_data`; ``None`` gives ``[]``). The one place the trainer, the
+    sensitivity pass and saved models turn "data" arguments into experiments."""
+    if data is None:
+        return []
+    if isinstance(data, (str, os.PathLike)) or hasattr(data, "inputs"):
+        data = [data]
+    exps, paths = [], []
+    for d in data:
+        if hasattr(d, "inputs") and hasattr(d, "outputs"):
+            exps.append(d)
+        else:
+            paths.append(os.fspath(d))
+    if paths:
+        exps.extend(read_data(net, paths))
+    return exps
+
 def split_by_time(exp: Experiment, fraction: float) -> tuple[Experiment, Experiment]:
     """Split ``exp`` at ``fraction`` of its samples: (first part, rest). The parts keep their times
     (the second starts at ``t[k]``, not 0) and are named ``<name>[:70%]`` and ``<name>[70%:]``."""

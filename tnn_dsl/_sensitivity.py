@@ -1075,24 +1075,6 @@ def _input_vector(net: Network, inputs: Mapping[str, float] | None, experiments)
     return u, notes
 
 
-def _load_experiments(net: Network, data) -> list:
-    if data is None:
-        return []
-    if isinstance(data, (str, os.PathLike)) or hasattr(data, "inputs"):
-        data = [data]
-    exps, paths = [], []
-    for d in data:
-        if hasattr(d, "inputs") and hasattr(d, "outputs"):
-            exps.append(d)
-        else:
-            paths.append(os.fspath(d))
-    if paths:
-        from . import read_data
-
-        exps.extend(read_data(net, paths))
-    return exps
-
-
 def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, backend: str = "jax",
                 dtype: str = "float64", params: Mapping[str, Any] | None = None, delta: float = 0.2,
                 n_alpha: int = 5, targets: Sequence[str] | None = None, fisher_params: Sequence[str] | None = None,
@@ -1135,7 +1117,9 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
     if not network.sensors:
         raise TnnError(Diagnostic(f"network {network.name} has no sensor: there is no output to be sensitive",
                                   hint="add `sensor NAME = NODE`"))
-    experiments = _load_experiments(network, data)
+    from ._data import as_experiments
+
+    experiments = as_experiments(network, data)
 
     base = dict(model.init_params(seed=seed))
     if params:

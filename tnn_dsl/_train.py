@@ -37,6 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ._data import as_experiments  # re-exported for _model_io
 from ._errors import Diagnostic, TnnError
 from ._ir import POSITIVE_ROLES, Network
 
@@ -284,26 +285,6 @@ class _Ops:
 # ---------------------------------------------------------------------------------------------
 # Experiments, simulation, metrics
 # ---------------------------------------------------------------------------------------------
-
-
-def as_experiments(net: Network, data) -> list:
-    """Paths (one or many) or ``Experiment`` objects -> list of ``Experiment``."""
-    from ._data import read_data
-
-    if data is None:
-        return []
-    if isinstance(data, (str, os.PathLike)) or hasattr(data, "inputs"):
-        data = [data]
-    exps, paths = [], []
-    for d in data:
-        if hasattr(d, "inputs") and hasattr(d, "outputs"):
-            exps.append(d)
-        else:
-            paths.append(d)
-    if paths:
-        exps = exps + list(read_data(net, paths))
-    return exps
-
 
 def _resolve_init(init: str, exp) -> str:
     if init == "auto":
