@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from ._ir import (
     Binary, Call, LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref, Table,
-    Temp, Unary,
+    Temp, Unary, walk,
 )
 
 __all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name",
@@ -114,39 +114,12 @@ class Extended:
 
 def refs_in(expr) -> set[str]:
     """Names referenced (``Ref``) in an expression tree."""
-    out: set[str] = set()
-    stack = [expr]
-    while stack:
-        e = stack.pop()
-        if isinstance(e, Ref):
-            out.add(e.name)
-        elif isinstance(e, Unary):
-            stack.append(e.arg)
-        elif isinstance(e, Binary):
-            stack.extend([e.left, e.right])
-        elif isinstance(e, Call):
-            stack.extend(e.args)
-        elif isinstance(e, Table):
-            stack.append(e.x)
-    return out
+    return {e.name for e in walk(expr) if isinstance(e, Ref)}
 
 
 def temps_in(expr) -> set[str]:
-    out: set[str] = set()
-    stack = [expr]
-    while stack:
-        e = stack.pop()
-        if isinstance(e, Temp):
-            out.add(e.node)
-        elif isinstance(e, Unary):
-            stack.append(e.arg)
-        elif isinstance(e, Binary):
-            stack.extend([e.left, e.right])
-        elif isinstance(e, Call):
-            stack.extend(e.args)
-        elif isinstance(e, Table):
-            stack.append(e.x)
-    return out
+    """Nodes whose temperature (``Temp``) an expression reads."""
+    return {e.node for e in walk(expr) if isinstance(e, Temp)}
 
 
 def var_label(kind: str, name: str) -> str:

@@ -243,59 +243,61 @@ class _Engine:
         model = self.model
         keys = self.keys
         exps = self.exps
+        # The pure pieces, written once against the model's array namespace; only the autodiff
+        # transforms (jvp, vmap, jit) below are per backend.
+        xp = model.xp
+        nf = self.n_force
+        u_list = [xp.asarray(_pad(e.inputs, nf)) for e in exps]
+        dts = [float(e.dt) for e in exps]
+        m_lin = {k: xp.asarray(v) for k, v in self.m_lin.items()}
+        m_log = {k: xp.asarray(v) for k, v in self.m_log.items()}
+        n_sc = self.n_score_exps
+        lens = [e.n_steps for e in exps[:n_sc]]
+
+        def with_theta(base, theta):
+            p = dict(base)
+            for k in keys:
+                b = base[k]
+                flat = b.reshape(-1) * xp.exp(m_log[k] @ theta) + m_lin[k] @ theta
+                p[k] = flat.reshape(b.shape)
+            return p
+
+        def simulate(p):
+            ys, xs = [], []
+            for u, dt in zip(u_list, dts):
+                st, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                ys.append(y)
+                xs.append(st)
+            return xp.concat(ys, 0), xp.concat(xs, 0)
+
+        def out_flat(base, theta, idx):
+            """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
+            p = with_theta(base, theta)
+            ys = []
+            for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
+                _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                ys.append(y)
+            return xp.concat(ys, 0).reshape(-1)[idx]
+
+        def out_forced(base, theta, F, idx):
+            """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
+            p = with_theta(base, theta)
+            ys, s0 = [], 0
+            for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
+                uu = xp.concat([u[:, : u.shape[1] - nf], F[s0: s0 + n]], axis=1)
+                s0 += n
+                _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
+                ys.append(y)
+            return xp.concat(ys, 0).reshape(-1)[idx]
+
         if self.backend == "jax":
             import jax
             import jax.numpy as jnp
-
-            nf = self.n_force
-            u_list = [jnp.asarray(_pad(e.inputs, nf)) for e in exps]
-            dts = [float(e.dt) for e in exps]
-            m_lin = {k: jnp.asarray(v) for k, v in self.m_lin.items()}
-            m_log = {k: jnp.asarray(v) for k, v in self.m_log.items()}
-            n_sc = self.n_score_exps
-            lens = [e.n_steps for e in exps[:n_sc]]
-
-            def with_theta(base, theta):
-                p = dict(base)
-                for k in keys:
-                    b = base[k]
-                    flat = b.reshape(-1) * jnp.exp(m_log[k] @ theta) + m_lin[k] @ theta
-                    p[k] = flat.reshape(b.shape)
-                return p
-
-            def simulate(p):
-                ys, xs = [], []
-                for u, dt in zip(u_list, dts):
-                    t0 = model.steady_state(p, u[0])
-                    st, y = model.rollout(p, t0, u, dt)
-                    ys.append(y)
-                    xs.append(st)
-                return jnp.concatenate(ys, 0), jnp.concatenate(xs, 0)
-
-            def out_flat(base, theta, idx):
-                """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
-                p = with_theta(base, theta)
-                ys = []
-                for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
-                    _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
-                    ys.append(y)
-                return jnp.concatenate(ys, 0).reshape(-1)[idx]
 
             def jac_chunk(base, tangents, idx):
                 theta0 = jnp.zeros(tangents.shape[1])
                 f = lambda th: out_flat(base, th, idx)  # noqa: E731
                 return jax.vmap(lambda v: jax.jvp(f, (theta0,), (v,))[1])(tangents)
-
-            def out_forced(base, theta, F, idx):
-                """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
-                p = with_theta(base, theta)
-                ys, s0 = [], 0
-                for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
-                    uu = jnp.concatenate([u[:, : u.shape[1] - nf], F[s0: s0 + n]], axis=1)
-                    s0 += n
-                    _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
-                    ys.append(y)
-                return jnp.concatenate(ys, 0).reshape(-1)[idx]
 
             def jac_forced(base, tan_theta, tan_F, idx):
                 theta0 = jnp.zeros(tan_theta.shape[1])
@@ -324,43 +326,12 @@ class _Engine:
         else:
             import torch
 
-            nf = self.n_force
-            u_list = [torch.as_tensor(_pad(e.inputs, nf), dtype=torch.float64) for e in exps]
-            dts = [float(e.dt) for e in exps]
-            m_lin = {k: torch.as_tensor(v) for k, v in self.m_lin.items()}
-            m_log = {k: torch.as_tensor(v) for k, v in self.m_log.items()}
-            n_sc = self.n_score_exps
-            lens = [e.n_steps for e in exps[:n_sc]]
-
-            def with_theta(base, theta):
-                p = dict(base)
-                for k in keys:
-                    b = base[k]
-                    flat = b.reshape(-1) * torch.exp(m_log[k] @ theta) + m_lin[k] @ theta
-                    p[k] = flat.reshape(b.shape)
-                return p
-
-            def simulate(p):
-                ys, xs = [], []
-                for u, dt in zip(u_list, dts):
-                    t0 = model.steady_state(p, u[0])
-                    st, y = model.rollout(p, t0, u, dt)
-                    ys.append(y)
-                    xs.append(st)
-                return torch.cat(ys, 0), torch.cat(xs, 0)
-
             def jac_chunk(base, tangents, idx):
                 import torch.func as tf
 
                 idx_t = torch.as_tensor(idx)
                 theta0 = torch.zeros(tangents.shape[1], dtype=torch.float64)
-                def f(th):
-                    p = with_theta(base, th)
-                    ys = []
-                    for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
-                        _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
-                        ys.append(y)
-                    return torch.cat(ys, 0).reshape(-1)[idx_t]
+                f = lambda th: out_flat(base, th, idx_t)  # noqa: E731
                 try:
                     return tf.vmap(lambda v: tf.jvp(f, (theta0,), (v,))[1])(tangents)
                 except Exception:  # noqa: BLE001 - a model not vmap-able: one JVP per direction
@@ -369,16 +340,6 @@ class _Engine:
             def sim_nograd(p):
                 with torch.no_grad():
                     return simulate(p)
-
-            def out_forced(base, theta, F, idx_t):
-                p = with_theta(base, theta)
-                ys, s0 = [], 0
-                for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
-                    uu = torch.cat([u[:, : u.shape[1] - nf], F[s0: s0 + n]], dim=1)
-                    s0 += n
-                    _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
-                    ys.append(y)
-                return torch.cat(ys, 0).reshape(-1)[idx_t]
 
             def jac_forced(base, tan_theta, tan_F, idx):
                 import torch.func as tf

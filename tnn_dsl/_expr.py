@@ -29,27 +29,10 @@ Getter = Callable[[Any], Any]
 
 def dependencies(expr) -> tuple[set[str], set[str]]:
     """``(ref names, temperature nodes)`` an expression reads (``Ref`` names are params or inputs)."""
-    refs: set[str] = set()
-    temps: set[str] = set()
+    from ._ir import walk
 
-    def walk(e):
-        if isinstance(e, Ref):
-            refs.add(e.name)
-        elif isinstance(e, Temp):
-            temps.add(e.node)
-        elif isinstance(e, Unary):
-            walk(e.arg)
-        elif isinstance(e, Binary):
-            walk(e.left)
-            walk(e.right)
-        elif isinstance(e, Call):
-            for a in e.args:
-                walk(a)
-        elif isinstance(e, Table):
-            walk(e.x)
-
-    walk(expr)
-    return refs, temps
+    nodes = list(walk(expr))
+    return {e.name for e in nodes if isinstance(e, Ref)}, {e.node for e in nodes if isinstance(e, Temp)}
 
 
 _FLOAT_CALLS = {

@@ -119,6 +119,22 @@ for _m in (Unary, Binary, Call, Table):
     _m.model_rebuild()
 
 
+def walk(expr):
+    """Every node of an expression tree, parents before children (iterative: deep trees are fine)."""
+    stack = [expr]
+    while stack:
+        e = stack.pop()
+        yield e
+        if isinstance(e, Unary):
+            stack.append(e.arg)
+        elif isinstance(e, Binary):
+            stack.extend([e.right, e.left])
+        elif isinstance(e, Call):
+            stack.extend(reversed(e.args))
+        elif isinstance(e, Table):
+            stack.append(e.x)
+
+
 # ---------------------------------------------------------------------------------------------
 # Declarations
 # ---------------------------------------------------------------------------------------------
@@ -416,7 +432,7 @@ class Network(BaseModel):
 
 
 __all__ = [
-    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS",
+    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk",
     "ParamRole", "POSITIVE_ROLES", "Param", "Input", "ThermalNode", "Boundary", "Link", "Radiation",
     "Peltier", "Fluid", "Source", "Sensor", "LearnTarget", "LearnInput", "LearnKind", "LearnFunction",
     "Network",
