@@ -431,28 +431,35 @@ def _match_catalogue(err: UnexpectedInput, first_word: str = "", word_index: int
     return best[3]
 
 
+def _brackets(line: str):
+    """``(col, char)`` of each bracket in one line, 1-based, skipping strings and a trailing comment."""
+    in_str = False
+    j = 0
+    while j < len(line):
+        c = line[j]
+        if in_str:
+            if c == "\\":
+                j += 1
+            elif c == '"':
+                in_str = False
+        elif c == '"':
+            in_str = True
+        elif c == "#":
+            return
+        elif c in "([)]":
+            yield j + 1, c
+        j += 1
+
+
 def _unclosed_bracket(lines: list[str], upto_line: int) -> tuple[int, int, str] | None:
     """Position (line, col, char) of the innermost bracket still open before line ``upto_line``."""
     stack: list[tuple[int, int, str]] = []
     for i, ln in enumerate(lines[: max(0, upto_line - 1)], start=1):
-        in_str = False
-        j = 0
-        while j < len(ln):
-            c = ln[j]
-            if in_str:
-                if c == "\\":
-                    j += 1
-                elif c == '"':
-                    in_str = False
-            elif c == '"':
-                in_str = True
-            elif c == "#":
-                break
-            elif c in "([":
-                stack.append((i, j + 1, c))
-            elif c in ")]" and stack:
+        for col, c in _brackets(ln):
+            if c in "([":
+                stack.append((i, col, c))
+            elif stack:
                 stack.pop()
-            j += 1
     return stack[-1] if stack else None
 
 
@@ -462,24 +469,8 @@ def _bracket_depths(lines: list[str]) -> list[int]:
     depth = 0
     for ln in lines:
         depths.append(depth)
-        in_str = False
-        i = 0
-        while i < len(ln):
-            c = ln[i]
-            if in_str:
-                if c == "\\":
-                    i += 1
-                elif c == '"':
-                    in_str = False
-            elif c == '"':
-                in_str = True
-            elif c == "#":
-                break
-            elif c in "([":
-                depth += 1
-            elif c in ")]":
-                depth = max(0, depth - 1)
-            i += 1
+        for _, c in _brackets(ln):
+            depth = depth + 1 if c in "([" else max(0, depth - 1)
     depths.append(depth)
     return depths
 
