@@ -50,6 +50,10 @@ NETS = {
         [rng.uniform(0, 3, n), rng.uniform(285, 305, n), rng.uniform(280, 300, n), rng.uniform(1, 2, n)], -1)),
     "peltier_fluid": (peltier_fluid, lambda rng, n: np.stack([rng.uniform(0, 3, n), rng.uniform(280, 300, n)], -1)),
     "two_node": (two_node, lambda rng, n: np.stack([rng.uniform(285, 305, n), rng.uniform(0, 20, n)], -1)),
+    # linear and MLP learned functions of node temperatures: their first layer is folded into the one
+    # T-linear product of the right-hand side (``_Core._fold``); heat_flows evaluates them unfolded
+    "m2_extra": (lambda: case_study("linear", extra=True),
+                 lambda rng, n: case_inputs(600, seed=2)[rng.integers(0, 600, n)]),
     "m3_extra": (lambda: case_study("mlp", extra=True), lambda rng, n: case_inputs(600, seed=3)[rng.integers(0, 600, n)]),
     "m4_extra": (lambda: case_study("mlp_peltier", extra=True),
                  lambda rng, n: case_inputs(600, seed=4)[rng.integers(0, 600, n)]),

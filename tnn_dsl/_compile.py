@@ -299,18 +299,19 @@ class _Plan:
 class _Prep:
     __slots__ = ("vals", "z", "arrays", "scales", "yscale", "fnlin", "M_nn", "M_bn", "Mr_nn", "Mr_bn", "cQ",
                  "Tb", "g_static_d", "invC", "inv_tau", "offsets", "diag_static", "diag_rad", "lin_fluid",
-                 "tnom", "tscale")
+                 "tnom", "tscale", "L", "Lsl")
 
 
 class _Env:
-    __slots__ = ("vals", "z", "T", "u", "cx")
+    __slots__ = ("vals", "z", "T", "u", "cx", "pre")
 
-    def __init__(self, vals, z, T, u, cx=None):
+    def __init__(self, vals, z, T, u, cx=None, pre=None):
         self.vals = vals
         self.z = z
         self.T = T
         self.u = u
         self.cx = cx  # {fn: input-only part of the normalised input} when precomputed
+        self.pre = pre  # {fn: first-layer pre-activation} for functions folded into the T-linear product
 
 
 class _Core:
@@ -542,6 +543,34 @@ class _Core:
         anc = P.ancestors(need)
         self._out_items = [self._items[it] for it in P.dyn_order if it in anc]
 
+        # One T-linear product per right-hand side: every product of the node temperatures by a matrix that is
+        # constant over a rollout — the static conductance matrix, the gather of dynamic links' endpoints, the
+        # lag sources, and the first layer of state-dependent linear/MLP functions (their input gather and
+        # normalisation folded into the weights, ``A_T·W0``; the input-only part ``cx·W0 + b0`` comes from
+        # rhs_u, once per sample) — is one matmul ``Tn @ L`` by a matrix ``L`` assembled once per call in
+        # ``prepare``, whose column blocks are sliced apart (on CPU each small product is a kernel launch).
+        self._fold = []
+        for fname in self._t_fnames:
+            fn = P.fns[fname]
+            ins = P.fn_inputs[fname]
+            if fn.kind not in ("mlp", "linear") or not any(kd == "node" for kd, _ in ins):
+                continue
+            if any(kd == "param" and not P.is_static(nm) and td[("p", nm)] for kd, nm in ins):
+                continue  # a state-dependent parameter input: the generic path
+            self._fold.append(fname)
+        blocks = []
+        if self.has_links_s:
+            blocks.append(("M", n))
+        if self.links_d:
+            blocks.append(("D", len(self.links_d)))
+        if nl:
+            blocks.append(("S", nl))
+        for fname in self._fold:
+            fn = P.fns[fname]
+            width = int(fn.hidden[0]) if fn.kind == "mlp" and fn.hidden else len(fn.targets)
+            blocks.append((f"f:{fname}", width))
+        self._L_blocks = blocks
+
     # -- item closures ---------------------------------------------------------------------------
 
     def _param_item(self, p, expr_fn):
@@ -572,7 +601,10 @@ class _Core:
         fname = fn.name
 
         def item(prep, env):
-            if fname in prep.fnlin:  # dynamic: matmul gather + normalisation prepared once
+            pre = env.pre.get(fname) if env.pre is not None else None
+            if pre is not None:  # first layer folded into rhs_T's one T-linear product (see _Core.__init__)
+                z = _apply_from_first(xp, fn, prep.arrays[fname], pre)
+            elif fname in prep.fnlin:  # dynamic: matmul gather + normalisation prepared once
                 A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT = prep.fnlin[fname]
                 cx = env.cx.get(fname) if env.cx is not None else None
                 if cx is None:  # the input-only part
@@ -582,6 +614,7 @@ class _Core:
                     xn = xn + xp.matmul(env.T, A_T)
                 if dyn_pT:
                     xn = xn + xp.matmul(xp.stack([env.vals[q] for q in dyn_pT], axis=-1), A_pT)
+                z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
             else:  # static: all inputs are static parameters
                 arrays = prep.arrays[fname]
                 ins = self.plan.fn_inputs[fname]
@@ -590,7 +623,7 @@ class _Core:
                     xn = _learned.normalise(x, arrays)
                 else:
                     xn = None
-            z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
+                z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
             env.z[fname] = z
             if vec is not None:
                 V = _learned.target_value(xp, z, prep.tnom[fname], positive, prep.arrays[fname]["y_scale"])
@@ -727,6 +760,23 @@ class _Core:
         else:
             prep.offsets = None
         prep.g_static_d = None
+        prep.L, prep.Lsl = None, {}
+        if self._L_blocks:
+            parts, start = [], 0
+            for key, width in self._L_blocks:
+                if key == "M":
+                    parts.append(prep.M_nn)
+                elif key == "D":
+                    parts.append(self.Dd_n)
+                elif key == "S":
+                    parts.append(self.Sl_n)
+                else:
+                    fname = key[2:]
+                    W, _ = _first_layer(P.fns[fname], prep.arrays[fname])
+                    parts.append(xp.matmul(prep.fnlin[fname][0][:n], W))
+                prep.Lsl[key] = (start, start + width)
+                start += width
+            prep.L = parts[0] if len(parts) == 1 else xp.concat(parts, axis=-1)
         return prep
 
     def _fnlin(self, fn, prep):
@@ -840,7 +890,12 @@ class _Core:
         for fname in self._u_fnames:
             vec[f"z:{fname}"] = per_sample(env.z[fname])
         for fname in self._t_fnames:
-            vec[f"cx:{fname}"] = per_sample(self._fn_cx(prep, env, fname))
+            cx = self._fn_cx(prep, env, fname)
+            if fname in self._fold:  # the input-only part of the first layer's pre-activation
+                W, b = _first_layer(P.fns[fname], prep.arrays[fname])
+                vec[f"cxw:{fname}"] = per_sample(xp.matmul(cx, W) + b)
+            else:
+                vec[f"cx:{fname}"] = per_sample(cx)
         Tb = None
         if P.nb and self.tb_u:
             Tb = self._Tb(prep, vals)
@@ -922,11 +977,18 @@ class _Core:
         if self._u_fnames or self._t_fnames:
             for fname in self._u_fnames:
                 z[fname] = vec[f"z:{fname}"]
-            cx = {fname: vec[f"cx:{fname}"] for fname in self._t_fnames}
-        env = _Env(vals, z, T, u, cx)
+            cx = {fname: vec[f"cx:{fname}"] for fname in self._t_fnames if fname not in self._fold}
+        Tn = T[..., :n] if self.nl else T
+        TL = xp.matmul(Tn, prep.L) if prep.L is not None else None
+
+        def block(key):
+            a, b = prep.Lsl[key]
+            return TL if (a, b) == (0, xp.shape(TL)[-1]) else TL[..., a:b]
+
+        pre = {fname: vec[f"cxw:{fname}"] + block(f"f:{fname}") for fname in self._fold} if self._fold else None
+        env = _Env(vals, z, T, u, cx, pre)
         for item in self._t_items:
             item(prep, env)
-        Tn = T[..., :n] if self.nl else T
         dyn_b = not self.tb_u  # boundary terms not folded into the context
         Tb = vec.get("Tb")
         if Tb is None and P.nb and (dyn_b or prep.Tb is not None):
@@ -938,7 +1000,7 @@ class _Core:
             return b if a is None else a + b
 
         if prep.M_nn is not None:
-            dQ = add(dQ, xp.matmul(Tn, prep.M_nn))
+            dQ = add(dQ, block("M"))
             if dyn_b and prep.M_bn is not None:
                 dQ = add(dQ, xp.matmul(Tb, prep.M_bn))
         d = vec.get("d")
@@ -963,7 +1025,7 @@ class _Core:
             else:
                 g = xp.stack([self._flow_scaled(prep, k, self._g(vals, p, form))
                               for k, _, _, p, form in self.links_d], axis=-1)
-            dX = xp.matmul(Tn, self.Dd_n)
+            dX = block("D")
             if P.nb:
                 tbD = vec.get("tbD")
                 dX = dX + (tbD if tbD is not None else xp.matmul(Tb, self.Dd_b))
@@ -1016,7 +1078,7 @@ class _Core:
         if self.nl:
             inv_tau = prep.inv_tau if prep.inv_tau is not None else 1.0 / xp.stack(
                 [vals[s.lag] for s in P.lagged], axis=-1)
-            src = xp.matmul(Tn, self.Sl_n)
+            src = block("S")
             if self.lag_from_bnd:
                 tbL = vec.get("tbL")
                 src = src + (tbL if tbL is not None else xp.matmul(Tb, self.Sl_b))
@@ -1085,6 +1147,24 @@ class _Core:
 
 def _noop_item(prep, env):
     return None
+
+
+def _first_layer(fn, arrays):
+    """``(W, b)`` of the first (linear) layer of a ``linear`` or ``mlp`` learned function."""
+    return (arrays["W"], arrays["b"]) if fn.kind == "linear" else (arrays["W0"], arrays["b0"])
+
+
+def _apply_from_first(xp, fn, arrays, pre):
+    """The raw output ``z`` of a ``linear``/``mlp`` function from its first layer's pre-activation
+    ``pre = xn @ W0 + b0`` (the rest of :func:`tnn_dsl._learned.apply_normalised`)."""
+    if fn.kind == "linear":
+        return pre
+    act = _learned.activation(xp, fn.activation)
+    n_layers = len(fn.hidden) + 1
+    h = pre
+    for k in range(1, n_layers):
+        h = xp.matmul(act(h), arrays[f"W{k}"]) + arrays[f"b{k}"]
+    return h
 
 
 def _diag(xp, M, n):
@@ -1365,6 +1445,11 @@ class Model:
         if self.backend == "jax":
             import jax
             import jax.numpy as jnp
+
+            # Reverse mode recomputes each sample's step from its start state instead of storing every stage's
+            # intermediates (one store per intermediate per step): forward+gradient / forward 3.1 instead of 5.4
+            # batched, 3.9 instead of 6.3 single (benchmarks/bench_rollout.py, case study M3).
+            step = jax.checkpoint(step)
 
             def body(T, c):
                 Tn = step(T, c)
