@@ -80,7 +80,8 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
         opts = (f"a fixed schedule for comparing backends (Adam {epochs} epochs, validation every 10, no L-BFGS, "
                 "no early stopping; otherwise defaults)")
     else:
-        opts = "default options (`rollout auto` = multiple shooting with 600 s windows, Adam 300 epochs then L-BFGS)"
+        opts = ("default options (`rollout auto` = multiple shooting with 600 s windows, Adam 300 epochs, then up to 1000 "
+                "L-BFGS iterations from Adam's last state; sigmoid MLPs optimised in tanh coordinates)")
     out = [f"Case study ({size}, no noise), {opts}, seed 0, float64. The clock includes compilation and validation.",
            "", *lines, ""]
     if epochs:

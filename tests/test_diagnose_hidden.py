@@ -146,16 +146,10 @@ def test_scoring_counts_identical_equivalents_and_nulls():
 
 _NOT_YET = {
     # kinds the doctor has no candidate for yet (see docs/architecture.md, "Diagnosis")
-    "tclab/thermal_mass": "no missing-thermal-mass candidate in the doctor yet (not exactly null)",
 }
-_MISSES = {
-    # kinds the doctor has candidates for but misses on the fast run; the reason is what the run showed
-    "tclab/dependence": "U1 depending on T(h1) (convection growing with temperature): the score test ranks the "
-                        "heat load Q[h1] ~ T(h1) first and no fit passes the held-out test on the short run",
-    "tclab/wrong_constant": "U12 is ranked first and its fit cuts the held-out MAE 75x, but the Diebold-Mariano "
-                            "test sees N_eff = 5 on 450 smooth held-out samples (p = 0.014 > 0.01): not accepted",
-    "tclab/unused_column": "the score test ranks spurious dependences (Q_src_h1 ~ T(h1), U1 ~ Q2) above the "
-                           "column `fan`; a spurious one is accepted in round 1, the column only in round 2",
+_MISSES: dict[str, str] = {
+    # kinds the doctor has candidates for but misses on the fast run (none at present); the reason is what
+    # the run showed
 }
 
 FAST = ["tclab/dependence", "tclab/heat_load", "tclab_nolink/missing_link", "tclab/radiation", "tclab/sensor_offset",
@@ -163,7 +157,7 @@ FAST = ["tclab/dependence", "tclab/heat_load", "tclab_nolink/missing_link", "tcl
 
 
 # known misses that take 30 s or more each to confirm run with the slow grid, not in CI
-_SLOW_MISSES = {"tclab/dependence", "tclab/unused_column"}
+_SLOW_MISSES: set[str] = set()
 
 
 def _marks(name):

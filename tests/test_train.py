@@ -294,10 +294,9 @@ def test_case_study_m2_beats_m1_fast(case_short, backend):
 def test_case_study_acceptance(tmp_path):
     """Issue 4 acceptance with the default options: 4 h train, 2 h validation, no noise.
 
-    M2 ≤ M1/3; M3 within 25 % of M2, or (the fallback this suite accepts, see the issue-4 closing note:
-    M2 fits the linear truth almost exactly at ~2.5 mK, M3's MLP reaches ~7 mK) at least 3× better than
-    M1. M4 (MLP Peltier) and M5 (M4's net frozen + M3's heat-pipe net) are trained and reported (M5 must
-    beat M4). Backends: the default torch run takes ~45 min on a 2-core CPU (torch rollouts are ~60x
+    M2 ≤ M1/3; M3 within 25 % of M2 (2.46 and 2.70 mK: M3's sigmoid MLP trains in tanh coordinates and
+    the L-BFGS polish runs from Adam's last state). M4 (MLP Peltier) and M5 (M4's net frozen + M3's
+    heat-pipe net) are trained and reported (M5 must beat M4). Backends: the default torch run takes ~45 min on a 2-core CPU (torch rollouts are ~60x
     slower than JAX there), so torch and JAX train M2 on one fixed schedule (60 Adam epochs, validation
     every 10, no polish) and must end within 5 % of each other (they agree to ~1e-12)."""
     import shutil
@@ -316,7 +315,7 @@ def test_case_study_acceptance(tmp_path):
         res[name, backend] = tm.meta["metrics"]["validation"]["mae"]
         print(f"{name} {backend}: validation MAE {res[name, backend]:.5f} K ({tm.meta['train_seconds']:.0f} s)")
     assert res["m2", "jax"] <= res["m1", "jax"] / 3
-    assert res["m3", "jax"] <= 1.25 * res["m2", "jax"] or res["m3", "jax"] <= res["m1", "jax"] / 3
+    assert res["m3", "jax"] <= 1.25 * res["m2", "jax"]
     assert res["m5", "jax"] < res["m4", "jax"]
     fixed = dict(epochs=60, val_every=10, lbfgs_iters=0, patience=0, seed=0)
     same = {b: tnn_dsl.train(NETS / "m2.thn", cs["train"], cs["val"], backend=b, **fixed)
@@ -411,3 +410,115 @@ def test_m5_loads_m4_frozen_and_trains(case_short, tmp_path, backend):
     shutil.rmtree(tmp_path / "models")
     with pytest.raises(TnnError, match="m4"):
         tnn_dsl.train(tmp_path / "m5.thn", case_short["train"], case_short["val"], **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# sigmoid MLPs train in tanh coordinates (TrainConfig.centre_sigmoid); the polish starts from Adam's end
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tanh_coordinates_give_the_same_sigmoid_mlp(backend):
+    """``_tanh_to_sigmoid`` maps the weights of a tanh MLP to those of the sigmoid MLP computing the same
+    function (exactly, on backend arrays), and ``_sigmoid_to_tanh`` inverts it."""
+    from tnn_dsl._train import _Ops, _sigmoid_to_tanh, _tanh_to_sigmoid
+
+    ops = _Ops(backend)
+    rng = np.random.default_rng(4)
+    sizes = [3, 5, 4, 2, 2]  # three hidden layers: first, middle and last-layer rules all used
+    K = len(sizes) - 2
+    primed = {}
+    for k in range(K + 1):
+        primed[f"f.W{k}"] = rng.normal(size=(sizes[k], sizes[k + 1]))
+        primed[f"f.b{k}"] = rng.normal(size=sizes[k + 1])
+    p = {k: ops.asarray(v) for k, v in primed.items()}
+    _tanh_to_sigmoid(p, "f", K)
+    stored = {k: ops.numpy(v) for k, v in p.items()}
+    x = rng.normal(size=(7, 3))
+
+    def net(w, act):
+        h = x
+        for k in range(K + 1):
+            h = h @ w[f"f.W{k}"] + w[f"f.b{k}"]
+            h = act(h) if k < K else h
+        return h
+
+    np.testing.assert_allclose(net(stored, lambda a: 1.0 / (1.0 + np.exp(-a))), net(primed, np.tanh),
+                               rtol=1e-12, atol=1e-12)
+    back = dict(stored)
+    _sigmoid_to_tanh(back, "f", K)
+    for k, v in primed.items():
+        np.testing.assert_allclose(back[k], v, rtol=1e-12, atol=1e-12, err_msg=k)
+
+
+HIDDEN_NET = """
+network hidden_loss "two heaters; h1's loss to ambient depends on Q2"
+units temperature = degC
+input Q1 : [%]  column "Q1"
+input Q2 : [%]  column "Q2"
+param Ta = 23 degC
+boundary amb = Ta
+node h1 C = 4 J/K
+node h2 C = 6 J/K
+G h1 -- amb = {G1} as U1
+G h2 -- amb = 0.04 W/K as U2
+G h1 -- h2  = 0.02 W/K as U12
+source h1 = 0.01 W/% * Q1
+source h2 = 0.0075 W/% * Q2
+sensor T1 = h1 column "T1"
+sensor T2 = h2 column "T2"
+"""
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_centre_sigmoid_trains_a_sigmoid_mlp_faster(backend):
+    """A sigmoid MLP (the thesis's M3 kind) learns a hidden dependence in 30 Adam epochs in tanh
+    coordinates; in its own coordinates it has barely left the nominal model (0.10 vs 0.80 K, from 1.1 K)."""
+    import tnn_dsl
+
+    truth = tnn_dsl.loads(HIDDEN_NET.format(G1="0.05 W/K * (1 + 0.8 * (Q2 - 0.5))"), "truth.thn")
+    model = tnn_dsl.loads(HIDDEN_NET.format(G1="0.05 W/K") +
+                          "learn U1 as mlp(h1, Q2; hidden = [6, 6], activation = sigmoid)\n", "m.thn")
+    tr, va = _simulated(truth, 1, 800), _simulated(truth, 2, 300)
+    kw = dict(backend=backend, rollout="measured", window=200.0, epochs=30, lbfgs_iters=0, seed=0)
+    on = tnn_dsl.train(model, [tr], [va], **kw)
+    off = tnn_dsl.train(model, [tr], [va], centre_sigmoid=False, **kw)
+    start = on.meta["curve"][0]["val_mae"]
+    v_on, v_off = on.meta["metrics"]["validation"]["mae"], off.meta["metrics"]["validation"]["mae"]
+    assert v_on < 0.2 * start and v_on < 0.3 * v_off, (start, v_on, v_off)
+    # the stored weights are ordinary sigmoid-MLP weights: the saved model reproduces the validation MAE
+    assert on.evaluate([va], backend=backend)["mae"] == pytest.approx(v_on, rel=1e-9)
+
+
+def test_polish_starts_from_adams_last_state(monkeypatch):
+    """The L-BFGS polish starts from Adam's last iterate, not from an earlier best-validation state, and
+    falls back to that state when it cannot beat its validation MAE."""
+    import tnn_dsl
+    from tnn_dsl import _train
+
+    calls = {"n": 0}
+
+    def fake_validate(self, z, exps=None):  # the start is the best validation state; nothing later beats it
+        calls["n"] += 1
+        return 1.0 if calls["n"] == 1 else 2.0
+
+    seen = {}
+    orig = _train._Trainer.polish
+
+    def spy(self, z, full_vg, data, best, has_val, t0, **kw):
+        seen["start"], seen["fallback"], seen["best"] = np.array(z), np.array(kw["fallback"]), best
+        out = orig(self, z, full_vg, data, best, has_val, t0, **kw)
+        seen["out"] = np.array(out)
+        return out
+
+    monkeypatch.setattr(_train._Trainer, "validate", fake_validate)
+    monkeypatch.setattr(_train._Trainer, "polish", spy)
+    truth = tnn_dsl.loads(REC_NET.format(**TRUE), "truth.thn")
+    start = tnn_dsl.loads(REC_NET.format(**START), "start.thn")
+    tm = tnn_dsl.train(start, [_simulated(truth, 1, 300)], [_simulated(truth, 2, 100)], rollout="measured",
+                       window=100.0, epochs=5, lbfgs_iters=20, seed=0)
+    assert seen["best"] == 1.0
+    assert np.abs(seen["start"] - seen["fallback"]).max() > 1e-3  # Adam moved; the polish starts there
+    np.testing.assert_array_equal(seen["out"], seen["fallback"])  # and nothing beat the best: fallback kept
+    for k, name in NAMES.items():  # the fallback is the starting point here: the model keeps its values
+        assert float(tm.params[name]) == pytest.approx(START[k], rel=1e-12), name

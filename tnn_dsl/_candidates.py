@@ -23,6 +23,11 @@ Not exactly null (a structural edit, :func:`structural_candidates` / :func:`appl
 * ``sensor_lag`` — a sensor without a lag reads its node through a first-order lag ``τ dT_s/dt = T_n − T_s``.
   At small τ the reading is ``T_n − τ·dT_n/dt``, so its score-test column is ``−dT_n/dt`` (a direct
   output term); the proper fit runs on the network with ``lag τ s free``.
+* ``thermal_mass`` — a missing thermal mass on a link a–b (a building envelope, a heat-pipe wall): a new
+  node ``m_<a>_<b>`` of capacity ``C_m`` between a and b, the link split into a–m and m–b with ``f·R`` and
+  ``(1−f)·R`` (same total resistance, so the same steady state). At small ``C_m`` it is an extra heat flow
+  ``−C_m·(1−f)·dT_m/dt`` into a and ``−C_m·f·dT_m/dt`` into b (:func:`mass_forcing`); the proper fit frees
+  ``C_m`` and ``f``.
 
 All edited networks are built as IR directly (the validation pass would refuse a zero conductance);
 :func:`clause_text` gives the ``.thn`` text of a candidate at its fitted value.
@@ -30,18 +35,25 @@ All edited networks are built as IR directly (the validation pass would refuse a
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ._ir import (
     Binary, Call, LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref, Table,
-    Temp, Unary, walk,
+    Temp, ThermalNode, Unary, walk,
 )
 
 __all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name",
-           "structural_candidates", "apply_structural", "STRUCTURAL_KINDS"]
+           "structural_candidates", "apply_structural", "mass_forcing", "mass_grid", "mass_values", "mass_lines", "STRUCTURAL_KINDS",
+           "MASS_FRACTION_BOUNDS"]
 
-STRUCTURAL_KINDS = ("sensor_lag",)
+STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass")
+MASS_FRACTION_BOUNDS = (0.05, 0.95)
+"""Bounds of a thermal-mass candidate's ``f`` (the share of the split link's resistance on the ``a`` side):
+at f → 0 or 1 the new node merges into a neighbour and its capacity stops being identifiable."""
 
 # parameter roles a dependence / wrong-constant candidate may target
 _DEP_ROLES = ("resistance", "conductance", "capacitance", "component", "heat_flow", "generic")
@@ -92,6 +104,8 @@ class Candidate:
             "radiation": f"missing radiation {self.target}",
             "sensor_offset": f"offset on sensor {self.target}",
             "sensor_lag": f"sensor {self.target} lags its node {self.element.get('node', '')}",
+            "thermal_mass": f"missing thermal mass between {self.element.get('a', '')} and"
+            f" {self.element.get('b', '')} (on link {self.element.get('link', '')})",
             "unused_column": f"heat load at {self.target[2:-1]} driven by unused data column"
             f" {', '.join(self.depends_on)}",
         }
@@ -269,8 +283,9 @@ def build_extended(net: Network, varying_inputs: list[str], extra_inputs: list[s
                 i = union.index((k, v))
                 kind = "unused_column" if (k == "input" and v in extra_inputs) else (
                     "heat_load" if target_kind == "heat_load" else "param_dependence")
-                extra_b = bias if kind != "unused_column" else []
-                cands.append(Candidate(kind, tgt, [var_label(k, v)], [Column(f"{fname}.W", i * n_out + j)] + extra_b,
+                # the bias comes with every dependence: the inputs are centred on their mid-range, so a
+                # law ``a·v`` (a heat load driven by a column that is 0 when off) needs the offset too
+                cands.append(Candidate(kind, tgt, [var_label(k, v)], [Column(f"{fname}.W", i * n_out + j)] + bias,
                                        fn=fname, vars=[(k, v)], element={"output": j}))
 
     if "param_dependence" in kinds or "wrong_constant" in kinds:
@@ -406,9 +421,49 @@ def _btemp(net: Network, boundary: str) -> str | None:
     return None
 
 
+def _mass_ends(net: Network, link: Link) -> tuple[str, str]:
+    """The order ``(a, b)`` of a thermal-mass candidate's target ``a--b``: a node before a boundary; between two
+    nodes, a sensed node first (the mass sits "behind" what is measured), then declaration order."""
+    nodes = net.node_names
+    if link.a not in nodes:
+        return link.b, link.a
+    if link.b not in nodes:
+        return link.a, link.b
+    sensed = {s.node for s in net.sensors}
+    return tuple(sorted((link.a, link.b), key=lambda n: (n not in sensed, nodes.index(n))))  # type: ignore[return-value]
+
+
+def _mass_skip(net: Network, link: Link, learned: dict) -> bool:
+    """True for links a thermal-mass candidate cannot split cleanly (see :func:`structural_candidates`)."""
+    if link.value in learned:
+        # the value is a learned function's output: the function is fitted on the whole link; splitting it would
+        # need the function on two links (and its training data describe the unsplit link)
+        return True
+    try:
+        p = net.param(link.value)
+    except KeyError:
+        return True
+    if not p.is_constant or not p.value or p.value <= 0:
+        # a derived value (a law in inputs, temperatures or other parameters, e.g. 1/(h·A(T))): which of its
+        # factors belongs to which side of the new node is not determined by the link; zero or negative
+        # values are not conduction paths
+        return True
+    if "." in link.name or link.name.startswith("G_dx_"):
+        # a link inside a subnet instance is written once for every instance (its text cannot be split for one
+        # instance); G_dx_ links are the doctor's own candidate links
+        return True
+    main = net.source_files[0] if net.source_files else None
+    if link.span is not None and main is not None and link.span.file != main:
+        return True  # written in an included file: the extension cannot edit that line
+    return False
+
+
 def structural_candidates(net: Network, kinds: tuple[str, ...] | None = None) -> list[Candidate]:
-    """Candidates that are not exactly null (see module doc): one ``sensor_lag`` per sensor without a lag.
-    Their ``columns`` name the parameter the edited network gets (:func:`apply_structural`)."""
+    """Candidates that are not exactly null (see module doc): one ``sensor_lag`` per sensor without a lag and
+    one ``thermal_mass`` per link (R or G, node–node or node–boundary) whose value is a positive constant (free
+    or fixed); links whose value is learned or a derived expression, or written inside a subnet or an
+    included file, are skipped (:func:`_mass_skip` says why). Their ``columns`` name the parameters the edited
+    network gets (:func:`apply_structural`): ``[lag]``, or ``[C_m, f]`` for a thermal mass."""
     kinds = kinds or STRUCTURAL_KINDS
     out: list[Candidate] = []
     if "sensor_lag" in kinds:
@@ -421,12 +476,46 @@ def structural_candidates(net: Network, kinds: tuple[str, ...] | None = None) ->
                 continue
             out.append(Candidate("sensor_lag", sn.name, [], [Column(lag, 0)],
                                  element={"sensor": sn.name, "node": sn.node, "param": lag}))
+    if "thermal_mass" in kinds:
+        learned = net.learned_targets()
+        taken = set(net.param_names) | set(net.node_names) | set(net.boundary_names) | {l.name for l in net.links}
+        taken |= set(net.input_names)
+
+        def unique(name: str) -> str:
+            base, i = name, 2
+            while name in taken:
+                name = f"{base}_{i}"
+                i += 1
+            taken.add(name)
+            return name
+
+        for link in net.links:
+            if _mass_skip(net, link, learned):
+                continue
+            a, b = _mass_ends(net, link)
+            m = unique(f"m_{a}_{b}")
+            cap, frac = unique(f"C_{m}"), unique(f"f_{m}")
+            l1, l2 = unique(f"{link.form}_{a}_{m}"), unique(f"{link.form}_{m}_{b}")
+            out.append(Candidate("thermal_mass", f"{a}--{b}", [], [Column(cap, 0), Column(frac, 0)],
+                                 element={"a": a, "b": b, "link": link.name, "value": link.value, "form": link.form,
+                                          "node": m, "param": cap, "frac": frac, "links": [l1, l2]}))
     return out
 
 
-def apply_structural(net: Network, cand: Candidate, value: float, lower: float | None = None) -> Network:
-    """``net`` with the structural candidate ``cand`` built in, its new parameter ``free`` at ``value``
-    (SI: seconds for a sensor lag), bounded below by ``lower``."""
+_J_PER_K = {"kg": 1.0, "m": 2.0, "s": -2.0, "K": -1.0}
+
+
+def apply_structural(net: Network, cand: Candidate, value: float, lower: float | None = None,
+                     frac: float = 0.5) -> Network:
+    """``net`` with the structural candidate ``cand`` built in, its new parameter(s) ``free``.
+
+    * ``sensor_lag``: the lag ``value`` (s), bounded below by ``lower``.
+    * ``thermal_mass``: a node ``m`` of capacity ``value`` (J/K, bounded below by ``lower``) between ``a`` and
+      ``b``; the link a–b (value ``P``, a constant) becomes a–m and m–b, ``f·P`` and ``(1−f)·P`` for a resistance,
+      ``P/f`` and ``P/(1−f)`` for a conductance (derived parameters: ``P`` stays in the table, free if it was),
+      ``f = frac`` free in :data:`MASS_FRACTION_BOUNDS`. The total resistance is ``P`` for every ``f``, so the
+      steady state is the original one. The new node is the last state; the links take the place of the old
+      one in ``links``."""
     if cand.kind == "sensor_lag":
         lag = cand.element["param"]
         dim = {"s": 1.0}
@@ -434,4 +523,246 @@ def apply_structural(net: Network, cand: Candidate, value: float, lower: float |
                   free=True, lower=lower, owner=f"sensor {cand.target}")
         sensors = [s.model_copy(update={"lag": lag}) if s.name == cand.target else s for s in net.sensors]
         return net.model_copy(update={"params": list(net.params) + [p], "sensors": sensors}, deep=True)
+    if cand.kind == "thermal_mass":
+        el = cand.element
+        a, b, m, pv = el["a"], el["b"], el["node"], el["value"]
+        old = next((l for l in net.links if l.name == el["link"]), None)
+        if old is None:
+            raise ValueError(f"no link {el['link']!r} in network {net.name!r}")
+        base = net.param(pv)
+        f_lo, f_hi = MASS_FRACTION_BOUNDS
+        ref_f, ref_p = Ref(name=el["frac"], kind="param"), Ref(name=pv, kind="param")
+        one_minus_f = Binary(op="-", left=Num(value=1.0), right=ref_f)
+        if old.form == "R":
+            e1, e2 = Binary(op="*", left=ref_f, right=ref_p), Binary(op="*", left=one_minus_f, right=ref_p)
+        else:
+            e1, e2 = Binary(op="/", left=ref_p, right=ref_f), Binary(op="/", left=ref_p, right=one_minus_f)
+        role = "resistance" if old.form == "R" else "conductance"
+        l1, l2 = el["links"]
+        new = [
+            Param(name=el["param"], expr=Num(value=float(value), dim=_J_PER_K, unit="J/K"), dim=_J_PER_K, unit="J/K",
+                  role="capacitance", free=True, lower=lower, owner=f"node {m}"),
+            Param(name=el["frac"], expr=Num(value=float(frac)), role="generic", free=True, lower=f_lo, upper=f_hi,
+                  label=f"share of {old.name}'s resistance on the {a} side of {m}"),
+            Param(name=l1, expr=e1, dim=dict(base.dim), unit=base.unit, role=role, owner=f"link {l1}"),
+            Param(name=l2, expr=e2, dim=dict(base.dim), unit=base.unit, role=role, owner=f"link {l2}"),
+        ]
+        links = []
+        for l in net.links:
+            if l.name == old.name:
+                links += [Link(name=l1, a=a, b=m, form=old.form, value=l1),
+                          Link(name=l2, a=m, b=b, form=old.form, value=l2)]
+            else:
+                links.append(l)
+        node = ThermalNode(name=m, capacitance=el["param"], label="thermal mass found by the model doctor")
+        return net.model_copy(update={"params": list(net.params) + new, "links": links,
+                                      "nodes": list(net.nodes) + [node]}, deep=True)
     raise ValueError(f"not a structural candidate kind: {cand.kind}")
+
+
+def _series(net: Network, expr, U: np.ndarray, params: dict, X: np.ndarray, state_names, depth: int = 0) -> np.ndarray:
+    """An expression of the network evaluated over samples: ``U (N, ≥ n_in)`` SI inputs in ``net.inputs`` order,
+    ``X (N, n_states)`` K, ``params`` the numpy constants (derived parameters are evaluated recursively)."""
+    from ._expr import evaluate
+
+    if depth > 64:
+        raise ValueError("parameter expressions nest too deep (a cycle?)")
+    n = U.shape[0]
+    inputs = net.input_names
+    values, temps = {}, {}
+    for r in refs_in(expr):
+        if r in inputs:
+            values[r] = U[:, inputs.index(r)]
+        elif r in params:
+            values[r] = np.asarray(params[r], dtype=float)
+        else:
+            values[r] = _series(net, net.param(r).expr, U, params, X, state_names, depth + 1)
+    for t in temps_in(expr):
+        if t in state_names:
+            temps[t] = X[:, list(state_names).index(t)]
+        else:
+            bnd = next(bd for bd in net.boundaries if bd.name == t)
+            temps[t] = _series(net, net.param(bnd.temperature).expr, U, params, X, state_names, depth + 1)
+    return np.broadcast_to(np.asarray(evaluate(expr, np, values, temps), dtype=float), (n,)).copy()
+
+
+def mass_forcing(net: Network, cand: Candidate, X: np.ndarray, U: np.ndarray, params: dict, lengths, dts,
+                 frac: float = 0.5, rates: np.ndarray | None = None, mass: float | None = None) -> np.ndarray:
+    """The effect of a ``thermal_mass`` candidate on the current trajectory as extra heat flows into the nodes,
+    W per J/K of ``C_m``: shape ``(N, n_nodes)`` in ``net.nodes`` order (the forcing inputs' order). With
+    ``mass=None`` the first-order term (the limit ``C_m → 0``); with ``mass = C`` (J/K) the flows a mass ``C``
+    causes on this trajectory, divided by ``C`` (so a least-squares fit of the resulting output column is
+    ``C_m`` in J/K either way).
+
+    Derivation. The link a–b (total resistance R) is split at a node m: ``R1 = f·R`` on a's side,
+    ``R2 = (1−f)·R`` on b's. m's balance ``C_m·dT_m/dt = (T_a − T_m)/R1 + (T_b − T_m)/R2``, i.e.
+    ``τ·dT_m/dt = T_m0 − T_m`` with ``T_m0 = (R2·T_a + R1·T_b)/R = (1−f)·T_a + f·T_b`` and ``τ = C_m·f(1−f)·R``.
+    The heat into a is ``(T_m − T_a)/R1 = (T_b − T_a)/R + (T_m − T_m0)/R1`` — the unsplit link's flow plus
+    ``(T_m − T_m0)/R1 = −τ·(dT_m/dt)/R1 = −C_m·(1−f)·dT_m/dt``; likewise ``−C_m·f·dT_m/dt`` into b (together the
+    heat the mass stores). At ``C_m → 0`` m is quasi-static, ``T_m = T_m0``: the first-order term is
+    ``−C_m·(1−f)·dT_m0/dt`` into a, ``−C_m·f·dT_m0/dt`` into b, with ``dT_m0/dt = (1−f)·dT_a/dt + f·dT_b/dt``.
+    With a finite ``C`` ``T_m`` is ``T_m0`` through the first-order lag τ, computed exactly on the sampled
+    trajectory (``T_m0`` linear within a sample for nodes, held for boundaries under zero-order-hold inputs);
+    the network's response to the changed flows is left to the caller's linearised simulation.
+
+    The score test holds each sample's forcing over the sample interval, so the rates are interval means,
+    ``(T_m[k+1] − T_m[k])/dt``: exact for the lagged ``T_m``; in the limit, a node's ``(X[k+1] − X[k])/dt``
+    (``X[k] + dt·rates[k]`` stands in for the sample after a file's last) and a boundary's impulse at ``k·dt``,
+    ``(T_b[k] − T_b[k−1])/dt`` (0 on a file's first sample: it starts at steady state). ``X (N, n_states)`` K and
+    ``U (N, ≥ n_in)`` SI are the concatenated files of ``lengths`` samples and steps ``dts`` (s); ``params``
+    the numpy parameter values (the split link's value ``P`` is read there)."""
+    from scipy.signal import lfilter
+
+    el = cand.element
+    a, b = el["a"], el["b"]
+    nodes = net.node_names
+    n = X.shape[0]
+    bounds = np.cumsum([0] + [int(x) for x in lengths])
+    if bounds[-1] != n:
+        raise ValueError(f"file lengths sum to {bounds[-1]}, states have {n} rows")
+    dt_row = np.concatenate([np.full(int(k), float(d)) for k, d in zip(lengths, dts)]) if n else np.zeros(0)
+
+    def start_end(v: str) -> tuple[np.ndarray, np.ndarray]:
+        """v's temperature at the start of each sample interval (after a held input's jump) and at its end."""
+        if v in nodes:
+            x = X[:, nodes.index(v)]
+            end = np.empty(n)
+            for s0, s1 in zip(bounds[:-1], bounds[1:]):
+                if s1 <= s0:
+                    continue
+                end[s0: s1 - 1] = x[s0 + 1: s1]
+                last = rates[s1 - 1, nodes.index(v)] if rates is not None else (
+                    (x[s1 - 1] - x[s1 - 2]) / dt_row[s1 - 1] if s1 - s0 >= 2 else 0.0)
+                end[s1 - 1] = x[s1 - 1] + dt_row[s1 - 1] * last
+            return x, end
+        bnd = next(bd for bd in net.boundaries if bd.name == v)
+        tb = _series(net, net.param(bnd.temperature).expr, U, params, X, nodes)
+        return tb, tb
+
+    (a0, a1), (b0, b1) = start_end(a), start_end(b)
+    p0 = (1.0 - frac) * a0 + frac * b0  # T_m0 at the start of each interval
+    p1 = (1.0 - frac) * a1 + frac * b1  # ... and at its end
+    rate = np.empty(n)
+    if mass is None:  # quasi-static: T_m = T_m0 at the interval ends (continuous); steady start
+        for s0, s1 in zip(bounds[:-1], bounds[1:]):
+            if s1 <= s0:
+                continue
+            prev = np.concatenate([[p0[s0]], p1[s0: s1 - 1]])
+            rate[s0:s1] = (p1[s0:s1] - prev) / dt_row[s0:s1]
+    else:
+        el_v = float(np.asarray(params[el["value"]]).reshape(-1)[0]) if el["value"] in params else float(
+            net.param(el["value"]).value)
+        r_tot = el_v if el["form"] == "R" else 1.0 / el_v
+        tau = float(mass) * frac * (1.0 - frac) * r_tot
+        for s0, s1 in zip(bounds[:-1], bounds[1:]):
+            if s1 <= s0:
+                continue
+            h = float(dt_row[s0])  # one step per file
+            e = math.exp(-h / tau)
+            # exact step of τ·dT/dt = p(t) − T with p linear from p0 to p1 over h:
+            # T(h) = p1 − (p1 − p0)·τ/h + (T(0) − p0 + (p1 − p0)·τ/h)·e^(−h/τ) = e·T(0) + c
+            slope_tau = (p1[s0:s1] - p0[s0:s1]) * tau / h
+            c = p1[s0:s1] - slope_tau - (p0[s0:s1] - slope_tau) * e
+            out = np.empty(s1 - s0 + 1)
+            out[0] = p0[s0]  # steady start
+            out[1:] = lfilter([1.0], [1.0, -e], c, zi=[e * out[0]])[0]
+            rate[s0:s1] = np.diff(out) / h
+    F = np.zeros((n, len(nodes)))
+    F[:, nodes.index(a)] = -(1.0 - frac) * rate
+    if b in nodes:
+        F[:, nodes.index(b)] = -frac * rate
+    return F
+
+
+def mass_grid(net: Network, cand: Candidate, params: dict, dt: float, duration: float, frac: float = 0.5,
+              step: float = 3.0) -> list[float]:
+    """Capacities (J/K) at which the score test tries a thermal mass beyond first order: its own time constant
+    ``C·f(1−f)·R`` from half a sample to a third of the data's ``duration`` (s) in factors of ``step``, and at
+    most 100 × the larger capacity of the link's nodes. At first order a mass on a link to a constant boundary
+    is exactly a larger capacity of the node (``−C_m(1−f)²·dT_a/dt``); only its lag tells them apart."""
+    el = cand.element
+    v = float(np.asarray(params[el["value"]]).reshape(-1)[0]) if el["value"] in params else float(
+        net.param(el["value"]).value)
+    r_tot = v if el["form"] == "R" else 1.0 / v
+    per_tau = 1.0 / (frac * (1.0 - frac) * r_tot)  # C per second of τ
+    caps = []
+    for nd in net.nodes:
+        if nd.name in (el["a"], el["b"]):
+            c = params.get(nd.capacitance)
+            c = float(np.asarray(c).reshape(-1)[0]) if c is not None else net.param(nd.capacitance).value
+            if c and c > 0:
+                caps.append(float(c))
+    c_max = 100.0 * max(caps) if caps else math.inf
+    out, tau = [], 0.5 * dt
+    while tau <= duration / 3.0 and tau * per_tau <= c_max:
+        out.append(tau * per_tau)
+        tau *= step
+    return out
+
+
+def _in_unit(value_si: float, unit: str | None, fallback: str) -> str:
+    """``value_si`` written as a ``.thn`` quantity in ``unit`` (the unit the file wrote), else in ``fallback`` (SI)."""
+    from ._units import unit_scale
+
+    if unit:
+        try:
+            scale, offset = unit_scale(unit)
+            if offset == 0.0 and scale > 0:
+                return f"{value_si / scale:.6g} {unit}"
+        except Exception:  # noqa: BLE001 - an unusual unit text: write SI
+            pass
+    return f"{value_si:.6g} {fallback}"
+
+
+def _scalar(params: dict, name: str, net: Network) -> float:
+    if name in params:
+        return float(np.asarray(params[name]).reshape(-1)[0])
+    return float(net.param(name).value)
+
+
+def mass_values(net: Network, cand: Candidate, params: dict) -> dict:
+    """A fitted thermal mass in SI: ``C`` (J/K), ``f`` (share of the resistance on a's side), ``R`` (the split
+    link's total resistance, K/W) and ``tau`` (s), the new node's own time constant ``C·f(1−f)·R``.
+    ``net`` is a network holding the edit, ``params`` its numpy parameter values."""
+    el = cand.element
+    c = _scalar(params, el["param"], net)
+    f = _scalar(params, el["frac"], net)
+    v = _scalar(params, el["value"], net)
+    r = v if el["form"] == "R" else (1.0 / v if v else float("inf"))
+    return {"C": c, "f": f, "R": r, "tau": c * f * (1.0 - f) * r}
+
+
+def mass_lines(net: Network, cand: Candidate, params: dict) -> list[str]:
+    """The ``.thn`` statements of a fitted thermal mass (``net`` holds the edit, ``params`` its values): the split
+    link's value as a ``param`` (same name, the file's unit, ``free`` as it was), the share ``f`` (free), the new
+    node (``C`` in the unit of its neighbour's capacity, free) and the two links replacing the original one.
+    The caller comments the original link line out."""
+    el = cand.element
+    a, b, m, form = el["a"], el["b"], el["node"], el["form"]
+    pv = net.param(el["value"])
+    vals = mass_values(net, cand, params)
+    fallback = "K/W" if form == "R" else "W/K"
+    v = _scalar(params, pv.name, net)
+    free = ""
+    if pv.free:
+        free = "  free"
+        if pv.lower is not None and pv.upper is not None:
+            free += f" in [{_in_unit(pv.lower, pv.unit, fallback)}, {_in_unit(pv.upper, pv.unit, fallback)}]"
+    cap_unit = None
+    for n in net.nodes:
+        if n.name == a:
+            cap_unit = net.param(n.capacitance).unit
+    fl = el["frac"]
+    f_lo, f_hi = MASS_FRACTION_BOUNDS
+    l1, l2 = el["links"]
+    if form == "R":
+        e1, e2 = f"{fl} * {pv.name}", f"(1 - {fl}) * {pv.name}"
+    else:
+        e1, e2 = f"{pv.name} / {fl}", f"{pv.name} / (1 - {fl})"
+    return [
+        f"param {pv.name} = {_in_unit(v, pv.unit, fallback)}{free}  \"total of the links {a}–{m}–{b}\"",
+        f"param {fl} = {vals['f']:.4g}  free in [{f_lo:g}, {f_hi:g}]  \"share of {pv.name} on the {a} side\"",
+        f"node {m} \"thermal mass found by tnnc diagnose\"  C = {_in_unit(vals['C'], cap_unit, 'J/K')}  free",
+        f"{form} {a} -- {m} = {e1}  as {l1}",
+        f"{form} {m} -- {b} = {e2}  as {l2}",
+    ]

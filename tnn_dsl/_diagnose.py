@@ -14,21 +14,22 @@ Steps (see docs/architecture.md, "Diagnosis"):
    as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (``_residuals``).
 3. **Candidates** from the IR (``_candidates``), all exactly null, in ONE extended network, plus structural
-   ones (a sensor lag) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
+   ones (a sensor lag, a missing thermal mass on a link) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
    outputs w.r.t. every candidate column and every free column. Candidates enter as extra heat flows per
    node (``C·∂rhs_big/∂θ`` at the current trajectory, pointwise) pushed through ONE batched forward-mode
    derivative of the current network's simulation w.r.t. forcing inputs (``_with_forcing``), plus direct
    output terms; a sensor lag's column is ``−dT_node/dt``. The free directions are projected out
    (``P = I − J_f J_f⁺``) and for candidate c
    ``S_c = N_eff · rᵀ Ĵ_c (Ĵ_cᵀĴ_c)⁻¹ Ĵ_cᵀ r / rᵀr`` (the LM statistic ``N·R²`` with the sample size corrected
-   for residual autocorrelation), p-value from χ²(k_c). The Gauss–Newton step gives the initial value.
-4. **Fit the best few** (free + candidate columns, LM from the GN step) and measure on held-out rows.
-   Accept the best only if it pays: a Diebold–Mariano test on the held-out squared errors (Newey–West
-   variance for the autocorrelation, an AIC charge for the k extra parameters; p < 0.01) and MAE at
-   least 10 % lower. (The N(1−ρ₁)/(1+ρ₁) F-test first tried leaves N_eff ≈ 4 on smooth noise-free
-   residuals and refuses obvious gains.) Compensation guard (thesis §6.2.4): among fitted candidates whose held-out SSE
-   is within noise of the best, the one with fewer parameters and the more physical placement wins
-   (a parameter of an element beats a heat load at a node; see ``_PLACEMENT``); runners-up are reported.
+   for residual autocorrelation), p-value from χ²(k_c); ranked on the noise's own scale (``_score_stats``).
+   The Gauss–Newton step gives the initial value.
+4. **Fit the best few** distinct candidates (``_shortlist``; free + candidate columns, LM from the GN step,
+   successive halving) and measure on held-out rows. Accept the best only if it pays: a Diebold–Mariano
+   test on the held-out squared errors (Newey–West variance for the autocorrelation, an AIC charge for the
+   k extra parameters; p < 0.05) and MAE at least 10 % lower. Compensation guard (thesis §6.2.4): among
+   fitted candidates whose held-out SSE is within noise of the best, the one with fewer parameters, then the
+   more physical placement wins (a parameter of an element beats a heat load at a node, a parameter the
+   user already declared uncertain beats one they did not; see ``_place``); runners-up are reported.
 5. **Extend**: the input text plus the accepted ``learn``/link/radiation/offset clauses, re-loaded to check
    it is valid; the gain on held-out data. Repeat 3–5 (forward selection) until nothing pays.
 """
@@ -44,6 +45,7 @@ from typing import Callable
 
 import numpy as np
 from scipy import stats
+from scipy.signal import lfilter
 
 from . import _residuals as R
 from ._candidates import (
@@ -58,10 +60,22 @@ __all__ = ["diagnose", "Diagnosis", "Finding"]
 # placement preference for the compensation guard: lower is more physical/specific
 _PLACEMENT = {
     "param_dependence": 0, "wrong_constant": 0, "missing_link": 1, "radiation": 1, "sensor_offset": 2,
-    "heat_load": 3, "unused_column": 3, "sensor_lag": 2,
+    "heat_load": 3, "unused_column": 3, "sensor_lag": 2, "thermal_mass": 1,
 }
-P_ACCEPT = 0.01
+
+
+def _place(c: Candidate) -> float:
+    """Placement preference of a candidate (lower is more physical/specific): its kind's, half a step better
+    when it extends a function the user already declared uncertain (a ``learn`` clause of the input file:
+    gray-box modelling puts what is not known there first)."""
+    return _PLACEMENT.get(c.kind, 3) - (0.5 if c.element.get("learned") else 0.0)
+
+
+P_ACCEPT = 0.05  # held-out confirmation: one-sided Diebold–Mariano p below this
 MIN_GAIN = 0.10  # minimum relative MAE reduction on held-out data
+FIT_ITER = 15  # Levenberg–Marquardt iterations of a candidate's proper fit
+FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
+FIT_CONTINUE = 3
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 
@@ -468,16 +482,18 @@ class _Engine:
         t = self._to({"X": X, "U": _pad(U, self.n_force)})
         return np.asarray(self._np(self._inv_cap(self._to(self.params), t["X"], t["U"])))
 
-    def apply(self, params, active: list[int], delta: np.ndarray) -> dict[str, np.ndarray]:
-        """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped)."""
+    def apply(self, params, active: list[int], delta: np.ndarray, trust: bool = True) -> dict[str, np.ndarray]:
+        """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped; with ``trust``,
+        log-parameters move by at most e^±2 and learned weights by at most ±1 per step)."""
         p = {k: np.array(v, dtype=float, copy=True) for k, v in params.items()}
         for j, d in zip(active, delta):
             c = self.cols[j]
             flat = p[c.key].reshape(-1)
             if c.log:
-                v = flat[c.index] * math.exp(float(np.clip(d, -2, 2)))
+                v = flat[c.index] * math.exp(float(np.clip(d, -2, 2) if trust else np.clip(d, -30, 30)))
             else:  # learned weights act on normalised inputs: at most ±1 per step (a trust region)
-                v = flat[c.index] + (float(np.clip(d, -1, 1)) if c.key.rsplit(".", 1)[-1][:1] in "Wbc" and "." in c.key else d)
+                v = flat[c.index] + (float(np.clip(d, -1, 1)) if trust and c.key.rsplit(".", 1)[-1][:1] in "Wbc"
+                                     and "." in c.key else d)
             if c.lower is not None:
                 v = max(v, c.lower)
             if c.upper is not None:
@@ -497,9 +513,15 @@ class _Engine:
         """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``)."""
         params = self.params
         if init_delta is not None and np.any(init_delta):
-            trial = self.apply(params, active, init_delta)
-            if self.sse(trial) < self.sse(params):
-                params = trial
+            # the score test's Gauss–Newton step, whole (it is exact for a candidate linear in its
+            # parameters), else inside the trust region; kept only if it helps
+            best = self.sse(params)
+            for trust in (False, True):
+                trial = self.apply(params, active, init_delta, trust=trust)
+                sse_t = self.sse(trial)
+                if sse_t < best:
+                    params, best = trial, sse_t
+                    break
         cur = self.sse(params)
         lam = 1e-3
         it = 0
@@ -644,7 +666,7 @@ def _split_masks(experiments, val_experiments, frac: float = 0.7):
     return exps, np.concatenate(tm), np.concatenate(vm)
 
 
-def _stats_for(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0):
+def _stats_for(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0, state_names=None):
     """Each learned function's input normalisation from the training rows of the nominal run, as the
     trainer sets it (``x_mean`` the mid-range, ``x_scale`` the half-range, floors 0.5 K for temperatures),
     and its output scale: ``|nominal|`` for a parameter, the node's typical heat throughput ``C·rms(dT/dt)``
@@ -652,7 +674,7 @@ def _stats_for(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.
     params."""
     p = dict(params)
     in_idx = {n: i for i, n in enumerate(net.input_names)}
-    st_idx = {n: i for i, n in enumerate(model.state_names)}
+    st_idx = {n: i for i, n in enumerate(state_names or model.state_names)}  # columns of ``states``
     caps = {n.name: n.capacitance for n in net.nodes}
     for fn in net.learned:
         if f"{fn.name}.x_mean" not in p:
@@ -712,7 +734,7 @@ def _fmt(x: float, digits: int = 3) -> str:
 
 
 def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backend: str = "jax",
-             progress: Callable[[str], None] | None = None, *, top: int = 3, max_rounds: int = 4,
+             progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
@@ -729,7 +751,7 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     progress : callable(str), optional
         Called with one line per step (the CLI's progress display).
     top : int
-        How many of the best-scoring candidates are fitted properly each round.
+        How many of the best-scoring distinct candidates are fitted properly each round.
     output : str, optional
         Where to write the extended ``.thn`` (default: not written; the text is in the result).
 
@@ -911,22 +933,32 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
             for d, j in zip(s_["delta"], own):
                 init[act.index(j)] = d
             t_f = _time.monotonic()
-            info = e_s.fit(act, max_iter=15, init_delta=init, deadline=deadline, tol=1e-4)
+            info = e_s.fit(act, max_iter=FIT_ITER_FIRST, init_delta=init, deadline=deadline, tol=1e-4)
             say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations"
                 + (f", network compiled in {t_c:.1f} s" if len(fits) == 0 else "") + ")")
-            e_after = e_s.residual()
-            ev = np.where(e_s.val_mask, e_after, np.nan)
-            mae = float(np.nanmean(np.abs(ev)))
-            mx = float(np.nanmax(np.abs(ev)))
-            sse_v = e_s.sse(which="val")
-            e1 = e_after.ravel()[e_s.val_idx]
-            F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
-            fits.append({"cand": c, "score": s_, "eng": e_s, "ext": x_s, "val_mae": mae, "val_max": mx, "e_val": e1,
-                         "val_sse": sse_v, "F": F, "p": pval, "n_eff": n_eff, "params": e_s.params,
-                         "e_all": e_after, "net": None})
+            f = _fit_result(c, s_, e_s, x_s, e_base_val)
+            f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= FIT_ITER_FIRST)
+            fits.append(f)
+        # successive halving: the fits still moving after FIT_ITER_FIRST iterations, best training SSE first,
+        # go on to convergence (the held-out rows never decide who continues)
+        going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
+        for f in going:
+            if deadline is not None and _time.monotonic() > deadline:
+                break
+            c = f["cand"]
+            say(f"  continuing {c.describe()} ...")
+            e_s.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
+            t_f = _time.monotonic()
+            info = e_s.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=deadline, tol=1e-4)
+            say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
+            f.update(_fit_result(c, f["score"], e_s, x_s, e_base_val), train_sse=info["sse"])
         lap(f"fit_round{rnd}", t0)
         if not fits:
             break
+        e_base_tr = final_eng.residual().ravel()[final_eng.train_idx]
+        for f in fits:
+            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
+                                                        f["cand"].k, len(scored))
         chosen = _choose(fits, current_val, e_base_val)
         twins = _indistinguishable(chosen["score"], scored) if chosen is not None else []
         for rank, f in enumerate(sorted(fits, key=lambda f: f["val_sse"]), start=1):
@@ -942,7 +974,10 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
                           "r2_linearised": f["score"]["public"]["r2"], "k": c.k,
                           "val_mae_before": current_val[0], "val_sse_before": current_val[2],
                           "val_sse_after": f["val_sse"], "dm_stat": f["F"], "p_value": f["p"], "n_eff": f["n_eff"],
-                          "test": "Diebold–Mariano on held-out squared errors, HAC variance, AIC charge for k",
+                          "lr_train": f.get("S_train"), "p_train": f.get("p_train"),
+                          "test": ("likelihood ratio on the training rows (effective N, Bonferroni over the "
+                                   "candidates scored) and Diebold–Mariano on held-out squared errors (HAC "
+                                   "variance, AIC charge for k)"),
                           "mae_gain": 1 - f["val_mae"] / current_val[0] if current_val[0] else 0.0,
                           "reason": f.get("reason", ""),
                           "indistinguishable_from": twins if f is chosen else []}))
@@ -1016,14 +1051,42 @@ def _cand_in(ext: Extended, key: str) -> Candidate | None:
 def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kinds, acc_keys, exps, train_mask, val_mask,
                     backend, state, ref, dt_min, deadline, e_base_val, say) -> dict | None:
     """Fit a structural (not exactly null) candidate on its own network: the base network with the edit
-    built in (:func:`apply_structural`), started from the score test's Gauss–Newton value."""
+    built in (:func:`apply_structural`), started from the score test's Gauss–Newton value.
+
+    A thermal mass starts at the Gauss–Newton ``C_m`` (J/K) clipped to ``[max(4·dt/R, 10⁻³·C_min), 100·C_max]``
+    (``R`` the split link's total resistance, so that the new node's time constant ``C_m·f(1−f)·R`` is at least
+    one sample at f = 1/2; ``C_min``/``C_max`` the capacities of the link's nodes) and is bounded below by
+    ``0.4·dt/R`` (a tenth of a sample); ``f`` starts at 1/2."""
     t0 = float(s_["delta"][0]) if len(s_["delta"]) else 0.0
+    frac = 0.5
     if c.kind == "sensor_lag":
         if not t0 > 0:
             say("    the linearised fit wants a negative lag: not fitted")
             return None
         t0 = float(np.clip(t0, 0.5 * dt_min, 1e4 * dt_min))
-    net_s = apply_structural(net_x, c, t0, lower=0.2 * dt_min)
+        lower = 0.2 * dt_min
+    elif c.kind == "thermal_mass":
+        if not t0 > 0:
+            say("    the linearised fit wants a negative thermal mass: not fitted")
+            return None
+        el = c.element
+        v = float(net_x.param(el["value"]).value)
+        r_tot = v if el["form"] == "R" else 1.0 / v
+        caps = []
+        for n in net_x.nodes:
+            if n.name in (el["a"], el["b"]):
+                pc = net_x.param(n.capacitance)
+                if pc.is_constant and pc.value and pc.value > 0:
+                    caps.append(float(pc.value))
+        lo = 4.0 * dt_min / r_tot
+        hi = 100.0 * max(caps) if caps else 1e6 * lo
+        if caps:
+            lo = max(lo, 1e-3 * min(caps))
+        t0 = float(np.clip(t0, lo, max(hi, lo)))
+        lower = 0.4 * dt_min / r_tot
+    else:
+        raise ValueError(f"not a structural candidate kind: {c.kind}")
+    net_s = apply_structural(net_x, c, t0, lower=lower, **({"frac": frac} if c.kind == "thermal_mass" else {}))
     ext_s = build_extended(net_s, varying, extra, kinds=kinds, only=set(acc_keys))
     eng, x_s, f_s, c_s = _make_engine(ext_s, net_s, exps, train_mask, val_mask, backend, state, ref, acc_keys)
     act = list(f_s) + [j for k in acc_keys for j in c_s.get(k, [])]
@@ -1034,8 +1097,29 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     ev = np.where(eng.val_mask, e_after, np.nan)
     e1 = e_after.ravel()[eng.val_idx]
     F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
+    val_sse = eng.sse(which="val")
+    if c.kind == "thermal_mass" and "states" in ref:
+        # the reference run's states (learned-function normalisation, read by position) get the new node's
+        # trajectory where it will sit if accepted: after the original nodes (lag states, never learn inputs,
+        # shift). Of several masses fitted on one layout, the best-fitting one's column is kept.
+        n0 = len(net_x.nodes)
+        _, xs = eng.simulate()
+        col = xs[:, list(eng.model.state_names).index(c.element["node"])]
+        prev = ref.get("mass_col")
+        st, names = np.asarray(ref["states"]), list(ref["names"])
+        if prev is not None and prev["n0"] == n0 and st.shape[1] > n0:
+            if val_sse < prev["sse"]:
+                st = st.copy()
+                st[:, n0] = col
+                names[n0] = c.element["node"]
+                ref["mass_col"] = {"n0": n0, "sse": val_sse}
+        elif st.shape[1] >= n0:
+            st = np.concatenate([st[:, :n0], col[:, None], st[:, n0:]], axis=1)
+            names = names[:n0] + [c.element["node"]] + names[n0:]
+            ref["mass_col"] = {"n0": n0, "sse": val_sse}
+        ref["states"], ref["names"] = st, names
     return {"cand": c, "score": s_, "eng": eng, "ext": x_s, "val_mae": float(np.nanmean(np.abs(ev))),
-            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": eng.sse(which="val"), "F": F, "p": pval,
+            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": val_sse, "F": F, "p": pval,
             "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": net_s}
 
 
@@ -1105,7 +1189,7 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
         ref["names"] = list(model.state_names)
     rows = train_mask.any(1)
     eng.params0 = _stats_for(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows,
-                             dt=float(exps[0].dt))
+                             dt=float(exps[0].dt), state_names=ref.get("names"))
     eng.params = _params_from_state(eng, ext_s, state, keys)
     return eng, ext_s, list(range(len(free_cols))), cols_of
 
@@ -1151,7 +1235,19 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     ``∂h/∂θ_c`` (sensor offsets). The response of the outputs to ``F_c`` is one forward-mode derivative of
     the *current* network's simulation w.r.t. its forcing inputs (``_with_forcing``), batched over
     candidates: exact in continuous time, the discrete step holding ``F_c`` over each sample. Returns None
-    when the two networks' states differ (then the caller uses :func:`_score` on the big network)."""
+    when the two networks' states differ (then the caller uses :func:`_score` on the big network).
+
+    Structural candidates (not exactly null) get their first-order column without simulating the edit:
+
+    * sensor lag τ: the reading is ``T_n − τ·dT_n/dt + O(τ²)``, a direct output column ``−dT_n/dt``;
+    * thermal mass ``C_m`` on a link a–b (resistance R) split at m into ``f·R`` (a side) and ``(1−f)·R``: m's
+      balance ``C_m·dT_m/dt = (T_a − T_m)/(f·R) + (T_b − T_m)/((1−f)·R)``. At ``C_m → 0`` m is quasi-static,
+      ``T_m0 = (1−f)·T_a + f·T_b``, and the heat into a is the unsplit link's. To first order,
+      ``T_m = T_m0 + δ``, ``δ = −C_m·f(1−f)·R·dT_m0/dt``, so the heat into a changes by
+      ``δ/(f·R) = −C_m·(1−f)·dT_m0/dt`` and into b (a node) by ``−C_m·f·dT_m0/dt``: per unit ``C_m`` a heat-flow
+      column (W per J/K) that goes through the forced Jacobian like ``F_c`` (``_candidates.mass_forcing``;
+      node rates as interval means of the simulated states, boundary rates from the input samples, f = 1/2;
+      the proper fit frees f). The column's Gauss–Newton step is the starting ``C_m`` of the proper fit."""
     if tuple(big.model.state_names) != tuple(cur.model.state_names) or cur.n_force == 0:
         return None
     nsr = cur.n_score_rows
@@ -1171,44 +1267,170 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     nn = cur.n_force
     with np.errstate(divide="ignore", invalid="ignore"):
         F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
+    # structural candidates, no simulation of the edit. A thermal mass C_m on a link a–b is an extra heat flow
+    # per node (``_candidates.mass_forcing``: −C_m·(1−f)·dT_m/dt into a, −C_m·f·dT_m/dt into b, f = 1/2 here;
+    # the proper fit frees f), pushed through the forced Jacobian with the other candidates' F; a sensor lag τ
+    # is a direct output term ∂y_s/∂τ = −dT_node/dt.
+    struct = [c for c in cands if c.kind in STRUCTURAL_KINDS]
+    mass = [c for c in struct if c.kind == "thermal_mass"]
+    rates = cur.rates(X, U) if struct else None  # (N, ns) K/s
+    mass_rows: list[tuple[Candidate, float | None]] = []
+    if mass:
+        # At first order (T_m = (1−f)·T_a + f·T_b) a mass on a link to a constant boundary is exactly a larger
+        # capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its
+        # lag at a grid of capacities (``mass_grid``: T_m lagged behind its quasi-static value on the current
+        # trajectory, the flows divided by C); the column explaining most of the residual is the candidate's.
+        from ._candidates import mass_forcing, mass_grid
+
+        lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
+        dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
+        duration = max(n * d for n, d in zip(lens, dts))
+        Fm = []
+        for c in mass:
+            for cg in [None] + mass_grid(cur.net, c, cur.params, min(dts), duration):
+                Fm.append(mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates,
+                                       mass=cg)[:, :nn])
+                mass_rows.append((c, cg))
+        F = np.concatenate([F, np.stack(Fm)], axis=0)
     J_all = cur.forced_jacobian(active_base, F)
     direct = d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # (n_train, m)
-    J_all[:, len(active_base):] += direct
-    # structural candidates: their first-order columns, no simulation (a sensor lag τ: ∂y_s/∂τ = −dT_node/dt)
-    struct = [c for c in cands if c.kind in STRUCTURAL_KINDS]
+    n0 = len(active_base)
+    J_all[:, n0: n0 + direct.shape[1]] += direct
     if struct:
-        rates = cur.rates(X, U)  # (N, ns) K/s
         names = list(cur.model.state_names)
         outs = list(cur.model.output_names)
         cols_of = dict(cols_of)
+        n_new = 0
         extra_cols = []
+        if mass:  # the forced Jacobian's last columns: keep each mass's best one (free directions projected out)
+            n_c = n0 + direct.shape[1]
+            Jm, J_all = J_all[:, n_c:], J_all[:, :n_c]
+            r_tr = cur.residual().ravel()[cur.train_idx]
+            Jf = J_all[:, :n0]
+            if Jf.shape[1]:
+                sc = np.linalg.norm(Jf, axis=0)
+                sc[sc == 0] = 1.0
+                Ub, sb, _ = np.linalg.svd(Jf / sc, full_matrices=False)
+                Ub = Ub[:, sb > sb.max() * 1e-10] if sb.size and sb.max() > 0 else Ub[:, :0]
+            else:
+                Ub = np.zeros((Jf.shape[0], 0))
+            rp = r_tr - Ub @ (Ub.T @ r_tr)
+            Jp = Jm - Ub @ (Ub.T @ Jm)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                share = (Jp.T @ rp) ** 2 / (np.sum(Jp * Jp, axis=0) * max(float(rp @ rp), 1e-300))
+            share = np.where(np.isfinite(share), share, -1.0)
+            best: dict[str, int] = {}
+            for i, (c, _) in enumerate(mass_rows):
+                if c.key not in best or share[i] > share[best[c.key]]:
+                    best[c.key] = i
+            for c in mass:
+                i = best[c.key]
+                c.element["score_mass"] = mass_rows[i][1]  # None: first order won
+                extra_cols.append(Jm[:, i])
+                cols_of[c.key] = [len(big.cols) + n_new]
+                cand_idx = cand_idx + [len(big.cols) + n_new]
+                n_new += 1
         for c in struct:
+            if c.kind == "thermal_mass":
+                continue
             col = np.zeros((nsr, len(outs)))
             if c.kind == "sensor_lag":
                 col[:, outs.index(c.target)] = -rates[:, names.index(c.element["node"])]
-            j = len(big.cols) + len(extra_cols)
+                col = _best_lag_column(cur, c, col, X[:, names.index(c.element["node"])], outs.index(c.target),
+                                       J_all[:, :n0])
+            j = len(big.cols) + n_new
+            n_new += 1
             cols_of[c.key] = [j]
             cand_idx = cand_idx + [j]
             extra_cols.append(col.reshape(-1)[cur.train_idx])
-        J_all = np.concatenate([J_all, np.stack(extra_cols, axis=1)], axis=1)
+        if extra_cols:
+            J_all = np.concatenate([J_all, np.stack(extra_cols, axis=1)], axis=1)
+    e = cur.residual()
+    return _score_stats(J_all, len(active_base), e.ravel()[cur.train_idx], cands, cand_idx, cols_of,
+                        _noise_var(e, cur.train_mask))
+
+
+def _best_lag_column(cur: "_Engine", c: Candidate, first: np.ndarray, x_node: np.ndarray, out: int,
+                     Jf: np.ndarray) -> np.ndarray:
+    """The score column of a sensor lag: the first-order one (``−dT_node/dt``, exact as τ → 0) or, when it
+    explains more of the residual (free directions projected out), the reading lagged at a finite τ on the
+    current trajectory, per unit τ: ``(s_τ − T_node)/τ`` with ``s`` the node's samples through
+    ``τ ds/dt = T − s`` (exact for a held sample, started at the first sample of each file). τ runs from
+    half a sample to a third of the data in factors of 3, so a slow sensor (τ of the order of the plant's
+    own time constants, where the first-order term fails) scores as what it is; ``c.element["score_tau"]``
+    keeps the τ that won (None: first order). Shapes: ``first (N_score, n_out)``, ``x_node (N_score,)`` K."""
+    lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
+    dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
     r = cur.residual().ravel()[cur.train_idx]
-    return _score_stats(J_all, len(active_base), r, cands, cand_idx, cols_of)
+    if Jf.shape[1]:
+        sc = np.linalg.norm(Jf, axis=0)
+        sc[sc == 0] = 1.0
+        Ub, sb, _ = np.linalg.svd(Jf / sc, full_matrices=False)
+        Ub = Ub[:, sb > sb.max() * 1e-10] if sb.size and sb.max() > 0 else Ub[:, :0]
+    else:
+        Ub = np.zeros((r.size, 0))
+    rp = r - Ub @ (Ub.T @ r)
+    rr = max(float(rp @ rp), 1e-300)
+
+    def share(col2d):
+        v = col2d.reshape(-1)[cur.train_idx]
+        v = v - Ub @ (Ub.T @ v)
+        nv = float(v @ v)
+        return (float(v @ rp) ** 2 / (nv * rr)) if nv > 0 else -1.0
+
+    best, best_share, best_tau = first, share(first), None
+    dt = min(dts)
+    duration = max(n * d for n, d in zip(lens, dts))
+    tau = dt / 2
+    while tau < duration / 3:
+        s = np.empty_like(x_node)
+        i0 = 0
+        for n, d in zip(lens, dts):
+            a = math.exp(-d / tau)
+            seg = x_node[i0: i0 + n]
+            s[i0: i0 + n] = lfilter([1 - a], [1.0, -a], seg, zi=[a * seg[0]])[0]
+            i0 += n
+        col = np.zeros_like(first)
+        col[:, out] = (s - x_node) / tau
+        sh = share(col)
+        if sh > best_share:
+            best, best_share, best_tau = col, sh, tau
+        tau *= 3
+    c.element["score_tau"] = best_tau
+    return best
 
 
 def _score(eng: _Engine, cands: list[Candidate], active_base: list[int], cols_of: dict[str, list[int]],
            sigma: float) -> list[dict]:
     """The score (LM) test of every candidate at the current point, on the big network's simulation (used
     where :func:`_score_forced` cannot be); sorted best first."""
-    r = eng.residual().ravel()[eng.train_idx]
+    e = eng.residual()
     cand_idx = sorted({j for cand in cands for j in cols_of.get(cand.key, [])} - set(active_base))
     J_all = eng.jacobian(active_base + cand_idx)
-    return _score_stats(J_all, len(active_base), r, cands, cand_idx, cols_of)
+    return _score_stats(J_all, len(active_base), e.ravel()[eng.train_idx], cands, cand_idx, cols_of,
+                        _noise_var(e, eng.train_mask))
+
+
+def _noise_var(e: np.ndarray, mask: np.ndarray) -> float:
+    """The measurement-noise variance K² seen in the residual ``e (N, n_out)`` on the rows of ``mask``: half
+    the mean squared first difference along time (white noise of variance σ² gives 2σ²; a smooth model
+    error contributes almost nothing), so a large structured residual does not inflate it."""
+    m = mask[1:] & mask[:-1]
+    d = np.diff(e, axis=0)[m]
+    d = d[np.isfinite(d)]
+    return float(np.mean(d * d) / 2.0) if d.size else 0.0
 
 
 def _score_stats(J_all: np.ndarray, n_base: int, r: np.ndarray, cands: list[Candidate], cand_idx: list[int],
-                 cols_of: dict[str, list[int]]) -> list[dict]:
+                 cols_of: dict[str, list[int]], noise_var: float = 0.0) -> list[dict]:
     """Score statistics from the Jacobian ``J_all = [J_base | J_candidate columns cand_idx]`` (n_train, ·)
-    and the training residual ``r``; sorted best first."""
+    and the training residual ``r``; sorted best first.
+
+    Two scales: ``S = N_eff·R²`` (``N_eff`` the autocorrelation-corrected sample size of the residual; its
+    χ²(k) tail is the reported, conservative ``p``), and for the *ranking* the score on the noise's own
+    scale, ``S_w = R²·‖r‖²/σ²`` with σ² from the residual's first differences (:func:`_noise_var`): a
+    structured residual leaves ``N_eff`` at a handful of samples, where a charge of 2 per parameter would
+    outweigh any difference in explained residual; against the noise it is the usual AIC-type charge."""
     Jf = J_all[:, :n_base]
     Jc_all = J_all[:, n_base:]
     pos = {j: i for i, j in enumerate(cand_idx)}
@@ -1240,10 +1462,11 @@ def _score_stats(J_all: np.ndarray, n_base: int, r: np.ndarray, cands: list[Cand
         delta = (Vt.T @ (proj / s)) / sc
         S = n_eff * r2
         p = float(stats.chi2.sf(S, k))
+        S_w = r2 * rr / noise_var if noise_var > 0 else S
         fit_dir = Q @ proj  # the training-output change the candidate's linearised fit makes
         nrm = float(np.linalg.norm(fit_dir))
         out.append({"cand": cand, "r2": r2, "S": S, "p": p, "k": k, "delta": delta,
-                    "adj": S - 2 * k, "place": _PLACEMENT.get(cand.kind, 3),
+                    "adj": max(S, S_w) - 2 * k, "place": _place(cand),
                     "dir": (fit_dir / nrm).astype(np.float32) if nrm > 0 else None})
     out.sort(key=lambda d: (-d["adj"], d["k"], d["place"]))
     for i, d in enumerate(out, start=1):
@@ -1303,20 +1526,95 @@ def _held_out_test(e0: np.ndarray, e1: np.ndarray, k: int) -> tuple[float, float
     return stat, p, float(n * var0 / lrv)
 
 
-def _shortlist(scored: list[dict], top: int) -> list[dict]:
-    """The ``top`` best by score, plus (compensation guard) the best-scoring physical-placement candidate
-    when only heat loads made the list, so a heat load never wins without a physical rival being fitted."""
-    short = scored[:top]
+def _fit_result(c: Candidate, s_: dict, eng: "_Engine", ext: Extended, e_base_val: np.ndarray) -> dict:
+    """The held-out numbers of a candidate fitted on ``eng`` (its current parameters)."""
+    e_after = eng.residual()
+    ev = np.where(eng.val_mask, e_after, np.nan)
+    e1 = e_after.ravel()[eng.val_idx]
+    F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
+    return {"cand": c, "score": s_, "eng": eng, "ext": ext, "val_mae": float(np.nanmean(np.abs(ev))),
+            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": eng.sse(which="val"), "F": F,
+            "p": pval, "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": None}
+
+
+def _train_lr_test(e0: np.ndarray, e1: np.ndarray, k: int, m: int) -> tuple[float, float]:
+    """Likelihood-ratio test of the fitted candidate on the training rows: ``S = N_eff·ln(SSE0/SSE1)``
+    against χ²(k), ``N_eff`` the extended model's residual sample size corrected for autocorrelation
+    (:func:`tnn_dsl._residuals.effective_n`: under the alternative that residual is the noise). The
+    candidate was picked among ``m`` scored ones, so its p is Bonferroni-corrected (×m). Returns
+    ``(S, corrected p)``."""
+    ok = np.isfinite(e0) & np.isfinite(e1)
+    if ok.sum() < 8 or not np.all(np.isfinite(e1)):
+        return 0.0, 1.0
+    sse0, sse1 = float(e0[ok] @ e0[ok]), float(e1[ok] @ e1[ok])
+    if not (sse1 > 0 and sse0 > sse1):
+        return 0.0, 1.0
+    S = R.effective_n(e1[ok]) * math.log(sse0 / sse1)
+    return float(S), float(min(1.0, max(m, 1) * stats.chi2.sf(S, max(k, 1))))
+
+
+def _shortlist(scored: list[dict], top: int, same_cos: float = 0.99999) -> list[dict]:
+    """The ``top`` best by score among *distinct* candidates, plus (compensation guard) the best-scoring
+    physical-placement candidate when only heat loads made the list, so a heat load never wins without a
+    physical rival being fitted.
+
+    Distinct: two candidates with the same number of parameters whose linearised corrections of the
+    training outputs coincide (|cos| ≥ ``same_cos``, e.g. a heat load at a node and the error of the source
+    there) would be fitted twice for one answer; only the more physical (then the better-scoring) one is
+    fitted, the other is listed under ``"same"`` of the one kept (reported as indistinguishable)."""
+    short: list[dict] = []
+    for s in scored:
+        twin = None
+        if s.get("dir") is not None:
+            for t in short:
+                if (t.get("dir") is not None and t["k"] == s["k"]
+                        and abs(float(np.dot(t["dir"].astype(float), s["dir"].astype(float)))) >= same_cos):
+                    twin = t
+                    break
+        if twin is not None:
+            if s["place"] < twin["place"]:  # keep the more physical one in the twin's slot
+                s["same"] = twin.get("same", []) + [twin]
+                twin.pop("same", None)
+                short[short.index(twin)] = s
+            else:
+                twin.setdefault("same", []).append(s)
+            continue
+        if len(short) >= top:
+            break
+        short.append(s)
     if short and all(s["place"] >= 3 for s in short):
-        phys = next((s for s in scored[top:] if s["place"] < 3 and s["r2"] > 0.5 * short[0]["r2"]), None)
+        phys = next((s for s in scored if s not in short and s["place"] < 3 and s["r2"] > 0.5 * short[0]["r2"]),
+                    None)
         if phys is not None:
             short.append(phys)
+    # the user's own uncertain parts: the best candidates extending a `learn` clause of the input file
+    if short:
+        r2_best = max(s["r2"] for s in short)
+        for s in [s for s in scored if s["cand"].element.get("learned") and s not in short
+                  and s["r2"] > 0.5 * r2_best][:2]:
+            if not any(s in t.get("same", []) for t in short):
+                short.append(s)
+    # parsimony: the best one-parameter candidates are fitted too when larger ones filled the list (a
+    # dependence with its offset contains the wrong constant, and the score on the noise's scale favours
+    # a tiny gain in explained residual over the parameter it costs)
+    if short:
+        r2_best = max(s["r2"] for s in short)
+        for s in [s for s in scored if s["k"] == 1 and s not in short and s["r2"] > 0.9 * r2_best][:2]:
+            if not any(s in t.get("same", []) for t in short):
+                short.append(s)
     return short
 
 
 def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
-    """Pick the candidate that pays (held-out test p < 0.01, MAE gain ≥ 10 %); among
-    those within noise of the best, fewer parameters and more physical placement win."""
+    """Pick the candidate that pays on held-out data: a Diebold–Mariano test with a charge for its k
+    parameters (p < ``P_ACCEPT``) and a held-out MAE gain of at least ``MIN_GAIN``. Among those within noise
+    of the best, fewer parameters win, then the more physical placement (an exact sub-model explains the data
+    as well as the larger candidate containing it: the larger one only adds a parameter to compensate).
+
+    The training likelihood-ratio test (:func:`_train_lr_test`) is reported as evidence but does not gate:
+    on noise-free or nearly noise-free data its autocorrelation-corrected sample size collapses to a few
+    samples, while the held-out test still sees whether the gain is real. The gain threshold is what keeps
+    null runs clean: fitting noise cannot cut the held-out MAE by ``MIN_GAIN``."""
     mae0 = current_val[0]
     paying = []
     for f in fits:
@@ -1324,7 +1622,7 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
         if not (math.isfinite(f["val_mae"]) and f["val_mae"] < 1e3):
             f["reason"] = "its held-out simulation diverges (the fitted law leaves the physical range there)"
         elif f["p"] >= P_ACCEPT:
-            f["reason"] = f"not significant (p = {f['p']:.2g} ≥ {P_ACCEPT})"
+            f["reason"] = f"not confirmed on held-out data (Diebold–Mariano p = {f['p']:.2g} ≥ {P_ACCEPT})"
         elif gain < MIN_GAIN:
             f["reason"] = f"gain too small ({100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %)"
         else:
@@ -1334,7 +1632,7 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     best = min(paying, key=lambda f: f["val_sse"])
     # within noise of the best: the best is not significantly better (same held-out test, k = 0)
     close = [f for f in paying if f is best or _held_out_test(f["e_val"], best["e_val"], 0)[1] > 0.05]
-    pick = min(close, key=lambda f: (_PLACEMENT.get(f["cand"].kind, 3), f["cand"].k, f["val_sse"]))
+    pick = min(close, key=lambda f: (f["cand"].k, _place(f["cand"]), f["val_sse"]))
     for f in paying:
         if f is not pick:
             f["reason"] = ("within noise of the chosen one, which is more physical or smaller"
@@ -1460,6 +1758,14 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
     if c.kind == "sensor_lag":
         tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"sensor {c.target} lags its node {c.element['node']}: first-order lag τ ≈ {_fmt(tau)} s"
+    if c.kind == "thermal_mass":
+        from ._candidates import mass_values
+
+        el = c.element
+        v = mass_values(net, c, params)
+        return (f"missing thermal mass between {el['a']} and {el['b']}: a node {el['node']} of C ≈ {_fmt(v['C'])} J/K"
+                f" splitting link {el['link']} ({el['a']}–{el['b']}, R ≈ {_fmt(v['R'])} K/W in total),"
+                f" {100 * v['f']:.0f} % of it on the {el['a']} side; its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
     return c.describe()
 
 
@@ -1516,6 +1822,10 @@ def _clause(c: Candidate, params, ext: Extended, eng: _Engine) -> str:
     if c.kind == "sensor_lag":
         tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"lag {tau:.4g} s free"
+    if c.kind == "thermal_mass":  # the new node and the two links (the .thn extension has the parameters too)
+        from ._candidates import mass_lines
+
+        return "; ".join(mass_lines(net, c, params)[2:])
     return ""
 
 
@@ -1552,6 +1862,11 @@ def _merged_clauses(accepted: list[Candidate], params, ext: Extended, eng: _Engi
     for c in accepted:
         if c.kind in ("missing_link", "radiation"):
             out.append(_clause(c, params, ext, eng))
+    for c in accepted:
+        if c.kind == "thermal_mass":  # the split link's value, the share f, the new node, the two new links
+            from ._candidates import mass_lines
+
+            out += mass_lines(net, c, params)
     return out
 
 
@@ -1572,6 +1887,17 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
             m = re.search(r"\bcolumn\b", ln)
             ins = f"offset {o:.4g} K free  " if c.kind == "sensor_offset" else f"lag {o:.4g} s free  "
             lines[s.span.line - 1] = (ln[: m.start()] + ins + ln[m.start():]) if m else ln.rstrip() + "  " + ins.strip()
+    # a thermal mass replaces its link: the original line is commented out (its value is a `param` line now)
+    for c in accepted:
+        if c.kind != "thermal_mass":
+            continue
+        link = next((l for l in net.links if l.name == c.element["link"]), None)
+        if link is None or link.span is None:
+            continue
+        for ln in range(link.span.line, link.span.end_line + 1):
+            if 1 <= ln <= len(lines):
+                lines[ln - 1] = (f"# (split by `tnnc diagnose` at the new thermal mass {c.element['node']}, see below) "
+                                 + lines[ln - 1])
     # a learned constant of the original network that now depends on something: its clause is replaced
     # (the dependent targets get their own clause; the others stay constant)
     for fname in dict.fromkeys(c.element.get("learned") for c in accepted if c.element.get("learned")):

@@ -91,9 +91,10 @@ class TrainConfig:
     """L2 weight on learned-function weights."""
     continuity: float = 10.0
     """Weight of the multiple-shooting continuity penalty (``rollout=estimated``)."""
-    lbfgs_iters: int = 300
-    """L-BFGS polish iterations after Adam (0 to skip). The polish keeps its iterate with the best
-    validation MAE and stops after 100 iterations without a better one."""
+    lbfgs_iters: int = 1000
+    """L-BFGS polish iterations after Adam (0 to skip). The polish starts from Adam's last state, keeps
+    the iterate with the best validation MAE (Adam's best if none is better) and stops after 100
+    iterations without a better one."""
     patience: int = 80
     """Early stopping: epochs without a better validation MAE, checked from half of ``epochs`` on (a free
     run's validation error often rises while a learned function leaves its nominal value, then falls)."""
@@ -111,6 +112,10 @@ class TrainConfig:
     """A model directory whose arrays (same name and shape) initialise this model."""
     prefit: bool = True
     """Pre-fit ``replace``-mode flow functions to the nominal physics flow."""
+    centre_sigmoid: bool = True
+    """Optimise sigmoid MLPs in tanh coordinates (σ(a) = ½ + ½·tanh(a/2), see ``_tanh_to_sigmoid``):
+    the same functions and stored weights, but zero-centred hidden units with unit slope, so the steps
+    of Adam are not spent moving the next layer's bias against its weights."""
     max_restarts: int = 6
     """Divergence guard: how often the best state is restored with a smaller step before giving up."""
     time_limit: float | None = None
@@ -528,6 +533,36 @@ def _windows(exps, window_s: float) -> list[_Window]:
 # ---------------------------------------------------------------------------------------------
 
 
+def _tanh_to_sigmoid(p: dict, fn: str, K: int) -> None:
+    """In place: weights ``W'k, b'k`` of a tanh MLP with ``K`` hidden layers → the weights of the sigmoid
+    MLP computing the same function (``p["<fn>.Wk"]``, ``p["<fn>.bk"]``; numpy, JAX or torch arrays).
+
+    With σ(a) = ½ + ½·tanh(a/2), hidden unit k of the sigmoid net is ½ + ½·t_k with t_k the tanh net's
+    unit: first layer ``W0 = 2W'0, b0 = 2b'0``; hidden → hidden ``Wk = 4W'k, bk = 2b'k − 2·Σ_rows W'k``;
+    last layer ``WK = 2W'K, bK = b'K − Σ_rows W'K``. A linear change of coordinates: the trainer runs
+    Adam and L-BFGS on the primed (centred, unit-slope) weights."""
+    for k in range(K + 1):
+        W, b = p[f"{fn}.W{k}"], p[f"{fn}.b{k}"]
+        if k == 0:
+            p[f"{fn}.W0"], p[f"{fn}.b0"] = 2.0 * W, 2.0 * b
+        elif k < K:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 4.0 * W, 2.0 * b - 2.0 * W.sum(0)
+        else:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 2.0 * W, b - W.sum(0)
+
+
+def _sigmoid_to_tanh(p: dict, fn: str, K: int) -> None:
+    """In place, numpy: the inverse of :func:`_tanh_to_sigmoid`."""
+    for k in range(K + 1):
+        W, b = np.asarray(p[f"{fn}.W{k}"], dtype=float), np.asarray(p[f"{fn}.b{k}"], dtype=float)
+        if k == 0:
+            p[f"{fn}.W0"], p[f"{fn}.b0"] = W / 2.0, b / 2.0
+        elif k < K:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 4.0, (b + W.sum(0) / 2.0) / 2.0
+        else:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 2.0, b + W.sum(0) / 2.0
+
+
 class _Stop(Exception):
     pass
 
@@ -805,13 +840,31 @@ class _Trainer:
                 ref = self.params0[sl.name]
                 self.reg.append((sl, float(w), ref, np.maximum(np.abs(ref), 1e-12)))
         self.weight_slots = [sl for sl in self.slots if specs[sl.name].kind == "weights"]
+        # sigmoid MLPs whose every weight is trained move in tanh coordinates (cfg.centre_sigmoid)
+        trained = {sl.name for sl in self.slots}
+        self.tanh_coords: list[tuple[str, int]] = []
+        if cfg.centre_sigmoid:
+            for fn in self.net.learned:
+                K = len(fn.hidden)
+                if fn.kind == "mlp" and fn.activation == "sigmoid" and K > 0 and all(
+                        f"{fn.name}.{a}{k}" in trained for k in range(K + 1) for a in "Wb"):
+                    self.tanh_coords.append((fn.name, K))
 
     def params_from_z(self, z, ops=None) -> dict:
         ops = ops or self.ops
         p = dict(self.fixed) if ops is self.ops else dict(self.params0)
         for sl in self.slots:
             p[sl.name] = _from_z(sl, z[sl.start:sl.start + sl.size], ops)
+        for fn, K in self.tanh_coords:
+            _tanh_to_sigmoid(p, fn, K)
         return p
+
+    def z_from_params(self, params: dict[str, np.ndarray]) -> np.ndarray:
+        """The parameter part of ``z`` for numpy ``params`` (the inverse of :meth:`params_from_z`)."""
+        p = dict(params)
+        for fn, K in self.tanh_coords:
+            _sigmoid_to_tanh(p, fn, K)
+        return np.concatenate([_to_z(sl, p[sl.name]) for sl in self.slots])
 
     def numpy_params(self, z: np.ndarray) -> dict[str, np.ndarray]:
         p = self.params_from_z(np.asarray(z, dtype=float), _NumpyOps)
@@ -960,7 +1013,7 @@ class _Trainer:
     def run(self) -> np.ndarray:
         cfg = self.cfg
         rng = np.random.default_rng(cfg.seed)
-        z = np.concatenate([_to_z(sl, self.params0[sl.name]) for sl in self.slots]
+        z = np.concatenate([self.z_from_params(self.params0)]
                            + ([np.zeros(self.n_x0 * len(self.model.state_names))] if self.n_x0 else []))
         minibatch = bool(cfg.batch_size) and any(len(g["windows"]) > cfg.batch_size for g in self.groups)
         data, statics = self.batch_arrays(None)
@@ -1072,11 +1125,13 @@ class _Trainer:
             self.stopped = "interrupted"
             self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {best_epoch})")
             return best_z
-        z = best_z.copy()
-        # L-BFGS polish on the full training loss
+        # L-BFGS polish on the full training loss, from Adam's last state (lower training loss than an
+        # early best-validation state; that one stays the fallback)
         if cfg.lbfgs_iters > 0:
-            z = self.polish(z, full_vg, data, best_val if has_val else best_loss, has_val, t0)
-        return z
+            start = z if np.all(np.isfinite(z)) else best_z
+            return self.polish(start, full_vg, data, best_val if has_val else best_loss, has_val, t0,
+                               fallback=best_z)
+        return best_z.copy()
 
     def auto_val_every(self) -> int:
         """Validation period when ``val_every = 0``: validation costs at most ~40 % of the time and runs at
@@ -1087,10 +1142,11 @@ class _Trainer:
         n_epoch = 3 * sum(int(g["U"].shape[1]) for g in self.groups)
         return int(min(max(1, math.ceil(n_val / max(0.4 * n_epoch, 1))), max(1, self.cfg.epochs // 25)))
 
-    def polish(self, z, full_vg, data, best, has_val, t0, val_every: int = 10, patience: int = 10):
+    def polish(self, z, full_vg, data, best, has_val, t0, val_every: int = 10, patience: int = 10,
+               fallback: np.ndarray | None = None):
         """L-BFGS-B on the full training loss from ``z``; returns the iterate with the best validation MAE
         (checked every ``val_every`` iterations; the polish stops after ``patience`` checks without a
-        better one), or ``z`` when none beats ``best``.
+        better one), or ``fallback`` (default ``z``) when none beats ``best`` (``fallback``'s score).
 
         The loss is divided by its value at ``z`` first: scipy's stopping test compares the decrease
         with ``max(|f|, 1)``, so an unscaled loss of 1e-4 K² would stop after one iteration."""
@@ -1150,7 +1206,7 @@ class _Trainer:
             return state["z"]
         self.log("the L-BFGS polish did not improve the " + ("validation MAE" if has_val else "training loss")
                  + "; kept the Adam result")
-        return z
+        return np.array(z if fallback is None else fallback, copy=True)
 
     def record(self, epoch, loss, val, t0, phase, eta=math.nan):
         best = min([r["val_mae"] for r in self.curve if math.isfinite(r["val_mae"])] + [val if math.isfinite(val) else math.inf])

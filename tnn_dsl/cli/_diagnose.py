@@ -33,7 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--json", default=None, metavar="OUT", help="write the findings as JSON")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="wall-clock budget in seconds")
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
-    p.add_argument("--top", type=int, default=3, help="candidates fitted properly per round (default 3)")
+    p.add_argument("--top", type=int, default=5, help="distinct candidates fitted properly per round (default 5)")
     p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)

@@ -33,7 +33,7 @@ _OPTIONS = [
     ("--lam", "lam", float, "lambda of eq. 4.8: weight of the max error per window (default 0)"),
     ("--weight-decay", "weight_decay", float, "L2 weight on learned-function weights (default 0)"),
     ("--continuity", "continuity", float, "multiple-shooting continuity weight (default 10)"),
-    ("--lbfgs-iters", "lbfgs_iters", int, "L-BFGS polish iterations, 0 to skip (default 300)"),
+    ("--lbfgs-iters", "lbfgs_iters", int, "L-BFGS polish iterations, 0 to skip (default 1000)"),
     ("--patience", "patience", int, "early stopping after N epochs without a better validation MAE, from half of --epochs on (default 80)"),
     ("--val-every", "val_every", int, "validate every N epochs, 0 = automatic (default 0)"),
     ("--val-fraction", "val_fraction", float, "without --val: hold out this last fraction of each file"),
@@ -67,6 +67,8 @@ def register(subparsers) -> None:
                    help="parameters or learned functions kept fixed")
     p.add_argument("--no-prefit", dest="opt_prefit", action="store_false", default=None,
                    help="do not pre-fit replace-mode flow functions to the nominal physics")
+    p.add_argument("--no-centre-sigmoid", dest="opt_centre_sigmoid", action="store_false", default=None,
+                   help="optimise sigmoid MLPs in their own weights instead of tanh coordinates")
     p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
     p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
     p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
@@ -160,6 +162,7 @@ def run(args) -> int:
 
     overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
     overrides["prefit"] = args.opt_prefit
+    overrides["centre_sigmoid"] = args.opt_centre_sigmoid
     overrides["gamma"] = _gamma(args.gamma)
     overrides["freeze"] = args.freeze
     overrides["backend"] = args.backend
