@@ -421,7 +421,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, noise 0.01, short data, TCLab only")
     ap.add_argument("--all-nets", action="store_true", help="with --quick: every network, not only TCLab")
     ap.add_argument("--only", default=None, help="run only cases whose name contains this text (e.g. tclab/)")
-    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per case and noise (default 2; 1 with --quick)")
     ap.add_argument("--noise", default=None, help="comma-separated noise levels in K (default 0,0.01,0.05)")
     ap.add_argument("--jsonl", default=None, help="append each run's metrics to this file")
     ap.add_argument("--resume", action="store_true", help="skip runs already in --jsonl")
@@ -438,7 +438,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
     noises = tuple(float(x) for x in a.noise.split(",")) if a.noise else ((0.01,) if a.quick else NOISES)
-    seeds = range(1 if a.quick else a.seeds)
+    seeds = range(a.seeds if a.seeds is not None else (1 if a.quick else 2))
     cases = [c for c in CASES if (a.only is None or a.only in c.name) and (not a.quick or a.all_nets or c.net.startswith("tclab"))]
     done: dict[tuple, dict] = {}
     rows: list[dict] = []

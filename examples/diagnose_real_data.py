@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(DATA), help="folder with the shared CSV files")
     ap.add_argument("--out", default=None, help="keep JSON, extended networks and HTML reports here")
     ap.add_argument("--budget", type=float, default=None, help="wall-clock budget per diagnosis (s)")
-    ap.add_argument("--top", type=int, default=3)
+    ap.add_argument("--top", type=int, default=5)
     args = ap.parse_args(argv)
     data = Path(args.data)
     results = {}

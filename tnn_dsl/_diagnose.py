@@ -73,7 +73,7 @@ def _place(c: Candidate) -> float:
 
 P_ACCEPT = 0.05  # held-out confirmation: one-sided Diebold–Mariano p below this
 MIN_GAIN = 0.10  # minimum relative MAE reduction on held-out data
-FIT_ITER = 15  # Levenberg–Marquardt iterations of a candidate's proper fit
+FIT_ITER = 25  # Levenberg–Marquardt iterations of a candidate's proper fit
 FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
 FIT_CONTINUE = 3
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
@@ -1306,14 +1306,7 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
             n_c = n0 + direct.shape[1]
             Jm, J_all = J_all[:, n_c:], J_all[:, :n_c]
             r_tr = cur.residual().ravel()[cur.train_idx]
-            Jf = J_all[:, :n0]
-            if Jf.shape[1]:
-                sc = np.linalg.norm(Jf, axis=0)
-                sc[sc == 0] = 1.0
-                Ub, sb, _ = np.linalg.svd(Jf / sc, full_matrices=False)
-                Ub = Ub[:, sb > sb.max() * 1e-10] if sb.size and sb.max() > 0 else Ub[:, :0]
-            else:
-                Ub = np.zeros((Jf.shape[0], 0))
+            Ub = _free_basis(J_all[:, :n0])
             rp = r_tr - Ub @ (Ub.T @ r_tr)
             Jp = Jm - Ub @ (Ub.T @ Jm)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1350,6 +1343,18 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
                         _noise_var(e, cur.train_mask))
 
 
+def _free_basis(Jf: np.ndarray) -> np.ndarray:
+    """An orthonormal basis ``(n, r)`` of the span of the free columns ``Jf (n, m)`` (columns scaled to unit
+    norm first; directions below 1e-10 of the largest singular value dropped): what a candidate's column
+    and the residual are projected off, since the free parameters move in every fit."""
+    if not Jf.shape[1]:
+        return np.zeros((Jf.shape[0], 0))
+    sc = np.linalg.norm(Jf, axis=0)
+    sc[sc == 0] = 1.0
+    U, s, _ = np.linalg.svd(Jf / sc, full_matrices=False)
+    return U[:, s > s.max() * 1e-10] if s.size and s.max() > 0 else U[:, :0]
+
+
 def _best_lag_column(cur: "_Engine", c: Candidate, first: np.ndarray, x_node: np.ndarray, out: int,
                      Jf: np.ndarray) -> np.ndarray:
     """The score column of a sensor lag: the first-order one (``−dT_node/dt``, exact as τ → 0) or, when it
@@ -1362,13 +1367,7 @@ def _best_lag_column(cur: "_Engine", c: Candidate, first: np.ndarray, x_node: np
     lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
     dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
     r = cur.residual().ravel()[cur.train_idx]
-    if Jf.shape[1]:
-        sc = np.linalg.norm(Jf, axis=0)
-        sc[sc == 0] = 1.0
-        Ub, sb, _ = np.linalg.svd(Jf / sc, full_matrices=False)
-        Ub = Ub[:, sb > sb.max() * 1e-10] if sb.size and sb.max() > 0 else Ub[:, :0]
-    else:
-        Ub = np.zeros((r.size, 0))
+    Ub = _free_basis(Jf)
     rp = r - Ub @ (Ub.T @ r)
     rr = max(float(rp @ rp), 1e-300)
 
@@ -1435,10 +1434,7 @@ def _score_stats(J_all: np.ndarray, n_base: int, r: np.ndarray, cands: list[Cand
     Jc_all = J_all[:, n_base:]
     pos = {j: i for i, j in enumerate(cand_idx)}
     if Jf.shape[1]:  # project out the free directions: orthonormal basis of span(Jf)
-        sc = np.linalg.norm(Jf, axis=0)
-        sc[sc == 0] = 1.0
-        U, s, _ = np.linalg.svd(Jf / sc, full_matrices=False)
-        U = U[:, s > s.max() * 1e-10] if s.size and s.max() > 0 else U[:, :0]
+        U = _free_basis(Jf)
         Jc_all = Jc_all - U @ (U.T @ Jc_all)
         r = r - U @ (U.T @ r)
     rr = float(r @ r)
