@@ -182,6 +182,12 @@ class Diagnosis:
                              + " — the named element is the best-scoring, most physical choice; the others"
                              " could compensate for it (not separately identifiable from these sensors)")
         lines.append("  verdict: " + self.verdict)
+        mc = self.extended.get("mlp_check")
+        if mc and "linear" in mc:
+            lines.append(f"  linear or MLP: trained both (held-out MAE linear {mc['linear']['val_mae']:.4g} K, "
+                         f"MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}")
+        elif mc:
+            lines.append(f"  linear or MLP: {mc['reason']}")
         if self.accepted:
             g = self.gain
             lines.append(f"  gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
@@ -735,7 +741,8 @@ def _fmt(x: float, digits: int = 3) -> str:
 
 def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backend: str = "jax",
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
-             output: str | None = None, kinds: tuple[str, ...] | None = None) -> Diagnosis:
+             output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
+             mlp_time: float = 60.0) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -754,6 +761,10 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
         How many of the best-scoring distinct candidates are fitted properly each round.
     output : str, optional
         Where to write the extended ``.thn`` (default: not written; the text is in the result).
+    mlp_check : bool
+        When the extended model's held-out residual is still not white, train the extension with its
+        ``linear`` clauses and with them as MLPs and keep the MLP only if it pays on held-out data
+        (:mod:`tnn_dsl._mlp_check`); ``mlp_time`` s of training for each (skipped when the budget is short).
 
     Returns
     -------
@@ -1004,18 +1015,52 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     clauses = _merged_clauses(acc_small, fitted_params, final_ext, final_eng)
     ext_text, diff = _extend_text(text, clauses, acc_small, net, fitted_params, final_ext, unused)
     ext_file = None
+    lap("extend", t0)
+    # ---- linear or MLP, as the evidence says (only where a structured residual is left)
+    y_fin, _ = final_eng.simulate()
+    e_fin = np.where(final_eng.val_mask, final_eng.y - y_fin, np.nan)
+    res_fin = R.summarise(e_fin[vrows], out_names)
+    form = None
+    if (accepted and ext_text and mlp_check and any(" as linear(" in c for c in clauses)
+            and not all(w.get("white") for w in res_fin.whiteness.values())
+            and (deadline is None or _time.monotonic() + 2 * mlp_time < deadline)):
+        from ._data import split_by_time
+        from ._mlp_check import compare
+
+        t0 = _time.monotonic()
+        say("the residual is not white: is an MLP better than the linear law? (training both)")
+        tr_e, va_e = train_exps, val_exps
+        if not va_e:
+            parts = [split_by_time(e, 0.7) for e in train_exps]
+            tr_e, va_e = [a for a, _ in parts], [b for _, b in parts]
+        try:
+            form = compare(ext_text, output or (path or "extended.thn"), tr_e, va_e, backend=backend,
+                           time_limit=mlp_time, say=say)
+        except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
+            form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
+        if form is not None:
+            say(f"  {form['reason']}")
+            if form["choice"] == "mlp":
+                import difflib
+
+                ext_text = form["text"]
+                diff = "".join(difflib.unified_diff(text.splitlines(True), ext_text.splitlines(True), "original",
+                                                    "extended"))
+                clauses = [ln for ln in ext_text.splitlines() if ln.startswith("learn ") and ln not in text]
+            form = {k: v for k, v in form.items() if k != "text"}
+        lap("mlp_check", t0)
     if accepted and ext_text:
         _check_text(ext_text, output or (path or "extended.thn"))
         if output:
             with open(output, "w", encoding="utf-8") as fh:
                 fh.write(ext_text)
             ext_file = output
-    lap("extend", t0)
-    y_fin, _ = final_eng.simulate()
-    e_fin = np.where(final_eng.val_mask, final_eng.y - y_fin, np.nan)
-    res_fin = R.summarise(e_fin[vrows], out_names)
     extended = {"val_mae": res_fin.mae, "val_max": res_fin.max, "clauses": clauses,
-                "per_sensor": res_fin.errors}
+                "per_sensor": res_fin.errors, "form": "linear"}
+    if form is not None:
+        extended["mlp_check"] = form
+        if form.get("choice") == "mlp":  # the held-out numbers of the trained MLP extension
+            extended.update(form="mlp", val_mae=form["mlp"]["val_mae"], val_max=form["mlp"]["val_max"])
     verdict = "; ".join(f.words for f in findings if f.accepted) if accepted else "no significant deficiency found"
     left = _what_is_left(res_fin)
     timings["total"] = round(_time.monotonic() - t_start, 3)

@@ -35,6 +35,10 @@ def register(subparsers) -> None:
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
     p.add_argument("--top", type=int, default=5, help="distinct candidates fitted properly per round (default 5)")
     p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
+    p.add_argument("--no-mlp-check", action="store_true",
+                   help="do not train the extension with MLP clauses to compare (done when a structured residual is left)")
+    p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
+                   help="training time for each of the linear and MLP extensions in that comparison (default 60)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
 
@@ -49,7 +53,8 @@ def run(args) -> int:
             print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
-                 progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output)
+                 progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
+                 mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")
