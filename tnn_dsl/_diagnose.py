@@ -1038,6 +1038,10 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
                            time_limit=mlp_time, say=say)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
+        if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:
+            form.update(choice="linear", text=ext_text,
+                        reason=(f"the trained MLP ({form['mlp']['val_mae']:.4g} K held out) beats the trained linear "
+                                f"law but not the doctor's own linear fit ({res_fin.mae:.4g} K) by {100 * MIN_GAIN:.0f} %"))
         if form is not None:
             say(f"  {form['reason']}")
             if form["choice"] == "mlp":
