@@ -148,6 +148,16 @@ def _engine(net, u, dt, backend):
     return eng, y
 
 
+def _setup(case, seed, backend):
+    """One case of ``_CASES`` ready to compare: (network, inputs (500, n_in), dt, engine, nominal outputs,
+    the mass candidate, (finite-difference step, large mass))."""
+    path, bounds, dt, hold, key, eps, big = _CASES[case]
+    net = tnn_dsl.load(path)
+    u = step_inputs(np.random.default_rng(seed), 500, bounds, net.input_names, hold)
+    eng, y0 = _engine(net, u, dt, backend)
+    return net, u, dt, eng, y0, _cand(net, key), (eps, big)
+
+
 def _column(eng, cand, u, dt, mass=None):
     """The candidate's score column: d y[train rows] / d C_m (K per J/K)."""
     _, X = eng.simulate()
@@ -159,11 +169,7 @@ def _column(eng, cand, u, dt, mass=None):
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("case", sorted(_CASES))
 def test_score_column_is_the_derivative_of_a_real_simulation(backend, case):
-    path, bounds, dt, hold, key, eps, _ = _CASES[case]
-    net = tnn_dsl.load(path)
-    u = step_inputs(np.random.default_rng(3), 500, bounds, net.input_names, hold)
-    eng, y0 = _engine(net, u, dt, backend)
-    cand = _cand(net, key)
+    net, u, dt, eng, y0, cand, (eps, _) = _setup(case, 3, backend)
     col = _column(eng, cand, u, dt)
 
     def fd(c):
@@ -183,11 +189,7 @@ def test_score_column_is_the_derivative_of_a_real_simulation(backend, case):
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("case", sorted(_CASES))
 def test_finite_mass_column_follows_a_large_mass_better_than_first_order(backend, case):
-    path, bounds, dt, hold, key, _, big = _CASES[case]
-    net = tnn_dsl.load(path)
-    u = step_inputs(np.random.default_rng(4), 500, bounds, net.input_names, hold)
-    eng, y0 = _engine(net, u, dt, backend)
-    cand = _cand(net, key)
+    net, u, dt, eng, y0, cand, (_, big) = _setup(case, 4, backend)
     real = (_sim(apply_structural(net, cand, big), u, dt) - y0).ravel()[eng.train_idx] / big
     lagged = _column(eng, cand, u, dt, mass=big)
     first = _column(eng, cand, u, dt)

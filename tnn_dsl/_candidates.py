@@ -196,6 +196,17 @@ def _neighbours(net: Network) -> dict[str, set[str]]:
     return {n: set(g.neighbors(n)) for n in g.nodes}
 
 
+def _unique_name(name: str, taken: set[str]) -> str:
+    """``name``, or ``name_2``, ``name_3`` … the first not in ``taken``; the result is added to ``taken``
+    (names the doctor adds to a network never shadow the user's)."""
+    base, i = name, 2
+    while name in taken:
+        name = f"{base}_{i}"
+        i += 1
+    taken.add(name)
+    return name
+
+
 def build_extended(net: Network, varying_inputs: list[str], extra_inputs: list[str] | None = None,
                    kinds: tuple[str, ...] | None = None, only: set[str] | None = None) -> Extended:
     """Every exactly-null candidate of ``net`` in one extended network.
@@ -229,12 +240,7 @@ def build_extended(net: Network, varying_inputs: list[str], extra_inputs: list[s
     fn_vars: dict[str, list[tuple[str, str]]] = {}
 
     def unique(name: str) -> str:
-        base, i = name, 2
-        while name in pnames:
-            name = f"{base}_{i}"
-            i += 1
-        pnames.add(name)
-        return name
+        return _unique_name(name, pnames)
 
     # -- parameter dependence and wrong constants: ONE learned function "dx_params" -------------
     # targets: every eligible parameter; inputs: the union of their variables. W[i, j] is the candidate
@@ -482,12 +488,7 @@ def structural_candidates(net: Network, kinds: tuple[str, ...] | None = None) ->
         taken |= set(net.input_names)
 
         def unique(name: str) -> str:
-            base, i = name, 2
-            while name in taken:
-                name = f"{base}_{i}"
-                i += 1
-            taken.add(name)
-            return name
+            return _unique_name(name, taken)
 
         for link in net.links:
             if _mass_skip(net, link, learned):
