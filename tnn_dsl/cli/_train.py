@@ -24,7 +24,7 @@ _OPTIONS = [
     ("--lr", "lr", float, "Adam step size in transformed coordinates (default 0.02)"),
     ("--lr-final", "lr_final", float, "cosine decay to lr*LR_FINAL at the end (default 0.1)"),
     ("--rollout", "rollout", str, "auto | free | steady | measured | estimated (default auto)"),
-    ("--window", "window", float, "window length in s for windowed rollouts (default 600)"),
+    ("--window", "window", float, "window length in s for windowed rollouts (default: 600 s, at least 50 samples)"),
     ("--batch-size", "batch_size", int, "windows per optimiser step, 0 = all (default 0)"),
     ("--integrator", "integrator", str, "euler | rk4 | expeuler (default rk4)"),
     ("--substeps", "substeps", int, "integrator sub-steps per data step (default: the model's choice)"),
@@ -191,7 +191,9 @@ def run(args) -> int:
     tr = m.get("train", {})
     va = m.get("validation")
     if not args.quiet or stopped == "diverged":
-        print(f"model written to {args.output}  ({meta.get('backend')}, rollout {meta.get('rollout')}, "
+        win = meta.get("window_s")
+        how = f"rollout {meta.get('rollout')}" + (f" in windows of {_dur(win)}" if win else "")
+        print(f"model written to {args.output}  ({meta.get('backend')}, {how}, "
               f"{_dur(meta.get('train_seconds', 0.0))}, stopped: {stopped})", file=sys.stderr)
         print(f"  train      MAE {tr.get('mae', math.nan):.4g} K  max {tr.get('max_error', math.nan):.4g} K",
               file=sys.stderr)
