@@ -28,6 +28,11 @@ Not exactly null (a structural edit, :func:`structural_candidates` / :func:`appl
   ``(1−f)·R`` (same total resistance, so the same steady state). At small ``C_m`` it is an extra heat flow
   ``−C_m·(1−f)·dT_m/dt`` into a and ``−C_m·f·dT_m/dt`` into b (:func:`mass_forcing`); the proper fit frees
   ``C_m`` and ``f``.
+* ``source_mass`` — a missing heat capacity behind a heat source (a heater's or radiator's own mass, Bacher &
+  Madsen's TiTh): the source heats a new node ``m_<source>`` of capacity ``C_h`` joined to its node by ``R_h``
+  instead of heating the node directly. The steady state is the original one; in transients the node receives
+  the source's heat through a first-order lag ``τ = C_h·R_h`` (:func:`source_lag_forcing`); the proper fit
+  frees ``C_h`` and ``R_h``.
 
 All edited networks are built as IR directly (the validation pass would refuse a zero conductance);
 :func:`clause_text` gives the ``.thn`` text of a candidate at its fitted value.
@@ -48,9 +53,10 @@ from ._ir import (
 
 __all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name",
            "structural_candidates", "apply_structural", "mass_forcing", "mass_grid", "mass_values", "mass_lines", "STRUCTURAL_KINDS",
-           "MASS_FRACTION_BOUNDS"]
+           "MASS_FRACTION_BOUNDS", "source_lag_forcing", "source_tau_grid", "source_mass_values", "source_mass_lines",
+           "source_line_moved"]
 
-STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass")
+STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass")  # WIP: "source_mass" joins once _diagnose scores it
 MASS_FRACTION_BOUNDS = (0.05, 0.95)
 """Bounds of a thermal-mass candidate's ``f`` (the share of the split link's resistance on the ``a`` side):
 at f → 0 or 1 the new node merges into a neighbour and its capacity stops being identifiable."""
@@ -106,6 +112,8 @@ class Candidate:
             "sensor_lag": f"sensor {self.target} lags its node {self.element.get('node', '')}",
             "thermal_mass": f"missing thermal mass between {self.element.get('a', '')} and"
             f" {self.element.get('b', '')} (on link {self.element.get('link', '')})",
+            "source_mass": f"missing heat capacity behind source {self.target} (between it and node"
+            f" {self.element.get('at', '')})",
             "unused_column": f"heat load at {self.target[2:-1]} driven by unused data column"
             f" {', '.join(self.depends_on)}",
         }
@@ -500,14 +508,46 @@ def structural_candidates(net: Network, kinds: tuple[str, ...] | None = None) ->
             out.append(Candidate("thermal_mass", f"{a}--{b}", [], [Column(cap, 0), Column(frac, 0)],
                                  element={"a": a, "b": b, "link": link.name, "value": link.value, "form": link.form,
                                           "node": m, "param": cap, "frac": frac, "links": [l1, l2]}))
+    if "source_mass" in kinds:
+        learned = net.learned_targets()
+        taken = set(net.param_names) | set(net.node_names) | set(net.boundary_names) | {l.name for l in net.links}
+        taken |= set(net.input_names)
+        main = net.source_files[0] if net.source_files else None
+        for src in net.sources:
+            if src.node not in net.node_names or src.value in learned or "." in src.name:
+                continue  # a boundary, a learned heat flow, or written once for every subnet instance
+            if src.span is None or (main is not None and src.span.file != main):
+                continue  # no line to edit (built by a tool, or in an included file)
+            if not _varies_with_inputs(net, src.value):
+                continue  # a constant heat load: a lag behind it is invisible
+            m = _unique_name(f"m_{src.name}", taken)
+            cap, res = _unique_name(f"C_{m}", taken), _unique_name(f"R_{m}", taken)
+            out.append(Candidate("source_mass", src.name, [], [Column(cap, 0), Column(res, 0)],
+                                 element={"source": src.name, "at": src.node, "value": src.value, "node": m,
+                                          "param": cap, "res": res, "link": res}))
     return out
+
+
+def _varies_with_inputs(net: Network, pname: str, depth: int = 0) -> bool:
+    """Whether parameter ``pname``'s value depends on an input (directly or through other parameters)."""
+    if depth > 64:
+        return False
+    try:
+        p = net.param(pname)
+    except KeyError:
+        return pname in net.input_names
+    for r in refs_in(p.expr):
+        if r in net.input_names or (r != pname and _varies_with_inputs(net, r, depth + 1)):
+            return True
+    return False
 
 
 _J_PER_K = {"kg": 1.0, "m": 2.0, "s": -2.0, "K": -1.0}
 
 
 def apply_structural(net: Network, cand: Candidate, value: float, lower: float | None = None,
-                     frac: float = 0.5) -> Network:
+                     frac: float = 0.5, resistance: float | None = None,
+                     resistance_lower: float | None = None) -> Network:
     """``net`` with the structural candidate ``cand`` built in, its new parameter(s) ``free``.
 
     * ``sensor_lag``: the lag ``value`` (s), bounded below by ``lower``.
@@ -516,7 +556,11 @@ def apply_structural(net: Network, cand: Candidate, value: float, lower: float |
       ``P/f`` and ``P/(1−f)`` for a conductance (derived parameters: ``P`` stays in the table, free if it was),
       ``f = frac`` free in :data:`MASS_FRACTION_BOUNDS`. The total resistance is ``P`` for every ``f``, so the
       steady state is the original one. The new node is the last state; the links take the place of the old
-      one in ``links``."""
+      one in ``links``.
+    * ``source_mass``: a node ``m`` of capacity ``value`` (J/K, bounded below by ``lower``) that the source now
+      heats, joined to the source's node by a resistance ``resistance`` (K/W, free, bounded below by
+      ``resistance_lower``; the link is appended to ``links``). Same steady state; the new node is the last
+      state."""
     if cand.kind == "sensor_lag":
         lag = cand.element["param"]
         dim = {"s": 1.0}
@@ -558,6 +602,26 @@ def apply_structural(net: Network, cand: Candidate, value: float, lower: float |
         node = ThermalNode(name=m, capacitance=el["param"], label="thermal mass found by the model doctor")
         return net.model_copy(update={"params": list(net.params) + new, "links": links,
                                       "nodes": list(net.nodes) + [node]}, deep=True)
+    if cand.kind == "source_mass":
+        el = cand.element
+        if resistance is None or not resistance > 0:
+            raise ValueError("a source_mass edit needs resistance > 0 (K/W)")
+        m, at = el["node"], el["at"]
+        if not any(sr.name == el["source"] for sr in net.sources):
+            raise ValueError(f"no source {el['source']!r} in network {net.name!r}")
+        r_dim = {"kg": -1.0, "m": -2.0, "s": 3.0, "K": 1.0}  # K/W
+        new = [
+            Param(name=el["param"], expr=Num(value=float(value), dim=_J_PER_K, unit="J/K"), dim=_J_PER_K, unit="J/K",
+                  role="capacitance", free=True, lower=lower, owner=f"node {m}"),
+            Param(name=el["res"], expr=Num(value=float(resistance), dim=r_dim, unit="K/W"), dim=r_dim, unit="K/W",
+                  role="resistance", free=True, lower=resistance_lower, owner=f"link {el['link']}"),
+        ]
+        sources = [sr.model_copy(update={"node": m}) if sr.name == el["source"] else sr for sr in net.sources]
+        node = ThermalNode(name=m, capacitance=el["param"],
+                           label=f"heat capacity behind source {el['source']}, found by the model doctor")
+        link = Link(name=el["link"], a=m, b=at, form="R", value=el["res"])
+        return net.model_copy(update={"params": list(net.params) + new, "links": list(net.links) + [link],
+                                      "nodes": list(net.nodes) + [node], "sources": sources}, deep=True)
     raise ValueError(f"not a structural candidate kind: {cand.kind}")
 
 
@@ -767,3 +831,106 @@ def mass_lines(net: Network, cand: Candidate, params: dict) -> list[str]:
         f"{form} {a} -- {m} = {e1}  as {l1}",
         f"{form} {m} -- {b} = {e2}  as {l2}",
     ]
+
+
+# ---------------------------------------------------------------------------------------------
+# source_mass: a heat capacity behind a source
+# ---------------------------------------------------------------------------------------------
+
+
+def _value_series(net: Network, pname: str, U: np.ndarray, params: dict, X: np.ndarray) -> np.ndarray:
+    """Parameter ``pname`` over the samples (a constant broadcast, or its expression evaluated)."""
+    n = U.shape[0]
+    if pname in params:
+        return np.broadcast_to(np.asarray(params[pname], dtype=float).reshape(-1)[:1], (n,)).copy()
+    return _series(net, net.param(pname).expr, U, params, X, net.node_names)
+
+
+def source_lag_forcing(net: Network, cand: Candidate, X: np.ndarray, U: np.ndarray, params: dict, lengths, dts,
+                       tau: float) -> np.ndarray:
+    """The change of the heat flows into the nodes (W, shape ``(N, n_nodes)`` in ``net.nodes`` order) when the
+    ``source_mass`` candidate's source reaches its node through a first-order lag of time constant ``tau`` (s).
+
+    Derivation. With a capacity ``C_h`` between the source ``Q`` and node n (resistance ``R_h``, τ = C_h·R_h), the
+    heat into n is ``Q_h = (T_h − T_n)/R_h`` and ``τ·dQ_h/dt = Q − Q_h − C_h·dT_n/dt``. The last term is a larger
+    capacity of n (the node's own capacity, free or not, covers it); the rest is ``Q_h`` = ``Q`` through a lag τ.
+    ``Q`` is held over each sample (zero-order-hold inputs); the lag starts at steady state (``Q_h = Q``) and is
+    integrated exactly, and the returned forcing is the interval mean of ``Q_h − Q``:
+    ``(Q_h[k] − Q[k])·(τ/h)·(1 − e^{−h/τ})``. ``X (N, n_states)`` K and ``U (N, ≥ n_in)`` SI are the concatenated
+    files of ``lengths`` samples and steps ``dts`` (s)."""
+    from scipy.signal import lfilter
+
+    el = cand.element
+    nodes = net.node_names
+    n = U.shape[0]
+    q = _value_series(net, el["value"], U, params, X)
+    bounds = np.cumsum([0] + [int(x) for x in lengths])
+    if bounds[-1] != n:
+        raise ValueError(f"file lengths sum to {bounds[-1]}, inputs have {n} rows")
+    F = np.zeros((n, len(nodes)))
+    col = np.zeros(n)
+    for s0, s1, h in zip(bounds[:-1], bounds[1:], dts):
+        if s1 <= s0:
+            continue
+        h = float(h)
+        e = math.exp(-h / float(tau))
+        x = q[s0:s1]
+        y = lfilter([1.0 - e], [1.0, -e], x, zi=[e * x[0]])[0]  # y[k] = Q_h at the end of interval k
+        q_h = np.concatenate([[x[0]], y[:-1]])  # Q_h at the start of each interval (steady start)
+        col[s0:s1] = (q_h - x) * (float(tau) / h) * (1.0 - e)
+    F[:, nodes.index(el["at"])] = col
+    return F
+
+
+def source_tau_grid(dt: float, duration: float, step: float = 3.0) -> list[float]:
+    """Time constants (s) at which the score test tries a lag behind a source: half a sample to a third of the
+    data's ``duration`` (s), in factors of ``step``."""
+    out, tau = [], 0.5 * float(dt)
+    while tau <= duration / 3.0:
+        out.append(tau)
+        tau *= step
+    return out
+
+
+def source_mass_values(net: Network, cand: Candidate, params: dict) -> dict:
+    """A fitted capacity behind a source in SI: ``C`` (J/K), ``R`` (K/W) and ``tau = C·R`` (s)."""
+    el = cand.element
+    c = _scalar(params, el["param"], net)
+    r = _scalar(params, el["res"], net)
+    return {"C": c, "R": r, "tau": c * r}
+
+
+def source_mass_lines(net: Network, cand: Candidate, params: dict) -> list[str]:
+    """The ``.thn`` statements of a fitted capacity behind a source (``net`` holds the edit): the new node (``C``
+    in the unit of the heated node's capacity) and its resistance to that node (in the file's resistance unit
+    where it has one). The source's own line is edited by :func:`source_line_moved`."""
+    el = cand.element
+    v = source_mass_values(net, cand, params)
+    cap_unit = None
+    for nd in net.nodes:
+        if nd.name == el["at"]:
+            cap_unit = net.param(nd.capacitance).unit
+    r_unit = None
+    for l in net.links:
+        if l.form == "R" and l.name != el["link"]:
+            try:
+                r_unit = net.param(l.value).unit or r_unit
+            except KeyError:
+                pass
+            if r_unit:
+                break
+    return [
+        f"node {el['node']} \"heat capacity behind source {el['source']}, found by tnnc diagnose\"  "
+        f"C = {_in_unit(v['C'], cap_unit, 'J/K')}  free",
+        f"R {el['node']} -- {el['at']} = {_in_unit(v['R'], r_unit, 'K/W')}  free  as {el['res']}",
+    ]
+
+
+def source_line_moved(line: str, cand: Candidate) -> str | None:
+    """The ``source <node> = …`` line of ``cand``'s source with the heated node replaced by the new node (None
+    if the line does not have that form)."""
+    el = cand.element
+    pat = re.compile(r"^(\s*source\s+)" + re.escape(el["at"]) + r"(\s*=)")
+    if not pat.search(line):
+        return None
+    return pat.sub(lambda m: m.group(1) + el["node"] + m.group(2), line, count=1)
