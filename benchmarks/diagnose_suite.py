@@ -141,6 +141,8 @@ def _cases() -> list[Case]:
              why="a heat load at h1 linear in the column; the source at h1 depending on it is the same term"),
         Case("tclab", "sensor_lag", ("sensor_lag", "T1", ""), edit=("lag", "T1", 25.0)),
         Case("tclab", "thermal_mass", ("thermal_mass", "h1--amb", ""), edit=("mass", "h1", "amb", 3.0)),
+        # the heater's own mass (1 J/K behind 10 K/W, τ = 10 s) between the heater power and h1
+        Case("tclab", "source_mass", ("source_mass", "Q_src_h1", ""), edit=("source", "h1", "a1 * Q1", 1.0, 10.0)),
         Case("tclab", "null", ("none", "", "")),
     ]
     # ---- building (Bacher & Madsen Ti) -------------------------------------------------------------
@@ -165,6 +167,8 @@ def _cases() -> list[Case]:
         # an envelope mass (3.8 kWh/K) in the middle of the interior–outdoor resistance: one effect only (the
         # TiTe file of the paper also changes Aw and Ci)
         Case("building", "thermal_mass", ("thermal_mass", "ti--amb", ""), edit=("mass", "ti", "amb", 1.37e7)),
+        # the heaters' own mass (0.5 kWh/K behind 1 K/kW, τ = 30 min): Bacher & Madsen's TiTh
+        Case("building", "source_mass", ("source_mass", "Q_heat", ""), edit=("source", "ti", "Ph", 1.8e6, 1e-3)),
         Case("building", "null", ("none", "", "")),
     ]
     # ---- thesis case study (nominal) ---------------------------------------------------------------
@@ -213,6 +217,17 @@ def _edit_text(text: str, edit: tuple) -> str:
         repl = (f"node {mid} \"planted thermal mass\"  C = {cap} J/K\n"
                 f"{form} {node} -- {mid} = {half:.6g} {unit}\n{form} {mid} -- {other} = {half:.6g} {unit}")
         return text[: m.start()] + repl + text[m.end():]
+    if edit[0] == "source":
+        _, node, expr, cap, res = edit
+        mid = f"heater_{node}"
+        pat = re.compile(rf"^source {re.escape(node)}(\s*=\s*{re.escape(expr)}\b.*)$", re.M)
+
+        def repl(m):
+            return (f"source {mid}{m.group(1)}\nnode {mid} \"planted heat capacity behind the source\"  C = {cap} J/K\n"
+                    f"R {mid} -- {node} = {res} K/W")
+        out, n = pat.subn(repl, text, count=1)
+        assert n == 1, f"source {node} = {expr} not found"
+        return out
     raise ValueError(edit)
 
 

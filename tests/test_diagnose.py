@@ -166,13 +166,7 @@ def test_indistinguishable_candidates_are_named():
 # ---------------------------------------------------------------------------------------------
 
 
-_SLOW_FIT = ("on the short torch data (500 samples) the first answer is right (U1 ~ T(h1)) but the doctor's "
-             "Levenberg–Marquardt fit of tclab.thn's free constants, which are not identifiable as written, "
-             "stops at 0.405 → 0.256 K held out: a 1.6× gain, not 2× (measured 2026-11-22)")
-
-
-@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=[
-    pytest.mark.slow, pytest.mark.xfail(strict=True, reason=_SLOW_FIT)])])
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_planted_dependence_is_found_named_and_pays(backend):
     # torch runs the rollout as a Python loop (about 30x slower per fit): its end-to-end run is marked slow;
     # the fast torch checks are the null data set, the exactly-null extension and the score shortcut

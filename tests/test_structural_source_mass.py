@@ -132,3 +132,26 @@ def test_lines_and_moved_source_reload_to_the_same_simulation():
 def test_tau_grid():
     g = source_tau_grid(300.0, 300.0 * 1000)
     assert g[0] == 150.0 and all(b == pytest.approx(3 * a) for a, b in zip(g, g[1:])) and g[-1] <= 1e5
+
+
+def test_doctor_names_the_heater_mass_and_writes_the_moved_source():
+    """End to end on the suite's building case (B&M's Ti with a 0.5 kWh/K heater mass behind 1 K/kW planted):
+    the first answer is the capacity behind Q_heat, its C and R are recovered, and the extension moves the
+    source line to the new node and re-loads."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("diagnose_suite", os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
+    S = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("diagnose_suite", S)
+    spec.loader.exec_module(S)
+    case = next(c for c in S.CASES if c.name == "building/source_mass")
+    net, tr, va = S.make_data(case, 0.01, 0, True, None)
+    d = tnn_dsl.diagnose(net, tr, va, top=3, max_rounds=1, mlp_check=False)
+    first = d.accepted[0]
+    assert first.kind == "source_mass" and first.target == "Q_heat", d.summary()
+    assert "m_Q_heat" in first.words and "1.8e+06 J/K" in first.words, first.words
+    assert "source m_Q_heat = Ph" in d.extended_text
+    new = tnn_dsl.loads(d.extended_text, "extended.thn")
+    assert {s.name: s.node for s in new.sources}["Q_heat"] == "m_Q_heat"
+    assert d.extended["val_mae"] < 0.1 * d.baseline["val_mae"]

@@ -56,7 +56,7 @@ __all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_
            "MASS_FRACTION_BOUNDS", "source_lag_forcing", "source_tau_grid", "source_mass_values", "source_mass_lines",
            "source_line_moved"]
 
-STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass")  # WIP: "source_mass" joins once _diagnose scores it
+STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass", "source_mass")
 MASS_FRACTION_BOUNDS = (0.05, 0.95)
 """Bounds of a thermal-mass candidate's ``f`` (the share of the split link's resistance on the ``a`` side):
 at f → 0 or 1 the new node merges into a neighbour and its capacity stops being identifiable."""
@@ -846,39 +846,49 @@ def _value_series(net: Network, pname: str, U: np.ndarray, params: dict, X: np.n
     return _series(net, net.param(pname).expr, U, params, X, net.node_names)
 
 
-def source_lag_forcing(net: Network, cand: Candidate, X: np.ndarray, U: np.ndarray, params: dict, lengths, dts,
-                       tau: float) -> np.ndarray:
-    """The change of the heat flows into the nodes (W, shape ``(N, n_nodes)`` in ``net.nodes`` order) when the
-    ``source_mass`` candidate's source reaches its node through a first-order lag of time constant ``tau`` (s).
-
-    Derivation. With a capacity ``C_h`` between the source ``Q`` and node n (resistance ``R_h``, τ = C_h·R_h), the
-    heat into n is ``Q_h = (T_h − T_n)/R_h`` and ``τ·dQ_h/dt = Q − Q_h − C_h·dT_n/dt``. The last term is a larger
-    capacity of n (the node's own capacity, free or not, covers it); the rest is ``Q_h`` = ``Q`` through a lag τ.
-    ``Q`` is held over each sample (zero-order-hold inputs); the lag starts at steady state (``Q_h = Q``) and is
-    integrated exactly, and the returned forcing is the interval mean of ``Q_h − Q``:
-    ``(Q_h[k] − Q[k])·(τ/h)·(1 − e^{−h/τ})``. ``X (N, n_states)`` K and ``U (N, ≥ n_in)`` SI are the concatenated
-    files of ``lengths`` samples and steps ``dts`` (s)."""
+def _lag_means(x: np.ndarray, h: float, tau: float, y0: float) -> np.ndarray:
+    """Interval means of ``y`` with ``τ·dy/dt = x − y``, ``x`` held over each interval of ``h`` s, ``y(0) = y0``."""
     from scipy.signal import lfilter
 
+    e = math.exp(-h / float(tau))
+    y = lfilter([1.0 - e], [1.0, -e], x, zi=[e * y0])[0]  # y at the end of each interval
+    y_start = np.concatenate([[y0], y[:-1]])
+    return x + (y_start - x) * (float(tau) / h) * (1.0 - e)
+
+
+def source_lag_forcing(net: Network, cand: Candidate, X: np.ndarray, U: np.ndarray, params: dict, lengths, dts,
+                       tau: float, rates: np.ndarray | None = None) -> np.ndarray:
+    """The change of the heat flows into the nodes (W, shape ``(N, n_nodes)`` in ``net.nodes`` order) when the
+    ``source_mass`` candidate's source reaches its node through a capacity ``C_h`` behind a resistance ``R_h``
+    with ``τ = C_h·R_h = tau`` (s): with ``rates=None`` the lag part, else the part per J/K of ``C_h``.
+
+    Derivation. The heat into node n is ``Q_h = (T_h − T_n)/R_h``; with ``T_h = T_n + R_h·Q_h`` the new node's
+    balance ``C_h·dT_h/dt = Q − Q_h`` is ``τ·dQ_h/dt = Q − Q_h − C_h·dT_n/dt``, so on a given trajectory
+    ``Q_h − Q = [lag_τ(Q) − Q] − C_h·lag_τ(dT_n/dt)``: at fixed τ exactly linear in ``C_h`` — the lag part (its
+    coefficient 1 for the whole source behind the capacity) and the capacity part (``−lag_τ(dT_n/dt)`` per J/K,
+    ``rates (N, n_states)`` K/s the nodes' rates over each sample interval). ``Q`` and the rates are held over
+    each sample (zero-order hold), the lag starts at steady state (``Q_h = Q``, ``dT_n/dt = 0``) and is
+    integrated exactly; the forcing returned is the interval mean. ``X (N, n_states)`` K and ``U (N, ≥ n_in)``
+    SI are the concatenated files of ``lengths`` samples and steps ``dts`` (s)."""
     el = cand.element
     nodes = net.node_names
     n = U.shape[0]
-    q = _value_series(net, el["value"], U, params, X)
     bounds = np.cumsum([0] + [int(x) for x in lengths])
     if bounds[-1] != n:
         raise ValueError(f"file lengths sum to {bounds[-1]}, inputs have {n} rows")
-    F = np.zeros((n, len(nodes)))
+    at = nodes.index(el["at"])
+    x_all = _value_series(net, el["value"], U, params, X) if rates is None else np.asarray(rates)[:, at]
     col = np.zeros(n)
     for s0, s1, h in zip(bounds[:-1], bounds[1:], dts):
         if s1 <= s0:
             continue
-        h = float(h)
-        e = math.exp(-h / float(tau))
-        x = q[s0:s1]
-        y = lfilter([1.0 - e], [1.0, -e], x, zi=[e * x[0]])[0]  # y[k] = Q_h at the end of interval k
-        q_h = np.concatenate([[x[0]], y[:-1]])  # Q_h at the start of each interval (steady start)
-        col[s0:s1] = (q_h - x) * (float(tau) / h) * (1.0 - e)
-    F[:, nodes.index(el["at"])] = col
+        x = x_all[s0:s1]
+        if rates is None:
+            col[s0:s1] = _lag_means(x, float(h), tau, float(x[0])) - x
+        else:
+            col[s0:s1] = -_lag_means(x, float(h), tau, 0.0)
+    F = np.zeros((n, len(nodes)))
+    F[:, at] = col
     return F
 
 

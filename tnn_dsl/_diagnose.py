@@ -9,12 +9,21 @@ Steps (see docs/architecture.md, "Diagnosis"):
 
 1. **Fit** the nominal model's free parameters on the training rows by Levenberg–Marquardt (Gauss–Newton
    with Marquardt damping on forward-mode Jacobians; positive parameters in log space, bounds respected).
-   Least squares is the statistic's own estimator; the Jacobians are reused by the score test.
+   Least squares is the statistic's own estimator; the Jacobians are reused by the score test. Free
+   constants that are not identifiable as written (tclab.thn: heater gains, conductances and capacities
+   scale together) leave a flat, curved valley where the damped step points the right way but is short:
+   after an accepted step the fit goes on along it (2δ, 4δ, … up to 64δ, one simulation each, no
+   Jacobian) while the training SSE keeps dropping. On the Kuntz–Rawlings TCLab file the nominal fit
+   reaches the training least-squares optimum (the same SSE from the file's values and from the trainer's
+   fitted values); its held-out MAE is that of the least-squares fit of the nominal structure, which is
+   not the trainer's number (the trainer validates the tail from its measured state and keeps its
+   best-*validation* iterate). Candidate fits (step 4) run until the SSE drops by less than 1e-4
+   relatively, at most ``FIT_ITER`` iterations.
 2. **Residuals** on the held-out rows (``val`` files, else the last 30 % of each training file, simulated
    as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (``_residuals``).
 3. **Candidates** from the IR (``_candidates``), all exactly null, in ONE extended network, plus structural
-   ones (a sensor lag, a missing thermal mass on a link) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
+   ones (a sensor lag, a missing thermal mass on a link, a heat capacity behind a source) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
    outputs w.r.t. every candidate column and every free column. Candidates enter as extra heat flows per
    node (``C·∂rhs_big/∂θ`` at the current trajectory, pointwise) pushed through ONE batched forward-mode
    derivative of the current network's simulation w.r.t. forcing inputs (``_with_forcing``), plus direct
@@ -60,7 +69,7 @@ __all__ = ["diagnose", "Diagnosis", "Finding"]
 # placement preference for the compensation guard: lower is more physical/specific
 _PLACEMENT = {
     "param_dependence": 0, "wrong_constant": 0, "missing_link": 1, "radiation": 1, "sensor_offset": 2,
-    "heat_load": 3, "unused_column": 3, "sensor_lag": 2, "thermal_mass": 1,
+    "heat_load": 3, "unused_column": 3, "sensor_lag": 2, "thermal_mass": 1, "source_mass": 1,
 }
 
 
@@ -73,7 +82,7 @@ def _place(c: Candidate) -> float:
 
 P_ACCEPT = 0.05  # held-out confirmation: one-sided Diebold–Mariano p below this
 MIN_GAIN = 0.10  # minimum relative MAE reduction on held-out data
-FIT_ITER = 25  # Levenberg–Marquardt iterations of a candidate's proper fit
+FIT_ITER = 80  # Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
 FIT_CONTINUE = 3
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
@@ -512,10 +521,13 @@ class _Engine:
         e = self.residual(params).ravel()
         idx = self.train_idx if which == "train" else self.val_idx
         v = e[idx]
-        return float(np.dot(v, v)) if np.all(np.isfinite(v)) else math.inf
+        if not np.all(np.isfinite(v)):
+            return math.inf
+        with np.errstate(over="ignore"):  # a trial step far along a valley may blow a simulation up: inf
+            return float(np.dot(v, v))
 
     def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
-            deadline: float | None = None, tol: float = 1e-7) -> dict:
+            deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True) -> dict:
         """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``)."""
         params = self.params
         if init_delta is not None and np.any(init_delta):
@@ -551,6 +563,17 @@ class _Engine:
                 trial = self.apply(params, active, delta)
                 new = self.sse(trial)
                 if new < cur:
+                    rel = (cur - new) / max(cur, 1e-300)
+                    # flat valleys (free constants that are not identifiable as written, a conductance
+                    # drifting towards 0 in log space): the damped step is right in direction but short, so
+                    # go on along it (2δ, 4δ, ...) while the SSE keeps dropping; one simulation per try
+                    mult = 1.0
+                    while extrapolate and mult < 64:
+                        t2 = self.apply(params, active, 2 * mult * delta)
+                        n2 = self.sse(t2)
+                        if not n2 < new:
+                            break
+                        trial, new, mult = t2, n2, 2 * mult
                     rel = (cur - new) / max(cur, 1e-300)
                     params, cur = trial, new
                     lam = max(lam / 4, 1e-9)
@@ -1105,7 +1128,13 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     A thermal mass starts at the Gauss–Newton ``C_m`` (J/K) clipped to ``[max(4·dt/R, 10⁻³·C_min), 100·C_max]``
     (``R`` the split link's total resistance, so that the new node's time constant ``C_m·f(1−f)·R`` is at least
     one sample at f = 1/2; ``C_min``/``C_max`` the capacities of the link's nodes) and is bounded below by
-    ``0.4·dt/R`` (a tenth of a sample); ``f`` starts at 1/2."""
+    ``0.4·dt/R`` (a tenth of a sample); ``f`` starts at 1/2.
+
+    A heat capacity behind a source starts at the score test's lag ``τ`` (the grid value whose two columns
+    explained most, times the Gauss–Newton amplitude of the lag column, clipped to [0.2, 5]) and at the
+    Gauss–Newton ``C_h`` of the capacity column (clipped to [10⁻³, 10] × the heated node's capacity; a tenth of
+    it if not positive), ``R_h = τ/C_h``; ``C_h`` is bounded below by 10⁻⁴ of that capacity, ``R_h`` by
+    ``0.05·dt/C_h``."""
     t0 = float(s_["delta"][0]) if len(s_["delta"]) else 0.0
     frac = 0.5
     if c.kind == "sensor_lag":
@@ -1133,9 +1162,27 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
             lo = max(lo, 1e-3 * min(caps))
         t0 = float(np.clip(t0, lo, max(hi, lo)))
         lower = 0.4 * dt_min / r_tot
+    elif c.kind == "source_mass":
+        if not t0 > 0:
+            say("    the linearised fit wants a negative lag behind the source: not fitted")
+            return None
+        el = c.element
+        tau = float(el.get("score_tau") or dt_min) * float(np.clip(t0, 0.2, 5.0))
+        node = next(n for n in net_x.nodes if n.name == el["at"])
+        pc = net_x.param(node.capacitance)
+        c_node = float(pc.value) if pc.is_constant and pc.value and pc.value > 0 else None
+        c_gn = float(s_["delta"][1]) if len(s_["delta"]) > 1 else 0.0  # the capacity column's Gauss–Newton C_h
+        if c_node:
+            cap0 = float(np.clip(c_gn, 1e-3 * c_node, 10.0 * c_node)) if c_gn > 0 else 0.1 * c_node
+        else:
+            cap0 = c_gn if c_gn > 0 else max(tau, dt_min)  # J/K; without a known capacity: R_h = 1 K/W
+        t0 = cap0
+        lower = 1e-4 * c_node if c_node else None
+        extra_kw = {"resistance": tau / cap0, "resistance_lower": 0.05 * dt_min / cap0}
     else:
         raise ValueError(f"not a structural candidate kind: {c.kind}")
-    net_s = apply_structural(net_x, c, t0, lower=lower, **({"frac": frac} if c.kind == "thermal_mass" else {}))
+    kw = {"frac": frac} if c.kind == "thermal_mass" else (extra_kw if c.kind == "source_mass" else {})
+    net_s = apply_structural(net_x, c, t0, lower=lower, **kw)
     ext_s = build_extended(net_s, varying, extra, kinds=kinds, only=set(acc_keys))
     eng, x_s, f_s, c_s = _make_engine(ext_s, net_s, exps, train_mask, val_mask, backend, state, ref, acc_keys)
     act = list(f_s) + [j for k in acc_keys for j in c_s.get(k, [])]
@@ -1147,7 +1194,7 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     e1 = e_after.ravel()[eng.val_idx]
     F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
     val_sse = eng.sse(which="val")
-    if c.kind == "thermal_mass" and "states" in ref:
+    if c.kind in ("thermal_mass", "source_mass") and "states" in ref:
         # the reference run's states (learned-function normalisation, read by position) get the new node's
         # trajectory where it will sit if accepted: after the original nodes (lag states, never learn inputs,
         # shift). Of several masses fitted on one layout, the best-fitting one's column is kept.
@@ -1289,6 +1336,10 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     Structural candidates (not exactly null) get their first-order column without simulating the edit:
 
     * sensor lag τ: the reading is ``T_n − τ·dT_n/dt + O(τ²)``, a direct output column ``−dT_n/dt``;
+    * heat capacity ``C_h`` behind a source at a resistance ``R_h`` (``_candidates.source_lag_forcing``): the
+      heat reaching the node is ``Q_h = lag_τ(Q) − C_h·lag_τ(dT_n/dt)``, τ = C_h·R_h: two columns per τ of a grid
+      (``source_tau_grid``), the lag part and the capacity part; the pair explaining most of the residual is
+      the candidate's (k = 2), the lag's Gauss–Newton amplitude scales τ and the capacity's is ``C_h``;
     * thermal mass ``C_m`` on a link a–b (resistance R) split at m into ``f·R`` (a side) and ``(1−f)·R``: m's
       balance ``C_m·dT_m/dt = (T_a − T_m)/(f·R) + (T_b − T_m)/((1−f)·R)``. At ``C_m → 0`` m is quasi-static,
       ``T_m0 = (1−f)·T_a + f·T_b``, and the heat into a is the unsplit link's. To first order,
@@ -1322,14 +1373,15 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     # is a direct output term ∂y_s/∂τ = −dT_node/dt.
     struct = [c for c in cands if c.kind in STRUCTURAL_KINDS]
     mass = [c for c in struct if c.kind == "thermal_mass"]
+    smass = [c for c in struct if c.kind == "source_mass"]
     rates = cur.rates(X, U) if struct else None  # (N, ns) K/s
-    mass_rows: list[tuple[Candidate, float | None]] = []
-    if mass:
+    mass_rows: list[tuple[Candidate, float | None, str | None]] = []  # (candidate, C or τ, source part)
+    if mass or smass:
         # At first order (T_m = (1−f)·T_a + f·T_b) a mass on a link to a constant boundary is exactly a larger
         # capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its
         # lag at a grid of capacities (``mass_grid``: T_m lagged behind its quasi-static value on the current
         # trajectory, the flows divided by C); the column explaining most of the residual is the candidate's.
-        from ._candidates import mass_forcing, mass_grid
+        from ._candidates import mass_forcing, mass_grid, source_lag_forcing, source_tau_grid
 
         lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
         dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
@@ -1339,8 +1391,15 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
             for cg in [None] + mass_grid(cur.net, c, cur.params, min(dts), duration):
                 Fm.append(mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates,
                                        mass=cg)[:, :nn])
-                mass_rows.append((c, cg))
-        F = np.concatenate([F, np.stack(Fm)], axis=0)
+                mass_rows.append((c, cg, None))
+        for c in smass:  # two columns per τ: the lag part and the capacity part (per J/K of C_h)
+            for tau in source_tau_grid(min(dts), duration):
+                Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau)[:, :nn])
+                mass_rows.append((c, tau, "lag"))
+                Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau, rates=rates)[:, :nn])
+                mass_rows.append((c, tau, "capacity"))
+        if Fm:
+            F = np.concatenate([F, np.stack(Fm)], axis=0)
     J_all = cur.forced_jacobian(active_base, F)
     direct = d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # (n_train, m)
     n0 = len(active_base)
@@ -1351,7 +1410,7 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         cols_of = dict(cols_of)
         n_new = 0
         extra_cols = []
-        if mass:  # the forced Jacobian's last columns: keep each mass's best one (free directions projected out)
+        if mass_rows:  # the forced Jacobian's last columns: keep each mass's best one (free directions projected out)
             n_c = n0 + direct.shape[1]
             Jm, J_all = J_all[:, n_c:], J_all[:, :n_c]
             r_tr = cur.residual().ravel()[cur.train_idx]
@@ -1361,19 +1420,34 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
             with np.errstate(divide="ignore", invalid="ignore"):
                 share = (Jp.T @ rp) ** 2 / (np.sum(Jp * Jp, axis=0) * max(float(rp @ rp), 1e-300))
             share = np.where(np.isfinite(share), share, -1.0)
-            best: dict[str, int] = {}
-            for i, (c, _) in enumerate(mass_rows):
-                if c.key not in best or share[i] > share[best[c.key]]:
-                    best[c.key] = i
-            for c in mass:
-                i = best[c.key]
-                c.element["score_mass"] = mass_rows[i][1]  # None: first order won
-                extra_cols.append(Jm[:, i])
-                cols_of[c.key] = [len(big.cols) + n_new]
-                cand_idx = cand_idx + [len(big.cols) + n_new]
-                n_new += 1
+            best: dict[str, tuple[float, int, int]] = {}  # key -> (share of the residual, first column, width)
+            i = 0
+            while i < len(mass_rows):
+                c, _, part = mass_rows[i]
+                width = 2 if part == "lag" else 1
+                if width == 2:  # a source's lag and capacity columns together
+                    A = Jp[:, i:i + 2]
+                    coef = np.linalg.lstsq(A, rp, rcond=None)[0]
+                    fit = A @ coef
+                    sc = float(fit @ fit) / max(float(rp @ rp), 1e-300)
+                    sc = sc if np.isfinite(sc) else -1.0
+                else:
+                    sc = float(share[i])
+                if c.key not in best or sc > best[c.key][0]:
+                    best[c.key] = (sc, i, width)
+                i += width
+            for c in mass + smass:
+                _, i, width = best[c.key]
+                c.element["score_mass" if c.kind == "thermal_mass" else "score_tau"] = mass_rows[i][1]  # None: 1st order
+                idx = []
+                for w in range(width):
+                    extra_cols.append(Jm[:, i + w])
+                    idx.append(len(big.cols) + n_new)
+                    n_new += 1
+                cols_of[c.key] = idx
+                cand_idx = cand_idx + idx
         for c in struct:
-            if c.kind == "thermal_mass":
+            if c.kind in ("thermal_mass", "source_mass"):
                 continue
             col = np.zeros((nsr, len(outs)))
             if c.kind == "sensor_lag":
@@ -1811,6 +1885,14 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         return (f"missing thermal mass between {el['a']} and {el['b']}: a node {el['node']} of C ≈ {_fmt(v['C'])} J/K"
                 f" splitting link {el['link']} ({el['a']}–{el['b']}, R ≈ {_fmt(v['R'])} K/W in total),"
                 f" {100 * v['f']:.0f} % of it on the {el['a']} side; its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
+    if c.kind == "source_mass":
+        from ._candidates import source_mass_values
+
+        el = c.element
+        v = source_mass_values(net, c, params)
+        return (f"missing heat capacity behind source {el['source']}: it heats a node {el['node']} of C ≈ {_fmt(v['C'])}"
+                f" J/K joined to {el['at']} by R ≈ {_fmt(v['R'])} K/W (time constant C·R ≈ {_fmt(v['tau'])} s), not"
+                f" {el['at']} directly")
     return c.describe()
 
 
@@ -1871,6 +1953,10 @@ def _clause(c: Candidate, params, ext: Extended, eng: _Engine) -> str:
         from ._candidates import mass_lines
 
         return "; ".join(mass_lines(net, c, params)[2:])
+    if c.kind == "source_mass":  # the new node and its link (the source's line moves to the new node)
+        from ._candidates import source_mass_lines
+
+        return "; ".join(source_mass_lines(net, c, params))
     return ""
 
 
@@ -1912,6 +1998,11 @@ def _merged_clauses(accepted: list[Candidate], params, ext: Extended, eng: _Engi
             from ._candidates import mass_lines
 
             out += mass_lines(net, c, params)
+    for c in accepted:
+        if c.kind == "source_mass":  # the new node and its link; the source's own line is moved in the text
+            from ._candidates import source_mass_lines
+
+            out += source_mass_lines(net, c, params)
     return out
 
 
@@ -1943,6 +2034,24 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
             if 1 <= ln <= len(lines):
                 lines[ln - 1] = (f"# (split by `tnnc diagnose` at the new thermal mass {c.element['node']}, see below) "
                                  + lines[ln - 1])
+    # a capacity behind a source: the source's line now heats the new node (or, if the line has another form,
+    # it is commented out and written again below)
+    moved_src: list[str] = []
+    for c in accepted:
+        if c.kind != "source_mass":
+            continue
+        from ._candidates import source_line_moved
+
+        src = next((sr for sr in net.sources if sr.name == c.element["source"]), None)
+        if src is None or src.span is None or not 1 <= src.span.line <= len(lines):
+            continue
+        new_line = source_line_moved(lines[src.span.line - 1], c) if src.span.line == src.span.end_line else None
+        if new_line is not None:
+            lines[src.span.line - 1] = new_line
+        else:
+            for ln in range(src.span.line, src.span.end_line + 1):
+                lines[ln - 1] = f"# (moved by `tnnc diagnose` to the new node {c.element['node']}, see below) " + lines[ln - 1]
+            moved_src.append(f"source {c.element['node']} = {c.element['value']}")
     # a learned constant of the original network that now depends on something: its clause is replaced
     # (the dependent targets get their own clause; the others stay constant)
     for fname in dict.fromkeys(c.element.get("learned") for c in accepted if c.element.get("learned")):
@@ -1963,7 +2072,7 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
             add.append(f'input {name} : [1]  column "{col}"')
     for c in accepted:
         add.append(f"# {c.describe()}")
-    add += clauses
+    add += clauses + moved_src
     new = "\n".join(lines).rstrip("\n") + "\n" + "\n".join(add) + "\n"
     diff = "".join(difflib.unified_diff(text.splitlines(True), new.splitlines(True), "original", "extended"))
     return new, diff

@@ -62,7 +62,9 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     ``strength`` is the effect's size in the candidate's own coordinates: a relative change of the
     parameter at the edge of the variable's range (dependence), the raw output for a wrong constant or a
     heat load (in units of the function's output scale), W/K for a missing link, m² (ε·A) for radiation,
-    K for a sensor offset, seconds for a sensor lag (``kind="sensor_lag"``, ``target`` the sensor). Returns training and validation :class:`Experiment` objects (different seeds).
+    K for a sensor offset, seconds for a sensor lag (``kind="sensor_lag"``, ``target`` the sensor), J/K for a
+    thermal mass, seconds for a heat capacity behind a source (``kind="source_mass"``, ``target`` the source: its
+    time constant C_h·R_h, with C_h a quarter of the heated node's capacity). Returns training and validation :class:`Experiment` objects (different seeds).
     """
     from ._compile import compile as _compile
     from ._diagnose import _stats_for
@@ -75,8 +77,13 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     varying = [n for n in names if n in bounds and bounds[n][1] > bounds[n][0]]
     cand = None
     if kind in STRUCTURAL_KINDS:  # not exactly null: the truth is the network with the edit built in
-        cand = find_candidate(structural_candidates(net), kind, target, depends_on)
-        net = apply_structural(net, cand, strength)
+        cand = find_candidate(structural_candidates(net, (kind,)), kind, target, depends_on)
+        if kind == "source_mass":  # strength: the lag τ (s); C_h a quarter of the heated node's capacity
+            node = next(nd for nd in net.nodes if nd.name == cand.element["at"])
+            cap = 0.25 * float(net.param(node.capacitance).value)
+            net = apply_structural(net, cand, cap, resistance=strength / cap)
+        else:
+            net = apply_structural(net, cand, strength)
         kind = None
     ext = build_extended(net, varying)
     model = _compile(ext.network, backend=backend, dtype="float64")
