@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -130,6 +131,19 @@ def test_bench_rollout_tiny_run(tmp_path):
     text = out_md.read_text()
     assert "<!-- begin rollout -->" in text and "<!-- end rollout -->" in text
     assert "Machine:" in text and "bench_rollout.py" in text
+
+
+def test_bench_xla_floor_quick_run(tmp_path):
+    """The XLA-floor benchmark runs, counts the model's fusions and writes its section (timings unchecked)."""
+    out_md = tmp_path / "BENCHMARKS.md"
+    res = subprocess.run([sys.executable, str(BENCH / "bench_xla_floor.py"), "--quick", "--output", str(out_md)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    text = out_md.read_text()
+    assert "<!-- begin xla-floor -->" in text and "<!-- end xla-floor -->" in text
+    m = re.search(r"has (\d+) fusions in its loop body", text)
+    assert m and 5 <= int(m.group(1)) <= 200, text
+    assert text.count("| batch leading") == 2 and text.count("| batch trailing") == 2
 
 
 def test_run_all_discovers_benchmarks():
