@@ -12,11 +12,12 @@ apart and reported as warm-up):
   loss (mean squared error of ``T_out`` against a fixed reference) w.r.t. every trainable parameter;
 * a batch of ``--batch`` windows that tile the same number of samples (``--window`` samples each,
   default ``steps // batch``), forward and forward + gradient;
-* JAX and torch through the public model API; the numpy reference backend (forward only, it has no
+* JAX and torch through the public model API (torch eager, and with ``torch_compile=True``: each
+  integration step through ``torch.compile``); the numpy reference backend (forward only, it has no
   autodiff); a C loop of the same equations (``_c_loop.py``, ``cc -O3 -march=native``), checked against
   JAX to ``1e-9 K`` on every state before it is timed.
 
-Python-loop rollouts (torch eager, numpy) cost the same per step at any length, so they run on
+Python-loop rollouts (torch, numpy) cost the same per step at any length, so they run on
 ``--slow-steps`` samples (default 5 000) to keep the benchmark short; the table says how many steps each
 number is from. Prototypes of faster rollouts (not the model's code path) are measured too, to back the
 speed-up proposals with numbers; they are checked against the model's rollout before timing.
@@ -226,15 +227,17 @@ def bench_jax(case, args, rows, results, dtype="float64"):
     return model
 
 
-def bench_torch(case, args, rows, results):
-    """torch eager through the model API, run with ``--torch-threads`` intra-op threads (default 1: on this
-    workload of tiny tensors, OpenMP threads cost far more than they give, most of all on a busy machine);
-    the batch forward is also timed with torch's default thread count to show the difference."""
+def bench_torch(case, args, rows, results, compiled=False):
+    """torch through the model API, eager or with ``torch_compile=True`` (each integration step through
+    ``torch.compile``), run with ``--torch-threads`` intra-op threads (default 1: on this workload of tiny
+    tensors, OpenMP threads cost far more than they give, most of all on a busy machine); the eager batch
+    forward is also timed with torch's default thread count to show the difference."""
     import torch
 
     import tnn_dsl
 
-    model = tnn_dsl.compile(case.net, "torch")
+    model = tnn_dsl.compile(case.net, "torch", torch_compile=compiled)
+    impl, tag = ("torch (torch_compile=True)", "torchc_") if compiled else ("torch (eager)", "torch_")
     dt, integ = case.dt, case.integrator
     default_threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
@@ -260,11 +263,11 @@ def bench_torch(case, args, rows, results):
             wf, tf, s = measure(fwd, args.repeats, budget_s=args.budget)
             cf = measure.cpu
             wg, tg, g = measure(grad, args.repeats, budget_s=args.budget)
-            results[f"torch_states_{label}"] = s.numpy()
-            results[f"torch_grad_{label}"] = {k: v.numpy() for k, v in g.items()}
-            rows.append(Row("torch (eager)", label, U.shape[-2], windows, tf, tg, wf - tf, wg - tg,
+            results[f"{tag}states_{label}"] = s.numpy()
+            results[f"{tag}grad_{label}"] = {k: v.numpy() for k, v in g.items()}
+            rows.append(Row(impl, label, U.shape[-2], windows, tf, tg, wf - tf, wg - tg,
                             note=f"torch.set_num_threads({args.torch_threads})", cpu=cf))
-            if label == "batch" and default_threads != args.torch_threads:
+            if label == "batch" and default_threads != args.torch_threads and not compiled:
                 torch.set_num_threads(default_threads)
                 wf, tf, _ = measure(fwd, args.repeats, budget_s=args.budget)
                 cf = measure.cpu
@@ -582,80 +585,6 @@ def bench_xla_elementwise(case, results):
     results["xla_counts"] = (n_eval, n_act, n_sp)
 
 
-def bench_torch_prototypes(case, args, rows, results, torch_model):
-    """torch.compile of one integration step (the model's own ``prepare``/``rhs``), Python loop over steps."""
-    import torch
-
-    from tnn_dsl._integrators import euler, rk4
-
-    method = rk4 if case.integrator == "rk4" else euler
-    h = case.dt / case.substeps
-    core = torch_model._core
-    p = torch_model.from_numpy(case.params)
-
-    def make(prep_holder):
-        def step(T, u):
-            for _ in range(case.substeps):
-                T = method(lambda x: core.rhs(prep_holder[0], x, u), T, h)
-            return T
-        return step
-
-    holder = [None]
-    step_c = torch.compile(make(holder), dynamic=False, fullgraph=False)
-    default_threads = torch.get_num_threads()
-    torch.set_num_threads(args.torch_threads)
-    try:
-        _torch_proto_measure(case, args, rows, results, torch, core, p, holder, step_c)
-    finally:
-        torch.set_num_threads(default_threads)
-
-
-def _torch_proto_measure(case, args, rows, results, torch, core, p, holder, step_c):
-    def roll(pp, T0, U):
-        holder[0] = core.prepare(pp)
-        T = T0
-        states = [T]
-        for u in U.unbind(-2)[:-1]:
-            T = step_c(T, u)
-            states.append(T)
-        return torch.stack(states, dim=-2)
-
-    for label, T0, U, windows in (("single", case.T0, case.U[:case.slow_steps], 1),
-                                  ("batch", case.T0b, case.Ub[:, :case.window], case.batch)):
-        T0t, Ut = torch.as_tensor(T0), torch.as_tensor(U)
-        if label == "batch":
-            torch._dynamo.reset()  # a clean warm-up for the new shapes
-
-        def fwd():
-            with torch.no_grad():
-                return roll(p, T0t, Ut)
-
-        def grad():
-            pg = dict(p)
-            for k in case.trainable:
-                pg[k] = p[k].detach().clone().requires_grad_(True)
-            S = roll(pg, T0t, Ut)
-            loss = torch.mean((S[..., case.out_idx] - case.y_ref) ** 2)
-            loss.backward()
-            return loss
-
-        try:
-            wf, tf, s = measure(fwd, args.repeats, budget_s=args.budget)
-            cf = measure.cpu
-            ref = results[f"jax_states_{label}"][..., : Ut.shape[-2], :]
-            err = float(np.max(np.abs(s.numpy() - ref)))
-            if err > C_TOL:
-                print(f"torch.compile prototype ({label}) differs from JAX by {err:.3g} K; skipped", file=sys.stderr)
-                continue
-            wg, tg, _ = measure(grad, args.repeats, budget_s=args.budget)
-        except Exception as e:  # noqa: BLE001 - inductor needs a C++ toolchain; report instead of failing
-            print(f"torch.compile prototype unavailable: {type(e).__name__}: {str(e)[:300]}", file=sys.stderr)
-            results["torch_compile_error"] = f"{type(e).__name__}: {str(e)[:300]}"
-            return
-        rows.append(Row("torch prototype: torch.compile(step)", label, Ut.shape[-2], windows, tf, tg, wf - tf,
-                        wg - tg, cpu=cf))
-
-
 # ---------------------------------------------------------------------------------------------
 # Report
 # ---------------------------------------------------------------------------------------------
@@ -681,6 +610,7 @@ def targets(rows):
     js, jb = find(rows, "JAX", "single"), find(rows, "JAX", "batch")
     cs = find(rows, "C loop", "single")
     tb = find(rows, "torch (eager)", "batch")
+    tcb = find(rows, "torch (torch_compile=True)", "batch")
     out = []
 
     def ratio(a, b):
@@ -699,16 +629,14 @@ def targets(rows):
         if r and r.grad:
             v = r.grad / r.fwd
             out.append((f"JAX {r.case}: forward+gradient / forward", v, "≤ 4×", v <= TARGET_GRAD_OVER_FWD))
-    if tb and jb:
-        v = ratio(tb.us(tb.fwd), jb.us(jb.fwd))
-        out.append(("torch / JAX, batch forward (per window-step)", v, "≤ 5×", v <= TARGET_TORCH_OVER_JAX_BATCH))
-        v = ratio(tb.us(tb.grad), jb.us(jb.grad))
-        if v is not None:
-            out.append(("torch / JAX, batch forward+gradient", v, "≤ 5×", v <= TARGET_TORCH_OVER_JAX_BATCH))
-    for r in rows:
-        if r.impl.startswith("torch prototype") and r.case == "batch" and jb:
+    for r, how in ((tcb, "torch (torch_compile=True)"), (tb, "torch eager")):
+        if r and jb:
             v = ratio(r.us(r.fwd), jb.us(jb.fwd))
-            out.append((f"{r.impl} / JAX, batch forward", v, "≤ 5×", v <= TARGET_TORCH_OVER_JAX_BATCH))
+            out.append((f"{how} / JAX, batch forward (per window-step)", v, "≤ 5×",
+                        v <= TARGET_TORCH_OVER_JAX_BATCH))
+            v = ratio(r.us(r.grad), jb.us(jb.grad))
+            if v is not None:
+                out.append((f"{how} / JAX, batch forward+gradient", v, "≤ 5×", v <= TARGET_TORCH_OVER_JAX_BATCH))
     return out
 
 
@@ -751,7 +679,7 @@ def markdown(case, args, rows, results, load_before, load_after, wall):
         if key in results:
             lines.append(f"{key.replace('_', ' ')}: {results[key]}")
     if "torch_compile_error" in results:
-        lines += ["", f"torch.compile prototype: not measured ({results['torch_compile_error']})."]
+        lines += ["", f"torch with torch_compile=True: not measured ({results['torch_compile_error']})."]
     if "xla_elementwise_ns" in results:
         ns = results["xla_elementwise_ns"]
         n_eval, n_act, n_sp = results["xla_counts"]
@@ -767,18 +695,19 @@ def markdown(case, args, rows, results, load_before, load_after, wall):
 def agreement(results):
     """torch vs JAX on the common prefix of states; gradients on equal lengths only (batch windows)."""
     out = {}
-    for label in ("single", "batch"):
-        a, b = results.get(f"torch_states_{label}"), results.get(f"jax_states_{label}")
-        if a is not None and b is not None:
-            n = a.shape[-2]
-            out[f"torch_vs_jax_states_{label}_K"] = float(np.max(np.abs(a - b[..., :n, :])))
-    ga, gb = results.get("torch_grad_batch"), results.get("jax_grad_batch")
-    if ga and gb and results["jax_states_batch"].shape == results.get("torch_states_batch", np.empty(0)).shape:
-        rel = 0.0
-        for k in ga:
-            d = np.max(np.abs(ga[k] - gb[k])) / max(np.max(np.abs(gb[k])), 1e-300)
-            rel = max(rel, float(d))
-        out["torch_vs_jax_grad_batch_rel"] = rel
+    for tag in ("torch", "torchc"):
+        for label in ("single", "batch"):
+            a, b = results.get(f"{tag}_states_{label}"), results.get(f"jax_states_{label}")
+            if a is not None and b is not None:
+                n = a.shape[-2]
+                out[f"{tag}_vs_jax_states_{label}_K"] = float(np.max(np.abs(a - b[..., :n, :])))
+        ga, gb = results.get(f"{tag}_grad_batch"), results.get("jax_grad_batch")
+        if ga and gb and results["jax_states_batch"].shape == results.get(f"{tag}_states_batch", np.empty(0)).shape:
+            rel = 0.0
+            for k in ga:
+                d = np.max(np.abs(ga[k] - gb[k])) / max(np.max(np.abs(gb[k])), 1e-300)
+                rel = max(rel, float(d))
+            out[f"{tag}_vs_jax_grad_batch_rel"] = rel
     return out
 
 
@@ -798,8 +727,9 @@ def parse(argv=None):
     ap.add_argument("--dt", type=float, default=1.0, help="sample time, s (default 1, the case study's)")
     ap.add_argument("--integrator", choices=("rk4", "euler"), default="rk4")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--only", default="jax,f32,torch,numpy,c,proto",
-                    help="comma list of jax, f32 (JAX in float32), torch, numpy, c, proto (prototypes), unrolled "
+    ap.add_argument("--only", default="jax,f32,torch,torchc,numpy,c,proto",
+                    help="comma list of jax, f32 (JAX in float32), torch (eager), torchc (torch_compile=True), "
+                         "numpy, c, proto (prototypes), unrolled "
                          "(the slow unrolled-rhs prototypes; off by default); jax is always run")
     ap.add_argument("--quick", action="store_true",
                     help="a short run: 4000 steps, batch 16, 3 repeats, 500 slow steps, no prototypes (unless given)")
@@ -840,16 +770,20 @@ def main(argv=None):
             results["c_error"] = str(e)
         print("c done", file=sys.stderr)
     if "torch" in only:
-        torch_model = bench_torch(case, args, rows, results)
+        bench_torch(case, args, rows, results)
         print("torch done", file=sys.stderr)
+    if "torchc" in only:
+        try:
+            bench_torch(case, args, rows, results, compiled=True)
+        except Exception as e:  # noqa: BLE001 - inductor needs a C++ toolchain; report instead of failing
+            results["torch_compile_error"] = f"{type(e).__name__}: {str(e)[:300]}"
+        print("torch (torch_compile=True) done", file=sys.stderr)
     if "numpy" in only:
         bench_numpy(case, args, rows, results)
         print("numpy done", file=sys.stderr)
     if "proto" in only:
         bench_jax_prototypes(case, args, rows, results, jax_model)
         bench_xla_elementwise(case, results)
-        if "torch" in only:
-            bench_torch_prototypes(case, args, rows, results, torch_model)
         print("prototypes done", file=sys.stderr)
     results.update(agreement(results))
     wall = time.perf_counter() - t_start

@@ -21,6 +21,7 @@ _LAZY = {
     "compile": ("._compile", "compile"),
     "Model": ("._compile", "Model"),
     "ParamSpec": ("._compile", "ParamSpec"),
+    "TorchCompileWarning": ("._compile", "TorchCompileWarning"),
     "load": ("._parser", "load"),
     "loads": ("._parser", "loads"),
     "read_data": ("._data", "read_data"),

@@ -42,6 +42,8 @@ def register(subparsers) -> None:
     p.add_argument("--data", required=True, metavar="CSV", help="data file with the input columns (CSV or Parquet)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="where to write the simulated sensors")
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
+    p.add_argument("--torch-compile", action="store_true",
+                   help="torch backend: compile each integration step with torch.compile (pays off on long runs)")
     p.add_argument("--integrator", choices=tuple(_INTEGRATORS), default="rk4", help="integrator (default rk4)")
     p.add_argument("--substeps", type=int, default=None, metavar="K",
                    help="integrator sub-steps per data step (default: chosen from the fastest time constant)")
@@ -148,6 +150,11 @@ def run(args) -> int:
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
     net, model, params, label = _load(args.net, args.backend, args.seed)
+    if args.torch_compile:
+        if args.backend != "torch":
+            raise TnnError(Diagnostic("--torch-compile applies to the torch backend only",
+                                      hint="add --backend torch (JAX rollouts are always compiled)"))
+        model.torch_compile = True
     (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, time_unit=args.time_unit,
                        require_outputs=False)
     for n in exp.notes:

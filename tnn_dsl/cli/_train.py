@@ -56,6 +56,8 @@ def register(subparsers) -> None:
     p.add_argument("--val", nargs="+", default=None, metavar="VAL", help="validation data files")
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model directory to write")
     p.add_argument("--backend", choices=("jax", "torch"), default=None, help="compute backend (default jax)")
+    p.add_argument("--torch-compile", dest="opt_torch_compile", action="store_true", default=None,
+                   help="torch backend: compile each integration step with torch.compile (faster after ~30 s)")
     p.add_argument("--seed", type=int, default=None, help="seed (initial weights, minibatches; default 0)")
     p.add_argument("--config", default=None, metavar="train.yaml", help="training options in YAML")
     p.add_argument("--json", default=None, metavar="metrics.json", help="write metrics as JSON ('-' for stdout)")
@@ -166,6 +168,7 @@ def run(args) -> int:
     overrides["gamma"] = _gamma(args.gamma)
     overrides["freeze"] = args.freeze
     overrides["backend"] = args.backend
+    overrides["torch_compile"] = args.opt_torch_compile
     overrides["seed"] = args.seed
     cfg = load_config(args.config, **overrides)
     net = tnn_dsl.load(args.net)

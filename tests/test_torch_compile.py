@@ -1,0 +1,190 @@
+"""Torch rollouts through ``torch.compile`` (``compile(..., torch_compile=True)``, issue 3's "torch within 5× of
+JAX"): the same states and gradients as eager torch and as JAX, recompilation for new window lengths, the
+eager fallback when torch cannot compile, and the switches (argument, ``TNN_TORCH_COMPILE``, CLI flags)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import nets
+import tnn_dsl
+from tnn_dsl import TnnError
+
+torch = pytest.importorskip("torch")
+
+
+SMALL = """\
+network small "a Peltier element, a fluid and an MLP-learned resistance: every kind of flow the compiler emits"
+units temperature = degC
+input I  : [A]
+input u1 : [1]
+input Ta : temperature
+input Tf1 : temperature
+node h  C = 40 J/K
+node c  C = 40 J/K
+node s  C = 300 J/K
+boundary amb = Ta
+R h -- s   = 0.1 K/W
+R s -- amb = 0.5 K/W  as R_sa
+R c -- amb = 4 K/W
+peltier pe  hot = h  cold = c  current = I  seebeck = 0.05 V/K free  resistance = 2 ohm  R_internal = 1.5 K/W
+fluid f1  through c  inlet = Tf1  mdot = 0.002 kg/s  cp = 4186 J/(kg*K)  UA = 5 W/K
+sensor T_c = c
+learn R_sa as mlp(s, u1; hidden = [4], activation = sigmoid)
+"""
+
+
+def _params(model, seed=0):
+    rng = np.random.default_rng(seed)
+    p = model.to_numpy(model.init_params(seed))
+    for k, spec in model.param_specs.items():
+        if spec.kind == "weights":
+            p[k] = 0.3 * rng.standard_normal(spec.shape)
+    return p
+
+
+def _torch_run(model, p_np, T0, U, integrator="rk4"):
+    """States, outputs and the gradient of a weighted output sum w.r.t. every parameter (numpy)."""
+    p = {k: v.requires_grad_(True) for k, v in model.from_numpy(p_np).items()}
+    s, y = model.rollout(p, torch.as_tensor(T0), torch.as_tensor(U), 1.0, integrator=integrator)
+    w = torch.linspace(-1.0, 1.0, y.numel(), dtype=y.dtype).reshape(y.shape)
+    (y * w).sum().backward()
+    grads = {k: (np.zeros(v.shape) if v.grad is None else v.grad.numpy()) for k, v in p.items()}
+    return s.detach().numpy(), y.detach().numpy(), grads
+
+
+def _jax_run(model, p_np, T0, U, integrator="rk4"):
+    import jax
+    import jax.numpy as jnp
+
+    def loss(p):
+        _, y = model.rollout(p, T0, U, 1.0, integrator=integrator)
+        w = jnp.linspace(-1.0, 1.0, y.size).reshape(y.shape)
+        return (y * w).sum()
+
+    p = model.from_numpy(p_np)
+    s, y = model.rollout(p, T0, U, 1.0, integrator=integrator)
+    return np.asarray(s), np.asarray(y), {k: np.asarray(v) for k, v in jax.grad(loss)(p).items()}
+
+
+def _assert_same(a, b, *, atol=1e-9, grad_rtol=1e-6):
+    (sa, ya, ga), (sb, yb, gb) = a, b
+    assert np.max(np.abs(sa - sb)) <= atol
+    assert np.max(np.abs(ya - yb)) <= atol
+    scale = max(float(np.max(np.abs(g))) for g in ga.values() if g.size)
+    for k in ga:
+        if ga[k].size:
+            assert np.max(np.abs(ga[k] - gb[k])) <= grad_rtol * max(float(np.max(np.abs(ga[k]))), 1e-8 * scale), k
+
+
+def _batch(model, N, B=3, seed=1):
+    """``T0 (B, n_states)`` K and ``U (B, N, n_inputs)``: the case-study input columns the model takes."""
+    order = ("I", "u1", "Ta", "Tf1", "Tf2")
+    U = np.stack([nets.case_inputs(N, seed=seed + b) for b in range(B)])
+    cols = {"Tf": "Tf1"}
+    U = U[..., [order.index(cols.get(name, name)) for name in model.input_names]]
+    n = len(model.state_names)
+    T0 = 298.15 + np.linspace(-2, 2, n) + np.arange(B)[:, None] * 0.3
+    return T0, U
+
+
+@pytest.mark.parametrize("reference", ["jax", "torch"])
+def test_compiled_torch_matches_eager_and_jax_and_recompiles_for_new_windows(reference):
+    net = tnn_dsl.loads(SMALL, "small.thn")
+    mc = tnn_dsl.compile(net, "torch", torch_compile=True)
+    mr = tnn_dsl.compile(net, reference)
+    assert mc.torch_compile and not mr.torch_compile
+    p_np = _params(mr, 3)
+    run_ref = _jax_run if reference == "jax" else _torch_run
+    T0, U = _batch(mr, 12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)  # it really compiled
+        got = _torch_run(mc, p_np, T0, U)
+        _assert_same(run_ref(mr, p_np, T0, U), got)
+        # another window length and batch size (forward only, to keep CI short): a new graph, not stale shapes
+        T0, U = _batch(mr, 7, B=2)
+        with torch.no_grad():
+            s, y = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(T0), torch.as_tensor(U), 1.0)
+    s_ref, y_ref, _ = run_ref(mr, p_np, T0, U)
+    assert np.max(np.abs(s.numpy() - s_ref)) <= 1e-9 and np.max(np.abs(y.numpy() - y_ref)) <= 1e-9
+
+
+def test_models_do_not_share_compiled_steps():
+    """Two networks of the same shape but different constants, compiled one after the other in one process,
+    each give their own eager result (torch caches compiled code per function; the guards must tell them apart)."""
+    for R in (2.0, 5.0):
+        net = nets.one_node_rc(R=R)
+        mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
+        U = torch.full((15, len(me.input_names)), 3.0, dtype=torch.float64)
+        with torch.no_grad():
+            a = mc.rollout(mc.init_params(0), torch.tensor([310.0]), U, 1.0)[0]
+            b = me.rollout(me.init_params(0), torch.tensor([310.0]), U, 1.0)[0]
+        assert torch.equal(a, b), R
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("reference", ["jax", "torch"])
+def test_compiled_torch_case_study_every_component(reference):
+    net = nets.case_study("mlp", extra=True)
+    mc = tnn_dsl.compile(net, "torch", torch_compile=True)
+    mr = tnn_dsl.compile(net, reference)
+    p_np = _params(mr, 0)
+    T0, U = _batch(mr, 300)
+    run_ref = _jax_run if reference == "jax" else _torch_run
+    _assert_same(run_ref(mr, p_np, T0, U), _torch_run(mc, p_np, T0, U))
+    T0e, Ue = _batch(mr, 60)
+    _assert_same(run_ref(mr, p_np, T0e, Ue, "expeuler"), _torch_run(mc, p_np, T0e, Ue, "expeuler"))
+
+
+def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch):
+    def broken(fn, **kw):
+        def call(*a, **k):
+            raise RuntimeError("no C++ compiler here")
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken)
+    net = nets.two_node()
+    mc = tnn_dsl.compile(net, "torch", torch_compile=True)
+    me = tnn_dsl.compile(net, "torch")
+    p_np = mc.to_numpy(mc.init_params(0))
+    T0, U = np.array([300.0, 296.0]), np.full((20, len(me.input_names)), 1.0)
+    with pytest.warns(tnn_dsl.TorchCompileWarning, match="no C.. compiler here"):
+        got = _torch_run(mc, p_np, T0, U)
+    assert mc.torch_compile is False  # warned once, eager from then on
+    _assert_same(_torch_run(me, p_np, T0, U), got, atol=0.0, grad_rtol=0.0)
+
+
+def test_switches(monkeypatch):
+    net = nets.two_node()
+    monkeypatch.setenv("TNN_TORCH_COMPILE", "1")
+    assert tnn_dsl.compile(net, "torch").torch_compile is True
+    assert tnn_dsl.compile(net, "torch", torch_compile=False).torch_compile is False
+    assert tnn_dsl.compile(net, "jax").torch_compile is False  # JAX is always compiled; the flag is torch's
+    monkeypatch.setenv("TNN_TORCH_COMPILE", "yes")
+    with pytest.raises(TnnError, match="TNN_TORCH_COMPILE must be 0 or 1"):
+        tnn_dsl.compile(net, "torch")
+    monkeypatch.delenv("TNN_TORCH_COMPILE")
+    assert tnn_dsl.compile(net, "torch").torch_compile is False
+    assert tnn_dsl.TrainConfig(torch_compile=True).torch_compile is True
+
+
+def test_cli_simulate_torch_compile_needs_the_torch_backend(tmp_path, capsys):
+    from tnn_dsl.cli import main
+
+    thn = tmp_path / "rc.thn"
+    thn.write_text("network rc\nunits temperature = degC\ninput P : [W]\nparam Ta = 20 degC\nboundary amb = Ta\n"
+                   "node n  C = 100 J/K\nG n -- amb = 2 W/K\nsource n = P\nsensor Tn = n\n")
+    csv = tmp_path / "d.csv"
+    csv.write_text("t,P\n" + "".join(f"{k},{5.0 if k > 3 else 0.0}\n" for k in range(10)))
+    rc = main(["simulate", str(thn), "--data", str(csv), "-o", str(tmp_path / "o.csv"), "--torch-compile"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "--torch-compile applies to the torch backend only" in err and "Traceback" not in err
+    out = tmp_path / "o2.csv"
+    rc = main(["simulate", str(thn), "--data", str(csv), "-o", str(out), "--backend", "torch", "--torch-compile"])
+    assert rc == 0
+    eager = tmp_path / "o3.csv"
+    assert main(["simulate", str(thn), "--data", str(csv), "-o", str(eager), "--backend", "torch"]) == 0
+    assert out.read_text() == eager.read_text()
