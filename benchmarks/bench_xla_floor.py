@@ -12,6 +12,8 @@ Two measurements, each the median of ``--repeats`` runs after a warm-up call, fl
    as small products, with and without the transcendental functions (tanh-sigmoid, softplus), with the batch
    as the leading axis (the model's layout) and as the trailing axis. The cheapest variant — no
    transcendentals at all — is a lower bound for any XLA rollout of the M3 step in that layout.
+3. **The model ladder**: the model's own rollout of M1 (constant resistances), M2 (linear) and M3 (MLP),
+   single sequence and batch, with the fusions in each loop body.
 
     python benchmarks/bench_xla_floor.py            # writes the `xla-floor` section of BENCHMARKS.md
     python benchmarks/bench_xla_floor.py --no-write
@@ -86,6 +88,38 @@ def model_fusions() -> int:
     return max(len(re.findall(r"= \S+ fusion\(", c)) for c in comps if not c.startswith("ENTRY"))
 
 
+def model_ladder(repeats: int, steps: int = 20_000, B: int = 256, N: int = 390):
+    """The model's own JAX rollout of the case-study models M1 (constant heat-pipe resistances), M2 (linear)
+    and M3 (MLP heat pipe): fusions in the compiled loop body, µs/step of a single sequence and µs per
+    window-step of a batch — how much of M3's cost is the network and how much the learned function."""
+    import jax.numpy as jnp
+
+    sys.path.insert(0, str(HERE.parent))
+    import tnn_dsl
+    from bench_rollout import case_inputs, random_weights
+
+    rows = []
+    for name in ("m1", "m2", "m3"):
+        net = tnn_dsl.load(HERE.parent / "networks" / "peltier_heatpipe" / f"{name}.thn")
+        ref = tnn_dsl.compile(net, "numpy")
+        model = tnn_dsl.compile(net, "jax")
+        P = random_weights(ref, 0)
+        p = model.from_numpy(P)
+        U = case_inputs(ref, max(steps, N * 2), 1.0, 0)
+        T0 = ref.steady_state(P, U[0])
+        f = model._jitted("rollout", 1.0, "rk4", 1)
+        txt = f.lower(p, jnp.asarray(T0), jnp.asarray(U[:steps])).compile().as_text()
+        comps = re.split(r"\n(?=\S)", txt)
+        n_fus = max(len(re.findall(r"= \S+ fusion\(", c)) for c in comps if not c.startswith("ENTRY"))
+        single = _time(lambda a, b: f(p, a, b)[0], (jnp.asarray(T0), jnp.asarray(U[:steps])), repeats) / steps
+        starts = np.arange(B) * N % (len(U) - N + 1)
+        Ub = jnp.asarray(np.stack([U[s:s + N] for s in starts]))
+        T0b = jnp.asarray(T0 + np.random.default_rng(1).normal(0, 0.5, (B, len(T0))))
+        batch = _time(lambda a, b: f(p, a, b)[0], (T0b, Ub), repeats) / (B * N)
+        rows.append((name, n_fus, single * 1e6, batch * 1e6))
+    return rows
+
+
 def skeleton(repeats: int, B: int = 256, N: int = 390):
     import jax
     import jax.numpy as jnp
@@ -156,6 +190,7 @@ def main(argv=None) -> int:
     fus, slope = per_fusion(args.repeats, steps=20_000 if args.quick else 100_000)
     n_model = model_fusions()
     sk = skeleton(args.repeats, N=100 if args.quick else 390)
+    ladder = model_ladder(args.repeats, steps=2_000 if args.quick else 20_000, N=50 if args.quick else 390)
     md = ["Per-kernel cost in a `lax.scan` body (chain of K dependent tanh layers on an 8-vector):", "",
           "| layers K | fusions in the compiled loop | ns per step |", "|---|---|---|"]
     md += [f"| {k} | {nf} | {ns:.0f} |" for k, nf, ns in fus]
@@ -169,6 +204,12 @@ def main(argv=None) -> int:
     floor = min(us for _, tr, us in sk if not tr)
     md += ["", f"Without any transcendental function the skeleton costs at least **{floor:.3f} µs per window-step** "
            "with XLA here."]
+    md += ["", "The model's own JAX rollout (RK4, dt = 1 s, float64) of the case-study models, random non-zero learned "
+           "weights: heat-pipe resistances learned as constants (M1), as linear functions of three temperatures "
+           "and u1 (M2), by the 4→8→8→3 sigmoid MLP (M3):", "",
+           "| model | fusions in the loop body | single sequence µs/step | batch of 256, µs per window-step |",
+           "|---|---|---|---|"]
+    md += [f"| {name.upper()} | {nf} | {s1:.2f} | {b1:.3f} |" for name, nf, s1, b1 in ladder]
     text = "\n".join(md) + "\n"
     print(text)
     if not args.no_write:
