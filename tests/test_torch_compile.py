@@ -171,8 +171,16 @@ def test_switches(monkeypatch):
     assert tnn_dsl.TrainConfig(torch_compile=True).torch_compile is True
 
 
-def test_cli_simulate_torch_compile_needs_the_torch_backend(tmp_path, capsys):
+def test_cli_simulate_torch_compile_needs_the_torch_backend(tmp_path, capsys, monkeypatch):
     from tnn_dsl.cli import main
+
+    compiled = []
+
+    def fake_compile(fn, **kw):  # the flag's wiring, without paying for inductor (the model tests do that)
+        compiled.append(fn)
+        return fn
+
+    monkeypatch.setattr(torch, "compile", fake_compile)
 
     thn = tmp_path / "rc.thn"
     thn.write_text("network rc\nunits temperature = degC\ninput P : [W]\nparam Ta = 20 degC\nboundary amb = Ta\n"
@@ -184,7 +192,7 @@ def test_cli_simulate_torch_compile_needs_the_torch_backend(tmp_path, capsys):
     assert rc != 0 and "--torch-compile applies to the torch backend only" in err and "Traceback" not in err
     out = tmp_path / "o2.csv"
     rc = main(["simulate", str(thn), "--data", str(csv), "-o", str(out), "--backend", "torch", "--torch-compile"])
-    assert rc == 0
+    assert rc == 0 and len(compiled) == 1
     eager = tmp_path / "o3.csv"
     assert main(["simulate", str(thn), "--data", str(csv), "-o", str(eager), "--backend", "torch"]) == 0
     assert out.read_text() == eager.read_text()
