@@ -222,3 +222,16 @@ def case_inputs(N, seed=1, dt=1.0):
             u[k:k + hold, col] = rng.uniform(lo, hi)
             k += hold
     return u
+
+
+def random_params(model, seed=0):
+    """The model's initial parameter table (numpy) with every learned weight random and non-zero (so the
+    learned terms act): ``0.3·N(0, 1)``, seeded."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    p = model.to_numpy(model.init_params(seed))
+    for k, spec in model.param_specs.items():
+        if spec.kind == "weights":
+            p[k] = 0.3 * rng.standard_normal(spec.shape)
+    return p

@@ -9,23 +9,13 @@ import nets
 import tnn_dsl
 
 
-def _random_params(model, seed=0):
-    """Initial parameters with every learned weight random and non-zero (so learned terms act)."""
-    rng = np.random.default_rng(seed)
-    p = model.to_numpy(model.init_params(seed))
-    for k, spec in model.param_specs.items():
-        if spec.kind == "weights":
-            p[k] = 0.3 * rng.standard_normal(spec.shape)
-    return p
-
-
 def _rollouts_and_grads(net, N, integrator="rk4", seed=0):
     import jax
     import torch
 
     mj = tnn_dsl.compile(net, "jax")
     mt = tnn_dsl.compile(net, "torch")
-    p_np = _random_params(mj, seed)
+    p_np = nets.random_params(mj, seed)
     u = nets.case_inputs(N, seed=1)
     T0 = np.full(len(mj.state_names), 298.15) + np.linspace(-2, 2, len(mj.state_names))
     w = np.random.default_rng(seed + 1).standard_normal((N, len(mj.output_names)))
@@ -83,7 +73,7 @@ def test_steady_state_and_its_gradient_agree():
 
     net = nets.case_study("mlp", extra=True)
     mj, mt = tnn_dsl.compile(net, "jax"), tnn_dsl.compile(net, "torch")
-    p_np = _random_params(mj, 2)
+    p_np = nets.random_params(mj, 2)
     u = np.array([[2.0, 0.3, 295.15, 298.15, 298.15], [1.0, 0.8, 290.0, 300.0, 298.0]])
     pj = mj.from_numpy(p_np)
     Tj = np.asarray(mj.steady_state(pj, u))
@@ -119,7 +109,7 @@ def test_parsed_networks_agree():
     for name in ("m2.thn", "m4.thn"):
         net = tnn_dsl.load(os.path.join(root, name))
         mj, mt = tnn_dsl.compile(net, "jax"), tnn_dsl.compile(net, "torch")
-        p_np = _random_params(mj, 5)
+        p_np = nets.random_params(mj, 5)
         N = 200
         u = np.zeros((N, len(mj.input_names)))
         for j, inp in enumerate(net.inputs):

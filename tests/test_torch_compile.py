@@ -37,15 +37,6 @@ learn R_sa as mlp(s, u1; hidden = [4], activation = sigmoid)
 """
 
 
-def _params(model, seed=0):
-    rng = np.random.default_rng(seed)
-    p = model.to_numpy(model.init_params(seed))
-    for k, spec in model.param_specs.items():
-        if spec.kind == "weights":
-            p[k] = 0.3 * rng.standard_normal(spec.shape)
-    return p
-
-
 def _torch_run(model, p_np, T0, U, integrator="rk4"):
     """States, outputs and the gradient of a weighted output sum w.r.t. every parameter (numpy)."""
     p = {k: v.requires_grad_(True) for k, v in model.from_numpy(p_np).items()}
@@ -97,7 +88,7 @@ def test_compiled_torch_matches_eager_and_jax_and_recompiles_for_new_windows(ref
     mc = tnn_dsl.compile(net, "torch", torch_compile=True)
     mr = tnn_dsl.compile(net, reference)
     assert mc.torch_compile and not mr.torch_compile
-    p_np = _params(mr, 3)
+    p_np = nets.random_params(mr, 3)
     run_ref = _jax_run if reference == "jax" else _torch_run
     T0, U = _batch(mr, 12)
     with warnings.catch_warnings():
@@ -131,7 +122,7 @@ def test_compiled_torch_case_study_every_component(reference):
     net = nets.case_study("mlp", extra=True)
     mc = tnn_dsl.compile(net, "torch", torch_compile=True)
     mr = tnn_dsl.compile(net, reference)
-    p_np = _params(mr, 0)
+    p_np = nets.random_params(mr, 0)
     T0, U = _batch(mr, 300)
     run_ref = _jax_run if reference == "jax" else _torch_run
     _assert_same(run_ref(mr, p_np, T0, U), _torch_run(mc, p_np, T0, U))
