@@ -80,7 +80,7 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
             lines.append(f"| {r['model'].upper()} | {r['backend']} | not run (`--skip`) | | | | |")
             continue
         if "error" in r:
-            lines.append(f"| {r['model']} | {r['backend']} | failed: {r['error']} | | | | |")
+            lines.append(f"| {r['model'].upper()} | {r['backend']} | failed: {r['error']} | | | | |")
             continue
         lines.append(f"| {r['model'].upper()} | {r['backend']} | {r['final_val_mae']:.4g} | {r['t_reach']:.0f} | "
                      f"{r['t_total']:.0f} | {r['epochs']} | {r['stopped']} |")
