@@ -1647,10 +1647,10 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     setting alone. The environment variable ``TNN_TORCH_THREADS`` overrides the default.
 
     ``torch_compile``: for the torch backend, run each integration step of a rollout through
-    ``torch.compile`` (inductor). On the case study (M3, 256 windows) it made the batched forward about 2×
-    and forward+gradient about 2.5× faster than eager, after a one-off compilation of ~5–15 s (forward) and
-    ~20–30 s (gradient) per shape (benchmarks/bench_rollout.py): worth it for training runs of minutes, not
-    for one short simulation. ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``,
+    ``torch.compile`` (inductor). Measured on the case study M3 (benchmarks/bench_rollout.py, BENCHMARKS.md):
+    a single sequence 3.1× faster than eager, a batch of 256 windows 1.1× (forward) and 1.3×
+    (forward+gradient), after 13–33 s of compilation; M2's training 2.5× faster in all
+    (benchmarks/bench_train.py). Worth it for training runs of minutes, not for one short simulation. ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``,
     default off). Ignored by the other backends (JAX is always compiled)."""
     if backend not in ("jax", "torch", "numpy"):
         raise TnnError([Diagnostic(f"unknown backend {backend!r}", hint="use backend='jax' or backend='torch'")])

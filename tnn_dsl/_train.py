@@ -64,9 +64,9 @@ class TrainConfig:
     backend: str = "jax"
     """``jax`` or ``torch``."""
     torch_compile: bool | None = None
-    """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; about
-    2–2.5× faster training steps after ~20–30 s of compilation). ``None``: the ``TNN_TORCH_COMPILE``
-    environment variable (default off)."""
+    """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; the
+    case study's M2 trained 2.5× faster in all, compilation included, benchmarks/bench_train.py). ``None``:
+    the ``TNN_TORCH_COMPILE`` environment variable (default off)."""
     dtype: str = "float64"
     seed: int = 0
     integrator: str = "rk4"
