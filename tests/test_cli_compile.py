@@ -95,8 +95,11 @@ def test_missing_file_and_bad_json(tmp_path, capsys):
 
 
 def test_unwritable_output(m2_json, tmp_path, capsys):
-    assert main(["compile", m2_json, "-o", str(tmp_path / "no" / "such" / "dir" / "eq.txt")]) == 1
+    (tmp_path / "afile").write_text("x")  # missing directories are created; a path below a file cannot be
+    assert main(["compile", m2_json, "-o", str(tmp_path / "afile" / "such" / "dir" / "eq.txt")]) == 1
     assert "cannot write" in capsys.readouterr().err
+    assert main(["compile", m2_json, "-o", str(tmp_path / "no" / "such" / "dir" / "eq.txt")]) == 0
+    assert (tmp_path / "no" / "such" / "dir" / "eq.txt").read_text().strip()
 
 
 def test_bad_emit_choice(m2_json, capsys):

@@ -36,6 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from ._errors import Diagnostic, TnnError
+from ._files import OutputKind, check_output, write_text_atomic
 
 __all__ = [
     "generate_case_study", "step_sequence", "case_study_inputs", "truth_network_path", "network_path",
@@ -276,6 +277,30 @@ def _ood_name(p: float, k: int) -> str:
     return f"ood_{round(p * 100):d}_{k}.csv"
 
 
+_WHAT = "tnn_dsl case study (shared/spec/case-study.md): Peltier cooler with hidden heat pipe"
+
+
+_INCOMPLETE = ".tnn_dsl-incomplete"
+"""Marker file present while a generation is under way (and after one that failed): the directory is ours."""
+
+
+def _is_data_dir(p: Path) -> bool:
+    """A directory this generator wrote: its ``manifest.json`` says so, or the marker of an interrupted
+    or failed generation is there."""
+    try:
+        if (p / _INCOMPLETE).read_text(encoding="utf-8").strip() == _WHAT:
+            return True
+    except (OSError, UnicodeDecodeError):
+        pass
+    try:
+        return json.loads((p / "manifest.json").read_text(encoding="utf-8")).get("what") == _WHAT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+DATA_DIR = OutputKind("case-study data directory", is_dir=True, ours=_is_data_dir, example="out/cs")
+
+
 def generate_case_study(
     out_dir: str | os.PathLike,
     noise: float = 0.0,
@@ -298,7 +323,9 @@ def generate_case_study(
 
     ``noise`` is the σ (K) of Gaussian noise on ``T_out``; ``widen`` the out-of-distribution widenings as
     fractions (0.1 = 10 %); ``durations`` overrides (train, val, ood) in s (tests use short ones);
-    ``force`` regenerates even if the cache is valid; ``progress(msg)`` is called with one-line status.
+    ``force`` regenerates even if the cache is valid, and writes into an existing directory that is not a
+    case-study data directory (its other files are kept; see :mod:`tnn_dsl._files`); ``progress(msg)`` is
+    called with one-line status.
     """
     out = Path(out_dir)
     widen = [float(w) for w in widen]
@@ -325,14 +352,17 @@ def generate_case_study(
     }
     say = progress or (lambda msg: None)
 
+    check_output(out, DATA_DIR, force=force)
     if not force and _cache_valid(out, settings):
         say(f"case-study data in {out} is up to date (manifest.json)")
         return {**summary, "cached": True}
 
     out.mkdir(parents=True, exist_ok=True)
     manifest_path = out / "manifest.json"
+    # a half-regenerated directory must never look valid, but stays recognisable as ours
+    write_text_atomic(out / _INCOMPLETE, _WHAT + "\n")
     if manifest_path.exists():
-        manifest_path.unlink()  # a half-regenerated directory must never look valid
+        manifest_path.unlink()
     truth = _truth(backend, tpath)
     written: dict[str, str] = {}
 
@@ -363,7 +393,7 @@ def generate_case_study(
     import tnn_dsl
 
     manifest = {
-        "what": "tnn_dsl case study (shared/spec/case-study.md): Peltier cooler with hidden heat pipe",
+        "what": _WHAT,
         "settings": settings,
         "backend": backend,
         "tnn_dsl_version": getattr(tnn_dsl, "__version__", "?"),
@@ -372,9 +402,8 @@ def generate_case_study(
         "columns": "time_s (s); inputs in the network's units (I A, u1 1, Ta Tf1 Tf2 °C); T_out (°C, with noise "
                    "if noise_K > 0); T_<node> true node temperatures (°C, noise-free)",
     }
-    tmp = out / f"manifest.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, manifest_path)
+    write_text_atomic(manifest_path, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    (out / _INCOMPLETE).unlink()
     say(f"wrote {len(written)} files to {out}")
     return {**summary, "cached": False}
 

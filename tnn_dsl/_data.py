@@ -43,6 +43,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ._errors import DataError, Diagnostic
+from ._files import atomic_path
 from ._ir import Network, Span
 
 __all__ = ["Experiment", "read_data", "split_by_time", "write_csv", "to_kelvin", "from_kelvin", "unit_factor"]
@@ -882,7 +883,7 @@ def write_csv(
 
     Columns named in ``kelvin`` (default: all of them) hold kelvin and are written in
     ``temperature_unit`` (``degC``/``K``/``degF``); the others are written as they are. NaN is written
-    as an empty cell. The file is written to a temporary name and renamed (never half-written)."""
+    as an empty cell. The file is written to a temporary name, flushed and renamed (never half-written)."""
     path = os.fspath(path)
     t = np.asarray(t, dtype=np.float64)
     kel = set(columns) if kelvin is None else set(kelvin)
@@ -893,13 +894,9 @@ def write_csv(
             raise ValueError(f"column {name!r} has shape {v.shape}, time has {t.shape}")
         cols[name] = from_kelvin(v, temperature_unit) if name in kel else v
     fmt = f"{{:.{digits}g}}"
-    tmp = f"{path}.tmp-{os.getpid()}"
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    with open(tmp, "w", newline="", encoding="utf-8") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow([time_col, *cols])
         arrays = [cols[c] for c in cols]
         for k in range(t.shape[0]):
             w.writerow([fmt.format(t[k]), *("" if not np.isfinite(a[k]) else fmt.format(a[k]) for a in arrays)])
-    os.replace(tmp, path)

@@ -62,6 +62,7 @@ from ._candidates import (
     var_label,
 )
 from ._errors import Diagnostic, TnnError
+from ._files import THN, check_output, write_text_atomic
 from ._ir import POSITIVE_ROLES, Input, Network, Param
 
 __all__ = ["diagnose", "Diagnosis", "Finding"]
@@ -624,6 +625,12 @@ def _with_forcing(net: Network) -> Network:
     return net.model_copy(update={"inputs": inputs, "params": params, "sources": sources}, deep=True)
 
 
+def _paths_of(data) -> list:
+    """The file paths among data arguments (paths or :class:`Experiment` objects)."""
+    items = data if isinstance(data, (list, tuple)) else [data]
+    return [x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items if x is not None]
+
+
 def _load(net_or_path) -> tuple[Network, str | None, str]:
     """Network, its file path (or None) and its source text."""
     from ._parser import load
@@ -766,7 +773,7 @@ def _fmt(x: float, digits: int = 3) -> str:
 def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backend: str = "jax",
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
-             mlp_time: float = 60.0) -> Diagnosis:
+             mlp_time: float = 60.0, force: bool = False) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -784,7 +791,8 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     top : int
         How many of the best-scoring distinct candidates are fitted properly each round.
     output : str, optional
-        Where to write the extended ``.thn`` (default: not written; the text is in the result).
+        Where to write the extended ``.thn`` (default: not written; the text is in the result). Checked
+        before any work: never an input, never an existing file other than a ``.thn`` unless ``force``.
     mlp_check : bool
         When the extended model's held-out residual is still not white, train the extension with its
         ``linear`` clauses and with them as MLPs and keep the MLP only if it pays on held-out data
@@ -805,6 +813,9 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
         timings[name] = round(_time.monotonic() - t0, 3)
 
     net, path, text = _load(net_or_path)
+    if output:
+        check_output(output, THN, inputs=[path, *net.source_files, *_paths_of(train), *_paths_of(val)],
+                     force=force)
     if backend not in ("jax", "torch"):
         raise TnnError(Diagnostic(f"unknown backend {backend!r}", hint="use --backend jax or --backend torch"))
 
@@ -1080,8 +1091,7 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     if accepted and ext_text:
         _check_text(ext_text, output or (path or "extended.thn"))
         if output:
-            with open(output, "w", encoding="utf-8") as fh:
-                fh.write(ext_text)
+            write_text_atomic(output, ext_text)
             ext_file = output
     extended = {"val_mae": res_fin.mae, "val_max": res_fin.max, "clauses": clauses,
                 "per_sensor": res_fin.errors, "form": "linear"}

@@ -22,6 +22,7 @@ import shutil
 import subprocess
 
 from ._errors import TnnError
+from ._files import atomic_path, save_figure
 from ._ir import (
     POSITIVE_ROLES,
     Binary,
@@ -656,11 +657,13 @@ def render_png(net: Network, path: str, *, dpi: int = 150) -> str:
     Returns ``"graphviz"`` or ``"matplotlib"``, whichever drew it."""
     exe = shutil.which("dot")
     if exe is not None:
-        proc = subprocess.run([exe, "-Tpng", f"-Gdpi={dpi}", "-o", path], input=dot(net).encode("utf-8"),
-                              capture_output=True, timeout=120, check=False)
-        if proc.returncode == 0:
-            return "graphviz"
-        raise TnnError(f"graphviz `dot` failed on this network: {proc.stderr.decode('utf-8', 'replace').strip()}")
+        with atomic_path(path) as tmp:
+            proc = subprocess.run([exe, "-Tpng", f"-Gdpi={dpi}", "-o", str(tmp)], input=dot(net).encode("utf-8"),
+                                  capture_output=True, timeout=120, check=False)
+            if proc.returncode != 0:
+                raise TnnError(f"graphviz `dot` failed on this network: "
+                               f"{proc.stderr.decode('utf-8', 'replace').strip()}")
+        return "graphviz"
     _draw_matplotlib(net, path, dpi=dpi)
     return "matplotlib"
 
@@ -726,5 +729,5 @@ def _draw_matplotlib(net: Network, path: str, *, dpi: int) -> None:
             transform=ax.transAxes, fontsize=7, color="#666666")
     ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     plt.close(fig)

@@ -8,26 +8,30 @@ A model directory ``MODEL/`` holds
 * ``meta.json``          versions, backend, data-file hashes, normalisation statistics, metrics, the
                          training curve and the training configuration.
 
-Directories are written to a temporary sibling and renamed into place, so a failed or interrupted write
-never destroys an existing model. A model trained with one backend loads and predicts identically on the
+Directories are written to a temporary sibling, flushed to disk and swapped into place in one step, so
+a failed, interrupted or concurrent write never leaves the path without a complete model
+(:func:`save_model`); a directory that is not a model is never replaced. A model trained with one backend loads and predicts identically on the
 other: parameters are stored as float64 numpy arrays and converted by ``Model.from_numpy``.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
 import platform
+import re
+import secrets
 import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
-from ._errors import Diagnostic, ModelFileError
+from ._errors import Diagnostic, ModelFileError, TnnError
+from ._files import OutputKind, check_output, exchange_paths, fsync_dir, fsync_file, temp_sibling
 from ._ir import Network, Span
 
 FORMAT = "tnn_dsl-model"
@@ -97,59 +101,187 @@ def _err(message: str, path: str | os.PathLike | None = None, hint: str | None =
 # ---------------------------------------------------------------------------------------------
 
 
+MODEL_FILES = frozenset({"network.thn", "network.json", "params.safetensors", "meta.json", "include"})
+"""Every name a model directory may hold; a directory holding only these is a (perhaps damaged) model."""
+
+
+def is_model_dir(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a directory this tool wrote as a model: its ``meta.json`` says
+    ``"format": "tnn_dsl-model"``, or it holds nothing but a model's file names (a damaged model)."""
+    p = Path(path)
+    if not p.is_dir():
+        return False
+    try:
+        names = {c.name for c in p.iterdir()}
+    except OSError:
+        return False
+    if names and names <= MODEL_FILES:
+        return True
+    try:
+        meta = json.loads((p / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("format") == FORMAT
+
+
+MODEL_DIR = OutputKind("model directory", is_dir=True, ours=is_model_dir, example="model/")
+"""The output kind of ``tnnc train -o MODEL`` (for :func:`tnn_dsl._files.check_output`)."""
+
+
 def save_model(
     path: str | os.PathLike,
     network: Network,
     params: dict[str, np.ndarray],
     meta: dict[str, Any],
+    *,
+    force: bool = False,
 ) -> Path:
-    """Write a model directory atomically (temporary sibling directory, then rename).
+    """Write a model directory; the path always holds a complete model, the old one or the new one.
 
     ``params``: name -> numpy array (SI). ``meta`` is stored as ``meta.json`` after adding the format
-    header. An existing directory at ``path`` is replaced only once the new one is complete."""
+    header and a ``write_id`` (also in the safetensors header, so a reader can tell a mixed read).
+
+    The new model is written to a temporary sibling directory, every file flushed to disk, then swapped
+    with an existing model in one atomic step (Linux ``renameat2``, macOS ``renamex_np``; elsewhere two
+    renames) and the old model removed. Concurrent writers never leave the path empty. ``path`` must be
+    absent, empty or a model directory (:func:`is_model_dir`); with ``force=True`` an other directory is
+    written into file by file and its other files are kept. Temporary siblings of writers that were
+    killed are removed by the next write."""
     from safetensors.numpy import save_file
 
     path = Path(path)
+    try:
+        check_output(path, MODEL_DIR, force=force)
+    except TnnError as err:
+        raise ModelFileError(err.diagnostics) from None
     parent = path.parent if str(path.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    if path.exists() and not path.is_dir():
-        raise _err(f"cannot write the model to {path}: a file of that name exists", None,
-                   hint="choose another -o MODEL directory name")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=parent))
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_temps(path)
+        tmp = temp_sibling(path)
+        tmp.mkdir()
+    except OSError as err:
+        raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
+                   hint="choose a writable place for -o MODEL") from None
+    write_id = secrets.token_hex(8)
     try:
         # sources: the main file as network.thn, any included files under include/
         sources = [Path(s) for s in network.source_files if s and os.path.isfile(s)]
+        written = []
         if sources:
             shutil.copyfile(sources[0], tmp / "network.thn")
+            written.append(tmp / "network.thn")
             if len(sources) > 1:
                 (tmp / "include").mkdir()
                 for s in sources[1:]:
                     shutil.copyfile(s, tmp / "include" / s.name)
+                    written.append(tmp / "include" / s.name)
         (tmp / "network.json").write_text(network.to_json(), encoding="utf-8")
         # np.array(order="C") keeps 0-d arrays 0-d (np.ascontiguousarray would make them 1-d)
         arrays = {k: np.array(v, dtype=np.float64, order="C") for k, v in params.items()}
-        save_file(arrays, str(tmp / "params.safetensors"), metadata={"format": FORMAT, "version": str(FORMAT_VERSION)})
-        full_meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        save_file(arrays, str(tmp / "params.safetensors"),
+                  metadata={"format": FORMAT, "version": str(FORMAT_VERSION), "write_id": write_id})
+        full_meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "write_id": write_id,
+                     "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         full_meta.update(meta)
-        (tmp / "meta.json").write_text(json.dumps(_jsonable(full_meta), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        # swap into place: the old model survives until the new one is complete
-        old = None
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=parent))
-            old.rmdir()
-            os.replace(path, old)
-        try:
-            os.replace(tmp, path)
-        except BaseException:
-            if old is not None:
-                os.replace(old, path)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        full_meta["write_id"] = write_id
+        (tmp / "meta.json").write_text(json.dumps(_jsonable(full_meta), indent=2, allow_nan=False) + "\n",
+                                       encoding="utf-8")
+        for f in [*written, tmp / "network.json", tmp / "params.safetensors", tmp / "meta.json"]:
+            fsync_file(f)
+        if (tmp / "include").is_dir():
+            fsync_dir(tmp / "include")
+        fsync_dir(tmp)
+        if path.is_dir() and any(path.iterdir()) and not is_model_dir(path):
+            _write_into(tmp, path)  # force=True into a directory of the user's: keep its other files
+        else:
+            _install(tmp, path)
+    except OSError as err:
+        raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
+                   hint="check the free disk space and that the place is writable") from None
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    fsync_dir(parent)
     return path
+
+
+def _install(tmp: Path, path: Path) -> None:
+    """Put the complete directory ``tmp`` at ``path`` (absent, empty or a model) in one step; what was at
+    ``path`` ends up at ``tmp`` (the caller removes it)."""
+    for _ in range(100):
+        if not path.exists():
+            try:
+                os.rename(tmp, path)
+                return
+            except OSError as err:  # another writer got there first: swap with its model instead
+                if err.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.EISDIR):
+                    raise
+                continue
+        try:
+            if exchange_paths(tmp, path):
+                return
+        except FileNotFoundError:
+            continue  # another writer moved it aside (two-rename fallback): try again
+        # no atomic swap here: the old model goes aside, the new one in, the old one away
+        old = temp_sibling(path, "old")
+        try:
+            os.rename(path, old)
+        except FileNotFoundError:
+            continue
+        try:
+            os.rename(tmp, path)
+        except OSError:
+            if not path.exists():
+                os.rename(old, path)
+            else:
+                shutil.rmtree(old, ignore_errors=True)
+            continue
+        os.rename(old, tmp)  # the caller removes tmp
+        return
+    raise OSError(errno.EBUSY, "other writers kept replacing the model", str(path))
+
+
+def _write_into(tmp: Path, path: Path) -> None:
+    """Move the model files of ``tmp`` into the existing directory ``path`` one by one (each an atomic
+    replace of that name only); nothing else in ``path`` is touched."""
+    # meta.json last: a reader checks its write_id against the parameters'
+    for src in sorted(tmp.rglob("*"), key=lambda q: (q.name == "meta.json", str(q))):
+        dest = path / src.relative_to(tmp)
+        if src.is_dir():
+            dest.mkdir(exist_ok=True)
+        else:
+            os.replace(src, dest)
+    fsync_dir(path)
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Remove ``.NAME.tmp-PID-…`` / ``.NAME.old-PID-…`` siblings of ``path`` left by a writer that was
+    killed (its process no longer exists) and holding nothing but model files."""
+    parent = path.parent if str(path.parent) else Path(".")
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old)-(\d+)-[0-9a-f]{{8}}$")
+    try:
+        entries = list(parent.iterdir())
+    except OSError:
+        return
+    for e in entries:
+        m = pattern.match(e.name)
+        if not m or not e.is_dir() or e.is_symlink() or _process_alive(int(m.group(2))):
+            continue
+        if {c.name for c in e.iterdir()} <= MODEL_FILES:
+            shutil.rmtree(e, ignore_errors=True)
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
 
 
 # ---------------------------------------------------------------------------------------------
@@ -161,10 +293,24 @@ def load_model(path: str | os.PathLike) -> "TrainedModel":
     """Read a model directory written by :func:`save_model` / ``tnnc train``.
 
     Raises :class:`ModelFileError` (``MODEL/file:line:col: error: ...`` + hint) for a missing directory,
-    a missing or corrupted file, or parameters that do not match the stored network."""
+    a missing or corrupted file, or parameters that do not match the stored network. A read that
+    overlaps a concurrent write (files of two versions) is retried."""
+    for attempt in range(20):
+        try:
+            return _load_model_once(Path(path))
+        except _MixedRead:
+            time.sleep(0.005 * (attempt + 1))
+    return _load_model_once(Path(path), final=True)
+
+
+class _MixedRead(Exception):
+    """The files read belong to two writes (a concurrent save swapped the directory in between)."""
+
+
+def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
+    from safetensors import safe_open
     from safetensors.numpy import load_file
 
-    path = Path(path)
     if not path.exists():
         raise _err(f"model directory {path} does not exist", None,
                    hint="train a model first: tnnc train NET.thn DATA.csv -o MODEL")
@@ -183,6 +329,11 @@ def load_model(path: str | os.PathLike) -> "TrainedModel":
     meta_path = path / "meta.json"
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{meta_path}: meta.json vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
     except UnicodeDecodeError as e:
         raise _err(f"meta.json is not UTF-8 text: {e.reason}", meta_path, hint="the model directory is corrupted; re-train")
     except json.JSONDecodeError as e:
@@ -198,16 +349,30 @@ def load_model(path: str | os.PathLike) -> "TrainedModel":
     net_path = path / "network.json"
     try:
         network = Network.from_json(net_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{net_path}: network.json vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
     except Exception as e:  # noqa: BLE001 - pydantic/json errors: all mean a corrupted file
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise _err(f"network.json cannot be read: {first}", net_path, hint="the model directory is corrupted; re-train")
     # params.safetensors
     p_path = path / "params.safetensors"
     try:
+        with safe_open(str(p_path), framework="numpy") as fh:
+            header = fh.metadata() or {}
         params = {k: np.asarray(v, dtype=np.float64) for k, v in load_file(str(p_path)).items()}
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{p_path}: params.safetensors vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
     except Exception as e:  # noqa: BLE001 - safetensors raises several types for a damaged file
         raise _err(f"{p_path}: params.safetensors cannot be read: {e}", None,
                    hint="the model directory is corrupted; re-train or restore params.safetensors")
+    if meta.get("write_id") != header.get("write_id") and not final:
+        raise _MixedRead
     bad = [k for k, v in params.items() if not np.all(np.isfinite(v))]
     if bad:
         raise _err(f"{p_path}: params.safetensors holds non-finite values in {', '.join(bad[:5])}", None,
@@ -311,9 +476,9 @@ class TrainedModel:
         preds = self.predict(data, backend=backend, init=init)
         return error_metrics(preds, [s.name for s in self.network.sensors])
 
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write this model to a directory (atomic)."""
-        p = save_model(path, self.network, self.params, self.meta)
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write this model to a directory (atomic; see :func:`save_model` for ``force``)."""
+        p = save_model(path, self.network, self.params, self.meta, force=force)
         self.path = Path(p)
         return self.path
 
@@ -334,4 +499,4 @@ def data_records(paths: Iterable[str | os.PathLike | None]) -> list[dict[str, An
     return recs
 
 
-__all__ = ["save_model", "load_model", "TrainedModel", "file_sha256", "versions", "data_records"]
+__all__ = ["save_model", "load_model", "is_model_dir", "MODEL_DIR", "TrainedModel", "file_sha256", "versions", "data_records"]

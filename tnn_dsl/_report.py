@@ -11,7 +11,11 @@ import io
 import math
 import os
 
+from pathlib import Path
+
 import numpy as np
+
+from ._files import OutputKind, check_output, write_text_atomic
 
 __all__ = ["write_report"]
 
@@ -111,13 +115,33 @@ def _plots(d) -> list[tuple[str, str]]:
     return out
 
 
-def write_report(d, directory: str) -> str:
-    """Write ``directory/index.html`` for a :class:`~tnn_dsl._diagnose.Diagnosis`; returns its path."""
-    os.makedirs(directory, exist_ok=True)
+def _is_report_dir(p: Path) -> bool:
+    """A directory holding only a report page that this module wrote."""
+    names = {c.name for c in p.iterdir()}
+    if names != {"index.html"}:
+        return False
+    try:
+        with open(p / "index.html", encoding="utf-8") as fh:
+            return _MARK in fh.read(4096)
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+_MARK = "<meta name='generator' content='tnnc diagnose'>"
+REPORT_DIR = OutputKind("report directory", is_dir=True, ours=_is_report_dir, example="report/")
+"""What ``tnnc diagnose --report DIR`` writes: ``DIR/index.html`` alone."""
+
+
+def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str:
+    """Write ``directory/index.html`` for a :class:`~tnn_dsl._diagnose.Diagnosis`; returns its path.
+
+    ``directory`` must be absent, empty or an earlier report, unless ``force`` (then only its
+    ``index.html`` is replaced)."""
+    check_output(directory, REPORT_DIR, force=force, option="--report")
     e = html.escape
     b = d.baseline
     parts = [
-        "<!doctype html><html><head><meta charset='utf-8'>",
+        f"<!doctype html><html><head><meta charset='utf-8'>{_MARK}",
         f"<title>tnnc diagnose: {e(d.network)}</title>",
         "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
         "table{border-collapse:collapse;font-size:90%}td,th{border:1px solid #ccc;padding:3px 6px}"
@@ -178,6 +202,5 @@ def write_report(d, directory: str) -> str:
         parts.append("<p>(matplotlib not available: no plots)</p>")
     parts.append(f"<h2>Timings (s)</h2><pre>{e(str(d.timings))}</pre></body></html>")
     path = os.path.join(directory, "index.html")
-    with open(path, "w", encoding="utf-8") as fh:
-        fh.write("\n".join(parts))
+    write_text_atomic(path, "\n".join(parts))
     return path

@@ -953,7 +953,9 @@ class SensitivityReport:
             ax.legend(handles, labels, loc="lower right", fontsize=8)
         ax.grid(axis="x", alpha=0.3)
         fig.tight_layout()
-        fig.savefig(path, dpi=120)
+        from ._files import save_figure
+
+        save_figure(fig, path, dpi=120)
         plt.close(fig)
         return path
 

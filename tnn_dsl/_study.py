@@ -26,6 +26,8 @@ from typing import Callable
 
 import numpy as np
 
+from ._files import OutputKind, check_output, save_figure, write_text_atomic
+
 __all__ = ["StudyConfig", "run_study", "thesis_ratios", "THESIS", "results_table", "plot_study", "MODELS"]
 
 MODELS = {
@@ -85,8 +87,20 @@ def _m5_network(m4_dir: Path):
     return net.model_copy(update={"learned": learned})
 
 
+STUDY_FILES = frozenset({"data", "data-quick", "models", "results.json", "report.md", "ood.png", "validation.png"})
+
+
+def _is_study_dir(p: Path) -> bool:
+    return all(c.name in STUDY_FILES for c in p.iterdir())
+
+
+STUDY_DIR = OutputKind("case-study output directory", is_dir=True, ours=_is_study_dir, example="tnnc-demo")
+"""What :func:`run_study` (``tnnc demo``) writes: data sets, model directories, results, report, plots."""
+
+
 def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = None,
-              config: StudyConfig | None = None, progress: Callable[[str], None] | None = None) -> dict:
+              config: StudyConfig | None = None, progress: Callable[[str], None] | None = None,
+              *, force: bool = False) -> dict:
     """Run the study; write ``out_dir/models/<m>``, ``out_dir/results.json``; → the results dict::
 
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
@@ -102,6 +116,7 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         raise ValueError("M5 needs M4 (its frozen Peltier network comes from the trained M4)")
     say = progress or (lambda msg: None)
     out = Path(out_dir)
+    check_output(out, STUDY_DIR, force=force)
     out.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else out / "data"
     t_start = time.perf_counter()
@@ -165,7 +180,7 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
             say(f"      {name}: " + ", ".join(f"+{p} %: {v * 1e3:.0f} mK" for p, v in ood.items()))
     results["ratios"] = thesis_ratios(results)
     results["seconds"] = time.perf_counter() - t_start
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n", encoding="utf-8")
+    write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
     return results
 
 
@@ -259,7 +274,7 @@ def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
         ax.legend(fontsize=7)
         fig.tight_layout()
         p = out / "ood.png"
-        fig.savefig(p, dpi=110)
+        save_figure(fig, p, dpi=110)
         plt.close(fig)
         written.append(str(p))
     # validation trajectories
@@ -292,7 +307,7 @@ def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
         ax[0].set_title("validation run: free-run prediction per model (cf. thesis Fig. 5.4)", fontsize=9)
         fig.tight_layout()
         p = out / "validation.png"
-        fig.savefig(p, dpi=110)
+        save_figure(fig, p, dpi=110)
         plt.close(fig)
         written.append(str(p))
     return written

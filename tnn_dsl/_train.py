@@ -1257,7 +1257,8 @@ def _safe(res: tuple[float, np.ndarray]) -> tuple[float, np.ndarray]:
 
 
 def train(network, data, val=None, *, config: TrainConfig | dict | str | os.PathLike | None = None,
-          out: str | os.PathLike | None = None, callback: Callable[[dict], None] | None = None,
+          out: str | os.PathLike | None = None, force: bool = False,
+          callback: Callable[[dict], None] | None = None,
           log: Callable[[str], None] | None = None, **options):
     """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
 
@@ -1269,7 +1270,9 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
         Without it, ``val_fraction`` holds out the end of each training file, else the training loss
         decides early stopping.
     config : :class:`TrainConfig`, a dict of options or a YAML file; ``**options`` override it.
-    out : model directory to write (atomically), also after Ctrl-C or divergence (best state kept).
+    out : model directory to write (atomically), also after Ctrl-C or divergence (best state kept). It is
+        checked before training starts: it must be absent, empty or a model directory, unless ``force``
+        (then the model's files are written into the directory and its other files are kept).
     callback : ``f(info)`` after each epoch: ``epoch, epochs, phase, loss, val_mae, best_val_mae,
         elapsed, eta`` (s).
     log : ``f(message)`` for notes and warnings (default: silent).
@@ -1279,7 +1282,8 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
     (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
     from ._compile import compile as compile_network
     from ._data import split_by_time
-    from ._model_io import TrainedModel, data_records, save_model, versions
+    from ._files import check_output
+    from ._model_io import MODEL_DIR, TrainedModel, data_records, versions
 
     if isinstance(config, TrainConfig):
         cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
@@ -1287,6 +1291,8 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
         cfg = load_config(None, **{**config, **options})
     else:
         cfg = load_config(config, **options)
+    if out is not None:
+        check_output(out, MODEL_DIR, force=force, inputs=[*_input_paths(network, data, val), cfg.init_from])
     net = _net_of(network)
     exps = as_experiments(net, data)
     if not exps:
@@ -1342,8 +1348,21 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
         "train_seconds": time.perf_counter() - t_start,
     }
     if out is not None:
-        trained.save(out)
+        trained.save(out, force=force)
     return trained
+
+
+def _input_paths(network, data, val) -> list:
+    """The files a training run reads (for the output check): the network's sources and the data paths."""
+    paths: list = []
+    if isinstance(network, (str, os.PathLike)):
+        paths.append(network)
+    else:
+        paths.extend(getattr(network, "source_files", ()) or ())
+    for d in (data, val):
+        items = d if isinstance(d, (list, tuple)) else [d]
+        paths.extend(x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items)
+    return paths
 
 
 def _metrics_or_nan(trained, exps, cfg):

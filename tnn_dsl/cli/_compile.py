@@ -16,6 +16,8 @@ import subprocess
 import sys
 
 from .._errors import Diagnostic, TnnError
+from .._files import IMAGE, JSON, TEXT, OutputKind, atomic_path, write_text_atomic
+from ._outputs import add_force_flag, check_outputs
 
 EMITS = ("equations", "ir-json", "graph")
 
@@ -36,6 +38,7 @@ def register(subparsers) -> None:
                         "(.dot, .png, .svg, .pdf)")
     p.add_argument("--ascii", action="store_true",
                    help="equations in plain ASCII (* - ^) instead of · − and superscripts")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -65,19 +68,28 @@ def _write_text(path: str | None, text: str) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
         return
-    try:
-        with open(path, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-    except OSError as err:
-        raise TnnError(Diagnostic(f"{path}: cannot write: {err.strerror}",
-                                  hint="check that the directory exists and is writable")) from None
+    write_text_atomic(path, text)
+
+
+def _output_kind(emit: str, out: str) -> OutputKind:
+    """What ``-o`` receives: equations are text, the IR is JSON, a picture is DOT text or an image."""
+    if emit == "ir-json":
+        return JSON
+    if emit == "graph":
+        return IMAGE if os.path.splitext(out)[1].lower() in IMAGE.suffixes else OutputKind(
+            "Graphviz file", suffixes=(".dot", ".gv"), example="net.dot")
+    return TEXT
 
 
 def run(args) -> int:
     from .. import _emit
 
-    net = load_network(args.file)
     out = args.output
+    if out and out != "-":
+        check_outputs(args, [(out, _output_kind(args.emit, out), "-o")], inputs=[args.file])
+    net = load_network(args.file)
+    if out and out != "-":  # and the files the network includes
+        check_outputs(args, [(out, _output_kind(args.emit, out), "-o")], inputs=[args.file, *net.source_files])
     if args.emit == "equations":
         _write_text(out, _emit.equations(net, ascii_only=args.ascii))
     elif args.emit == "ir-json":
@@ -104,11 +116,12 @@ def run(args) -> int:
                     hint="install graphviz (`apt install graphviz`, `brew install graphviz`, "
                          "`conda install graphviz`), or write `-o NAME.png` (drawn with matplotlib) "
                          "or `-o NAME.dot`"))
-            proc = subprocess.run([exe, f"-T{suffix[1:]}", "-o", out], input=_emit.dot(net).encode("utf-8"),
-                                  capture_output=True, timeout=120, check=False)
-            if proc.returncode != 0:
-                raise TnnError(Diagnostic(f"{out}: graphviz failed: "
-                                          f"{proc.stderr.decode('utf-8', 'replace').strip()}"))
+            with atomic_path(out) as tmp:
+                proc = subprocess.run([exe, f"-T{suffix[1:]}", "-o", str(tmp)], input=_emit.dot(net).encode("utf-8"),
+                                      capture_output=True, timeout=120, check=False)
+                if proc.returncode != 0:
+                    raise TnnError(Diagnostic(f"{out}: graphviz failed: "
+                                              f"{proc.stderr.decode('utf-8', 'replace').strip()}"))
         else:
             raise TnnError(Diagnostic(f"{out}: unknown picture format {suffix or '(no suffix)'!r}",
                                       hint="use -o NAME.dot (Graphviz text), NAME.png, NAME.svg or NAME.pdf"))

@@ -30,6 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true", help="short data and small budgets (about 2 minutes)")
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
     p.add_argument("--no-diagnose", action="store_true", help="skip the model-doctor step")
+    p.add_argument("--force", action="store_true",
+                   help="write into an existing --out directory that holds other files (they are kept)")
     p.set_defaults(func=run)
 
 
@@ -44,7 +46,8 @@ def budgets(quick: bool):
 
 
 def run(args) -> int:
-    from .._study import plot_study, ratios_table, results_table, run_study
+    from .._files import check_output, write_text_atomic
+    from .._study import STUDY_DIR, plot_study, ratios_table, results_table, run_study
 
     t0 = time.monotonic()
 
@@ -52,6 +55,7 @@ def run(args) -> int:
         print(f"[{time.monotonic() - t0:5.0f} s] {msg}", flush=True)
 
     out = Path(args.out)
+    check_output(out, STUDY_DIR, force=args.force, option="--out")
     cfg, diag_budget = budgets(args.quick)
     cfg.backend = args.backend
     data_dir = out / ("data-quick" if args.quick else "data")
@@ -71,7 +75,7 @@ def run(args) -> int:
                          budget_s=diag_budget, backend=cfg.backend, progress=lambda m: say("  doctor: " + m))
             diag_text = d.summary()
             print(diag_text, flush=True)
-    res = run_study(out, data_dir=data_dir, config=cfg, progress=say)
+    res = run_study(out, data_dir=data_dir, config=cfg, progress=say, force=args.force)
     res["models_dir"] = str(out / "models")
     plots = plot_study(res, out)
     table, ratios = results_table(res), ratios_table(res)
@@ -92,7 +96,7 @@ def run(args) -> int:
         lines += ["## Model doctor on m1.thn", "", "```", diag_text, "```", ""]
     for p in plots:
         lines += [f"![{Path(p).stem}]({Path(p).name})", ""]
-    report.write_text("\n".join(lines), encoding="utf-8")
+    write_text_atomic(report, "\n".join(lines))
     say(f"wrote {report}, {', '.join(plots)} and {out / 'results.json'}")
     bad = [n for n, r in res["models"].items() if not math.isfinite(r["validation"]["mae"])]
     if bad:

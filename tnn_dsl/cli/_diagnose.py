@@ -17,6 +17,8 @@ import json
 import sys
 import time
 
+from ._outputs import add_force_flag, check_outputs, write_json
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -40,12 +42,17 @@ def register(subparsers) -> None:
     p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
                    help="training time for each of the linear and MLP extensions in that comparison (default 60)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from .._diagnose import diagnose
+    from .._files import JSON, THN
+    from .._report import REPORT_DIR
 
+    check_outputs(args, [(args.output, THN, "-o"), (args.report, REPORT_DIR, "--report"), (args.json, JSON, "--json")],
+                  inputs=[args.net, *args.train, *(args.val or [])])
     t0 = time.monotonic()
 
     def progress(msg: str) -> None:
@@ -54,18 +61,17 @@ def run(args) -> int:
 
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
-                 mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time)
+                 mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")
         print(d.diff)
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(d.to_dict(), fh, indent=2)
+        write_json(args.json, json.dumps(d.to_dict(), indent=2))
         progress(f"JSON written to {args.json}")
     if args.report:
         from .._report import write_report
 
-        path = write_report(d, args.report)
+        path = write_report(d, args.report, force=args.force)
         progress(f"report written to {path}")
     return 0

@@ -27,6 +27,8 @@ import sys
 import numpy as np
 
 from .._errors import Diagnostic, TnnError
+from .._files import CSV, IMAGE, save_figure
+from ._outputs import add_force_flag, check_outputs
 
 try:
     from .._integrators import INTEGRATORS as _INTEGRATORS
@@ -63,6 +65,7 @@ def register(subparsers) -> None:
     p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
     p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
     p.add_argument("--seed", type=int, default=0, help="seed for learned functions of a .thn (default 0)")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -105,6 +108,7 @@ def run(args) -> int:
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
+    check_outputs(args, [(args.output, CSV, "-o"), (args.plot, IMAGE, "--plot")], inputs=[args.net, args.data])
     net, model, params, label = _load(args.net, args.backend, args.seed)
     integrator = args.integrator
     if integrator is None and os.path.isdir(args.net):
@@ -225,5 +229,5 @@ def plot_estimate(path: str, net, exp, res, y_open: np.ndarray, dropped: np.ndar
     axes[-1, 0].set_xlabel(f"time [{tl}]")
     fig.suptitle(f"extended Kalman filter: {label} on {os.path.basename(exp.path)}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -15,6 +15,8 @@ import sys
 
 import numpy as np
 
+from ._outputs import add_force_flag, check_outputs, write_json
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -35,14 +37,17 @@ def register(subparsers) -> None:
     p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
     p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
                    help="unit of a numeric time column")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from .._data import read_data
+    from .._files import IMAGE, JSON
     from .._model_io import _jsonable, load_model
     from .._train import error_metrics
 
+    check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.model, *args.data])
     tm = load_model(args.model)
     exps = read_data(tm.network, args.data, time_col=args.time_col, dt=args.dt, time_unit=args.time_unit)
     preds = tm.predict(exps, backend=args.backend, init=args.init)
@@ -61,12 +66,7 @@ def run(args) -> int:
         print(f"{'all':<28} {'all':<12} {_f(metrics['mae'])} {_f(metrics['max_error'])} {_f(metrics['bias'])} "
               f"{_f(metrics['rmse'])} {metrics['n']:>7}", file=out)
     if args.json:
-        text = json.dumps(_jsonable(metrics), indent=2)
-        if args.json == "-":
-            print(text)
-        else:
-            with open(args.json, "w", encoding="utf-8") as f:
-                f.write(text + "\n")
+        write_json(args.json, json.dumps(_jsonable(metrics), indent=2))
     if args.plot:
         plot_predictions(args.plot, tm.network, preds)
         print(f"wrote {args.plot}", file=out)
@@ -85,6 +85,7 @@ def plot_predictions(path: str, net, preds) -> None:
     import matplotlib.pyplot as plt
 
     from .._data import from_kelvin
+    from .._files import save_figure
 
     unit = net.temperature_unit
     ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
@@ -112,5 +113,5 @@ def plot_predictions(path: str, net, preds) -> None:
         ax_e.set_ylabel("error K")
         ax_e.set_xlabel(f"time ({tu})")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import json
 
+from .._files import JSON
+from ._outputs import add_force_flag, check_outputs, write_json
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -26,12 +29,14 @@ def register(subparsers) -> None:
     p.add_argument("--stride", type=int, default=1, help="use every n-th sample (default 1)")
     p.add_argument("--json", nargs="?", const="-", metavar="OUT", default=None,
                    help="write the result as JSON (to OUT, or stdout without a name)")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from .._sensitivity import excitation
 
+    check_outputs(args, [(None if args.json == "-" else args.json, JSON, "--json")], inputs=[*args.data, args.net])
     net = None
     if args.net:
         from .. import load
@@ -43,7 +48,6 @@ def run(args) -> int:
         return 0
     print(report.table())
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as f:
-            json.dump(report.to_dict(), f, indent=2)
+        write_json(args.json, json.dumps(report.to_dict(), indent=2))
         print(f"wrote {args.json}")
     return 0

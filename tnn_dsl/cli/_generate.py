@@ -3,7 +3,8 @@
 ``train.csv`` (4 h, seed 1), ``val.csv`` (2 h, seed 2) and ``ood_<P>_<k>.csv`` (2 h each, inputs widened by
 P percent, ``--n-ood`` sets per level, seeds ``--seed-ood`` + k), from the true network
 ``networks/peltier_heatpipe/truth.thn`` integrated with RK4 at 0.1 s. Deterministic from the seeds; a
-directory already holding the same settings (``manifest.json``) is left as it is unless ``--force``.
+directory already holding the same settings (``manifest.json``) is left as it is unless ``--force``. A
+directory holding anything else is refused unless ``--force`` (its other files are kept).
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed-ood", type=int, default=100, metavar="S",
                    help="seed of the first out-of-distribution set per level (default 100)")
     p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="backend that integrates the truth")
-    p.add_argument("--force", action="store_true", help="regenerate even if the directory is up to date")
+    p.add_argument("--force", action="store_true",
+                   help="regenerate even if the directory is up to date; write into an existing directory that "
+                        "holds other files (they are kept)")
     p.set_defaults(func=run)
 
 

@@ -18,6 +18,8 @@ import sys
 
 import numpy as np
 
+from ._outputs import add_force_flag, check_outputs, write_json
+
 _ROLE_UNIT = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "time_constant": "s",
               "heat_flow": "W", "offset": "K", "temperature": "K"}
 
@@ -33,6 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--plot", default=None, metavar="DIR", help="write one plot per learned function into DIR")
     p.add_argument("--json", default=None, metavar="FILE", help="write the parameter table as JSON ('-' for stdout)")
     p.add_argument("--all", action="store_true", help="list every constant parameter, not only the free ones")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -100,8 +103,10 @@ def _fmt(v: float, role: str, unit: str) -> str:
 
 
 def run(args) -> int:
+    from .._files import JSON, PLOT_DIR
     from .._model_io import _jsonable, load_model
 
+    check_outputs(args, [(args.json, JSON, "--json"), (args.plot, PLOT_DIR, "--plot")], inputs=[args.model])
     tm = load_model(args.model)
     meta = tm.meta
     rows = parameter_table(tm, args.all)
@@ -143,12 +148,7 @@ def run(args) -> int:
     for w in meta.get("warnings", []) or []:
         print(f"warning: {w}", file=out)
     if args.json:
-        text = json.dumps(_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2)
-        if args.json == "-":
-            print(text)
-        else:
-            with open(args.json, "w", encoding="utf-8") as f:
-                f.write(text + "\n")
+        write_json(args.json, json.dumps(_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2))
     if args.plot:
         os.makedirs(args.plot, exist_ok=True)
         for s in summ:
@@ -165,6 +165,8 @@ def plot_function(path: str, tm, fn, s: dict, n: int = 101) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from .._files import save_figure
 
     n_in = max(len(s["inputs"]), 1)
     fig, axes = plt.subplots(1, n_in, figsize=(4.0 * n_in, 3.4), squeeze=False)
@@ -194,5 +196,5 @@ def plot_function(path: str, tm, fn, s: dict, n: int = 101) -> None:
             ax.legend(fontsize=8)
     fig.suptitle(f"{s['name']}: {', '.join(s['targets'])} as {s['kind']} (others at mid-range)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)

@@ -12,6 +12,8 @@ import json
 import re
 
 from .._errors import Diagnostic, TnnError
+from .._files import IMAGE, JSON
+from ._outputs import add_force_flag, check_outputs, write_json
 
 
 def register(subparsers) -> None:
@@ -41,6 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("--top", type=int, default=None, help="show only the first N rows of the table")
     p.add_argument("--json", metavar="OUT", default=None, help="write the full report as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PNG", default=None, help="write the ranked bar chart (thesis Figure 5.3)")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -81,6 +84,7 @@ def run(args) -> int:
     from .. import load
     from .._sensitivity import sensitivity
 
+    check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.net, *args.data])
     net = load(args.net)
     inputs = parse_inputs(net, args.inputs)
     report = sensitivity(net, args.data or None, inputs=inputs, backend=args.backend, dtype=args.dtype,
@@ -91,8 +95,7 @@ def run(args) -> int:
     else:
         print(report.table(top=args.top))
         if args.json:
-            with open(args.json, "w", encoding="utf-8") as f:
-                json.dump(report.to_dict(), f, indent=2)
+            write_json(args.json, json.dumps(report.to_dict(), indent=2))
             print(f"wrote {args.json}")
     if args.plot:
         report.plot(args.plot)

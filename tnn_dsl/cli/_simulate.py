@@ -24,6 +24,8 @@ import sys
 import numpy as np
 
 from .._errors import Diagnostic, TnnError
+from .._files import CSV, IMAGE, save_figure
+from ._outputs import add_force_flag, check_outputs
 
 try:  # the integrators the backends offer; the list is fixed by _integrators.INTEGRATORS
     from .._integrators import INTEGRATORS as _INTEGRATORS
@@ -56,6 +58,7 @@ def register(subparsers) -> None:
     p.add_argument("--states", action="store_true", help="also write every state (node temperatures)")
     p.add_argument("--plot", default=None, metavar="OUT.png", help="plot measured vs simulated")
     p.add_argument("--seed", type=int, default=0, help="seed for initialising learned functions of a .thn (default 0)")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -149,6 +152,7 @@ def run(args) -> int:
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
+    check_outputs(args, [(args.output, CSV, "-o"), (args.plot, IMAGE, "--plot")], inputs=[args.net, args.data])
     net, model, params, label = _load(args.net, args.backend, args.seed)
     if args.torch_compile:
         if args.backend != "torch":
@@ -232,5 +236,5 @@ def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
     ax.grid(alpha=0.3)
     fig.suptitle(f"{label} on {os.path.basename(exp.path)}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -18,6 +18,8 @@ import math
 import sys
 import time
 
+from ._outputs import add_force_flag, check_outputs, write_json
+
 # (flag, config field, type, help). `None` type: a store_true/false flag handled below.
 _OPTIONS = [
     ("--epochs", "epochs", int, "Adam epochs (default 300)"),
@@ -76,6 +78,7 @@ def register(subparsers) -> None:
     p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
                    help="unit of a numeric time column (default: from its name, else s)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    add_force_flag(p)
     p.set_defaults(func=run)
 
 
@@ -160,6 +163,8 @@ def run(args) -> int:
 
     from .._data import read_data
     from .._errors import Diagnostic, TnnError
+    from .._files import JSON
+    from .._model_io import MODEL_DIR
     from .._train import load_config, train
 
     overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
@@ -172,6 +177,9 @@ def run(args) -> int:
     overrides["seed"] = args.seed
     cfg = load_config(args.config, **overrides)
     net = tnn_dsl.load(args.net)
+    # before any work: the model directory and the JSON file may not destroy anything
+    check_outputs(args, [(args.output, MODEL_DIR, "-o"), (args.json, JSON, "--json")],
+                  inputs=[args.net, *net.source_files, *args.data, *(args.val or []), args.config, cfg.init_from])
     kw = {"time_col": args.time_col, "dt": args.dt, "time_unit": args.time_unit}
     exps = read_data(net, args.data, **kw)
     vals = read_data(net, args.val, **kw) if args.val else None
@@ -186,7 +194,7 @@ def run(args) -> int:
         prog.end()
         raise
     prog.end()
-    tm.save(args.output)
+    tm.save(args.output, force=args.force)
     meta = tm.meta
     stopped = meta.get("stopped")
     interrupted = stopped == "interrupted"
@@ -209,12 +217,7 @@ def run(args) -> int:
                "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
         from .._model_io import _jsonable
 
-        text = json.dumps(_jsonable(doc), indent=2)
-        if args.json == "-":
-            print(text)
-        else:
-            with open(args.json, "w", encoding="utf-8") as f:
-                f.write(text + "\n")
+        write_json(args.json, json.dumps(_jsonable(doc), indent=2))
     if stopped == "diverged":
         raise TnnError(Diagnostic(
             f"training diverged; the best model so far was saved to {args.output}. "
