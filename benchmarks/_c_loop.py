@@ -1,12 +1,12 @@
 """A compiled C loop of the same equations as the compiled model, to show the limit of the hardware.
 
-:func:`build_c_rollout` reads a :class:`~tnn_dsl._ir.Network` (links, Peltier elements, fluids, boundaries
+:func:`build_c_rollout` reads a :class:`~tnn_dsl.ir.network.Network` (links, Peltier elements, fluids, boundaries
 fed by inputs or constants, at most one MLP whose targets are link resistances/conductances) and the
 model's parameter table, writes a C source with the network's sizes as compile-time constants (so the
 compiler unrolls every small loop), compiles it with ``cc -O3 -march=native -shared`` into a temporary
 directory and loads it with :mod:`ctypes`. Nothing of the model's Python code runs inside the loop.
 
-The equations are those of ``tnn_dsl._compile`` (thesis eq. 2.4/2.10–2.14), written out per element:
+The equations are those of ``tnn_dsl.compiler.model`` (thesis eq. 2.4/2.10–2.14), written out per element:
 
 * link ``a -- b`` with conductance ``g`` (``1/R``): ``g·(T_b − T_a)`` into ``a``, the opposite into ``b``;
 * Peltier: ``Q_hot = S·T_hot·I + ½R I²``, ``Q_cold = −S·T_cold·I + ½R I²`` and the internal link;
@@ -171,7 +171,7 @@ void rollout_batch(long B, long N, const double *T0, const double *U, double *S)
 
 def _slot(net, pname, input_idx, consts):
     """A parameter slot as ``("input", index)`` or ``("const", value)``; anything derived → Unsupported."""
-    from tnn_dsl._ir import Num, Ref
+    from tnn_dsl.ir.network import Num, Ref
 
     params = {p.name: p for p in net.params}
     seen = set()

@@ -125,7 +125,7 @@ class Case:
         self.y_ref = 298.15  # K: the fixed reference of the scalar loss
         self.out_idx = list(self.net.node_names).index(self.net.sensors[0].node)  # the state T_out reads
         tau, _ = ref.fastest_time_constant()
-        from tnn_dsl._integrators import stable_substeps
+        from tnn_dsl.compiler.integrators import stable_substeps
 
         self.substeps = stable_substeps(self.integrator, self.dt, tau)
 
@@ -337,7 +337,7 @@ def _proto_xp(dtype, small_matmul=False, fast_transcendentals=False, library_dot
     log1p(exp(−|x|))`` (XLA's ``logistic`` and ``logaddexp`` are several times slower than ``tanh`` on CPU)."""
     import jax.numpy as jnp
 
-    from tnn_dsl._backends.jax_ops import JaxXP
+    from tnn_dsl.compiler.backends.jax_ops import JaxXP
 
     class ProtoXP(JaxXP):
         pass
@@ -365,7 +365,7 @@ def _jax_proto_rollout(model, core, unroll, integ, dt, sub):
     ``core`` and ``lax.scan(unroll=...)``."""
     import jax
 
-    from tnn_dsl._integrators import euler, rk4
+    from tnn_dsl.compiler.integrators import euler, rk4
 
     method = rk4 if integ == "rk4" else euler
     h = dt / sub
@@ -481,7 +481,7 @@ def _unrolled_rollout(spec, unroll=1, batch_last=False):
     ``batch_last`` the scan carries ``T (n, B)`` (transposed once on the way in and out)."""
     import jax
 
-    from tnn_dsl._integrators import euler, rk4
+    from tnn_dsl.compiler.integrators import euler, rk4
 
     rhs = _unrolled_rhs(spec, batch_last=batch_last)
     method = rk4 if spec["integrator"] == "rk4" else euler
@@ -515,7 +515,7 @@ def bench_jax_prototypes(case, args, rows, results, jax_model):
     import jax
     import jax.numpy as jnp
 
-    from tnn_dsl._compile import _Core
+    from tnn_dsl.compiler.model import _Core
 
     p = jax_model.from_numpy(case.params)
     integ, dt, sub = case.integrator, case.dt, case.substeps

@@ -43,7 +43,7 @@ TORCH_COMPILED = "torch-compiled"
 def _worker(args) -> int:
     """One training run; prints one JSON line on stdout."""
     import tnn_dsl
-    from tnn_dsl._casestudy import generate_case_study
+    from tnn_dsl.studies.casestudy import generate_case_study
 
     durations = None if not args.quick else (2400.0, 1200.0, 60.0)
     cs = generate_case_study(args.cache, n_ood=0, widen=(), durations=durations)

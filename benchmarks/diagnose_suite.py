@@ -101,7 +101,7 @@ NETWORKS: dict[str, NetSpec] = {
 @dataclass(frozen=True)
 class Case:
     """One planted effect. ``plant`` = (candidate kind, target, dependence, strength) for
-    ``tnn_dsl._planted.plant`` (strength in the candidate's own coordinates, see there); ``edit`` = a
+    ``tnn_dsl.studies.planted.plant`` (strength in the candidate's own coordinates, see there); ``edit`` = a
     structural truth: ``("lag", sensor, seconds)``, ``("mass", node, other, C J/K)`` (a new node in series on
     the link node–other, the link split into two of twice its conductance) or ``("truth", file)``; ``column``
     = (node, column name, W per unit): a heat load driven by a data column the network does not read.
@@ -233,7 +233,7 @@ def _edit_text(text: str, edit: tuple) -> str:
 
 def _simulate(net, u: np.ndarray, dt: float, noise: float, rng) -> np.ndarray:
     """Outputs (N, n_out) K of ``net`` (numpy reference backend, RK4) from the steady state of ``u[0]``."""
-    from tnn_dsl._compile import compile as _compile
+    from tnn_dsl.compiler.model import compile as _compile
 
     m = _compile(net, backend="numpy", dtype="float64")
     p = m.init_params(0)
@@ -243,7 +243,7 @@ def _simulate(net, u: np.ndarray, dt: float, noise: float, rng) -> np.ndarray:
 
 
 def _inputs(spec: NetSpec, names, n: int, seed: int):
-    from tnn_dsl._planted import step_inputs
+    from tnn_dsl.studies.planted import step_inputs
 
     return step_inputs(np.random.default_rng(seed), n, spec.bounds, names, spec.hold)
 
@@ -251,8 +251,8 @@ def _inputs(spec: NetSpec, names, n: int, seed: int):
 def make_data(case: Case, noise: float, seed: int, quick: bool, workdir: str):
     """(network the doctor sees, train, val): Experiments, or CSV paths for an unused-column case."""
     import tnn_dsl
-    from tnn_dsl._data import Experiment
-    from tnn_dsl._planted import plant
+    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.studies.planted import plant
 
     spec = NETWORKS[case.net]
     n_tr, n_va = (spec.n_train_quick, spec.n_val_quick) if quick else (spec.n_train, spec.n_val)
@@ -277,8 +277,8 @@ def make_data(case: Case, noise: float, seed: int, quick: bool, workdir: str):
         return net, exps[:1], exps[1:]
     # a data column the model does not read: the truth has it as an input driving a heat load
     node, col, gain = case.column
-    from tnn_dsl._data import unit_factor, write_csv
-    from tnn_dsl._ir import Binary, Input, Num, Param, Ref, Source
+    from tnn_dsl.data.io import unit_factor, write_csv
+    from tnn_dsl.ir.network import Binary, Input, Num, Param, Ref, Source
 
     pname = f"Q_planted_{col}"
     watt = {"kg": 1.0, "m": 2.0, "s": -3.0}

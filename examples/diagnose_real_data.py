@@ -56,7 +56,7 @@ def run_one(name: str, net: Path, train: list[Path], val: list[Path] | None, arg
         print("extension (diff):\n" + d.diff)
     if out:
         (out / "diagnosis.json").write_text(json.dumps(d.to_dict(), indent=2))
-        from tnn_dsl._report import write_report
+        from tnn_dsl.doctor.report import write_report
 
         write_report(d, str(out / "report"))
     g = d.gain

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl._mpc import MPC, closed_loop  # noqa: E402
+from tnn_dsl.control.mpc import MPC, closed_loop  # noqa: E402
 
 C0 = 273.15
 

@@ -6,7 +6,7 @@ Generates (or reuses) the case-study data in OUT/data, trains M1–M5 (Table 5.1
 Peltier network), evaluates the validation MAE and max error and the out-of-distribution MAE over input
 bounds widened by 10–40 % with 10 data sets per level (Figure 5.6), writes OUT/results.json,
 OUT/results.md, OUT/ood.png and OUT/validation.png, and prints the tables. The logic is
-``tnn_dsl._study`` (``tnnc demo`` runs the same with smaller budgets).
+``tnn_dsl.studies.thesis`` (``tnnc demo`` runs the same with smaller budgets).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tnn_dsl._study import StudyConfig, plot_study, ratios_table, results_table, run_study  # noqa: E402
+from tnn_dsl.studies.thesis import StudyConfig, plot_study, ratios_table, results_table, run_study  # noqa: E402
 
 
 def main(argv=None) -> int:

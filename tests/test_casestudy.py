@@ -1,4 +1,4 @@
-"""The case-study generator (tnn_dsl._casestudy; shared/spec/case-study.md)."""
+"""The case-study generator (tnn_dsl.studies.casestudy; shared/spec/case-study.md)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tnn_dsl._casestudy import (
+from tnn_dsl.studies.casestudy import (
     HOLD_S, case_study_inputs, generate_case_study, step_sequence, truth_network_path, widened_bounds,
 )
 
@@ -129,7 +129,7 @@ def spec_rhs(T: dict, I: float, u1: float, Ta: float, Tf1: float, Tf2: float) ->
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_truth_network_matches_the_spec(backend):
     import tnn_dsl
-    from tnn_dsl._compile import compile as compile_network
+    from tnn_dsl.compiler.model import compile as compile_network
 
     net = tnn_dsl.load(str(truth_network_path()))
     model = compile_network(net, backend=backend, dtype="float64")

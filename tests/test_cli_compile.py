@@ -8,7 +8,7 @@ import os
 import pytest
 
 from tnn_dsl import Network
-from tnn_dsl import _emit
+from tnn_dsl.ir import emit as _emit
 from tnn_dsl.cli import main
 
 from test_emit import case_study, tclab_lag

@@ -126,7 +126,7 @@ def test_simulate_tclab_on_real_data(tmp_path, backend, capsys):
 
 
 def test_generate_cli_writes_and_caches(tmp_path, capsys, monkeypatch):
-    import tnn_dsl._casestudy as cs
+    import tnn_dsl.studies.casestudy as cs
 
     # a short horizon keeps the test fast; the CLI passes everything else through
     monkeypatch.setattr(cs, "TRAIN_S", 300)
@@ -146,8 +146,8 @@ def test_generate_cli_writes_and_caches(tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_simulate_a_model_directory_uses_its_parameters(tmp_path, backend, capsys):
     import tnn_dsl
-    from tnn_dsl._compile import compile as compile_network
-    from tnn_dsl._model_io import save_model
+    from tnn_dsl.compiler.model import compile as compile_network
+    from tnn_dsl.fit.model_files import save_model
 
     net = tnn_dsl.load(rc_net(tmp_path))
     model = compile_network(net, backend="jax")

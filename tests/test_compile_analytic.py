@@ -11,7 +11,7 @@ import pytest
 import nets
 import tnn_dsl
 from tnn_dsl import TnnError
-from tnn_dsl._physics import STEFAN_BOLTZMANN
+from tnn_dsl.compiler.physics import STEFAN_BOLTZMANN
 
 BACKENDS = ["jax", "torch"]
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl import _residuals as R
-from tnn_dsl._candidates import build_extended
-from tnn_dsl._planted import plant
+from tnn_dsl.analysis import residuals as R
+from tnn_dsl.doctor.candidates import build_extended
+from tnn_dsl.studies.planted import plant
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -90,7 +90,7 @@ def test_candidates_come_from_the_ir():
     assert "param_dependence:U1:T(h2)" not in keys  # only the element's own temperatures
     assert "radiation:h1--amb:" in keys and "heat_load:Q[h2]:Q1" in keys
     # every column of every candidate exists in the compiled model
-    from tnn_dsl._compile import compile as _compile
+    from tnn_dsl.compiler.model import compile as _compile
 
     specs = _compile(ext.network, backend="numpy").param_specs
     for c in ext.candidates:
@@ -100,14 +100,14 @@ def test_candidates_come_from_the_ir():
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_extended_network_is_exactly_null(backend):
-    from tnn_dsl._compile import compile as _compile
+    from tnn_dsl.compiler.model import compile as _compile
 
     net = tnn_dsl.load(TCLAB)
     ext = build_extended(net, ["Q1", "Q2"])
     m0 = _compile(net, backend=backend)
     m1 = _compile(ext.network, backend=backend)
     rng = np.random.default_rng(0)
-    from tnn_dsl._planted import step_inputs
+    from tnn_dsl.studies.planted import step_inputs
 
     u = step_inputs(rng, 300, BOUNDS, net.input_names, hold=(20, 80))
     p0, p1 = m0.init_params(), m1.init_params()
@@ -121,7 +121,7 @@ def test_forced_score_matches_the_big_network(backend):
     """The score test's shortcut (each candidate as an extra heat flow through the current network's
     linearised dynamics, plus its direct output term) ranks like the exact Jacobian of the big extended
     network's simulation."""
-    from tnn_dsl import _diagnose as D
+    from tnn_dsl.doctor import diagnose as D
 
     net = tnn_dsl.load(TCLAB)
     pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.0, seed=3, n_train=240, n_val=10,
@@ -147,8 +147,8 @@ def test_forced_score_matches_the_big_network(backend):
 
 
 def test_indistinguishable_candidates_are_named():
-    from tnn_dsl import _diagnose as D
-    from tnn_dsl._candidates import Candidate
+    from tnn_dsl.doctor import diagnose as D
+    from tnn_dsl.doctor.candidates import Candidate
 
     rng = np.random.default_rng(0)
     base = rng.normal(size=500)
@@ -225,11 +225,11 @@ def test_null_data_set_gives_no_finding(backend):
 
 
 def _write(exp, net, path):
-    from tnn_dsl._data import write_csv
+    from tnn_dsl.data.io import write_csv
 
     cols = {}
     for j, i in enumerate(net.inputs):
-        from tnn_dsl._data import unit_factor
+        from tnn_dsl.data.io import unit_factor
 
         cols[i.column] = exp.inputs[:, j] / (1.0 if i.is_temperature else unit_factor(i.unit))
     kel = [s.column for s in net.sensors]

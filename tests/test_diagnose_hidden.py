@@ -1,7 +1,7 @@
 """The model doctor's hidden-effect suite (issue 6 acceptance), as tests.
 
 One known deficiency is planted in simulated data (``benchmarks/diagnose_suite.py`` defines the networks, the
-planted effects and the scoring; ``tnn_dsl._planted.plant`` simulates candidate kinds, edited ``.thn`` truths
+planted effects and the scoring; ``tnn_dsl.studies.planted.plant`` simulates candidate kinds, edited ``.thn`` truths
 the structural ones); ``tnn_dsl.diagnose`` sees only the nominal network and the data.
 
 * Fast seeded variants (run in CI): every kind once on the small TCLab-like board
@@ -73,7 +73,7 @@ def test_planted_candidates_exist_in_the_networks():
     """Every planted candidate and every listed equivalent is a candidate the doctor builds (a renamed
     candidate key would otherwise turn the suite into silent misses)."""
     import tnn_dsl
-    from tnn_dsl._candidates import build_extended
+    from tnn_dsl.doctor.candidates import build_extended
 
     for c in S.CASES:
         if c.plant is None:
@@ -110,7 +110,7 @@ def test_structural_truths_differ_from_the_model_but_keep_its_steady_state(name)
     y1 = S._simulate(truth, u, spec.dt, 0.0, rng)
     assert np.max(np.abs(y1 - y0)) > 0.05
     if c.edit[0] != "truth":  # same total resistance: same steady state
-        from tnn_dsl._compile import compile as _compile
+        from tnn_dsl.compiler.model import compile as _compile
 
         m0, m1 = _compile(net, backend="numpy"), _compile(truth, backend="numpy")
         p0, p1 = m0.init_params(), m1.init_params()

@@ -1,4 +1,4 @@
-"""Emitters (`tnn_dsl._emit`): equations, IR JSON, DOT.
+"""Emitters (`tnn_dsl.ir.emit`): equations, IR JSON, DOT.
 
 The first half builds IR objects by hand (independent of the parser); the second half runs the
 emitters over every network under networks/ (through `tnn_dsl.load`)."""
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from tnn_dsl import Network
-from tnn_dsl import _emit
-from tnn_dsl._ir import (
+from tnn_dsl.ir import emit as _emit
+from tnn_dsl.ir.network import (
     Binary,
     Boundary,
     Call,
@@ -516,7 +516,7 @@ class _TextEval:
 
 def _rhs_from_text(net, text, T, u):
     """dT/dt (K/s) for every state, computed from the printed equations alone (plus parameter values)."""
-    from tnn_dsl._expr import evaluate
+    from tnn_dsl.compiler.expressions import evaluate
 
     nodes = {(f"T{n.name}" if n.name[:1].isdigit() else f"T_{n.name}"): i for i, n in enumerate(net.nodes)}
     lagged = [s for s in net.sensors if s.lag]
@@ -532,7 +532,7 @@ def _rhs_from_text(net, text, T, u):
             if isinstance(e, Num):
                 cache[name] = e.value
             else:
-                from tnn_dsl._expr import dependencies
+                from tnn_dsl.compiler.expressions import dependencies
 
                 refs, nodes_read = dependencies(e)
                 vals = {r: (inputs[r] if r in inputs else pvalue(r)) for r in refs}

@@ -1,4 +1,4 @@
-"""The extended Kalman filter (tnn_dsl._estimate) and ``tnnc estimate``.
+"""The extended Kalman filter (tnn_dsl.estimation.ekf) and ``tnnc estimate``.
 
 * analytic: on a one-node linear RC network with the exact (exponential) discretisation the EKF is the
   linear Kalman filter, written out here in numpy;
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._estimate import ekf, open_loop, tune_process_noise
+from tnn_dsl.estimation.ekf import ekf, open_loop, tune_process_noise
 
 BACKENDS = ["jax", "torch"]
 
@@ -170,7 +170,7 @@ def test_option_errors():
 
 
 def test_cli_estimate(tmp_path, capsys):
-    from tnn_dsl._data import write_csv
+    from tnn_dsl.data.io import write_csv
     from tnn_dsl.cli import main
 
     U, Y = _two_data(N=300)

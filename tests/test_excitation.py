@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl._errors import DataError, TnnError
-from tnn_dsl._sensitivity import excitation, hankel_matrix, hankel_metrics
+from tnn_dsl.core.errors import DataError, TnnError
+from tnn_dsl.analysis.sensitivity import excitation, hankel_matrix, hankel_metrics
 
 
 def test_hankel_matrix_layout():
@@ -41,7 +41,7 @@ def test_hankel_metrics_analytic():
 
 
 def _signals(n: int = 4 * 3600 + 1):
-    from tnn_dsl._casestudy import case_study_inputs
+    from tnn_dsl.studies.casestudy import case_study_inputs
 
     prbs = case_study_inputs(seed=1, duration_s=n - 1)
     t = np.arange(n, dtype=float)
@@ -122,8 +122,8 @@ def test_file_errors(tmp_path):
 
 
 def test_with_network_and_cli(tmp_path, capsys):
-    load = pytest.importorskip("tnn_dsl._parser").load
-    from tnn_dsl._casestudy import network_path
+    load = pytest.importorskip("tnn_dsl.lang.parser").load
+    from tnn_dsl.studies.casestudy import network_path
     from tnn_dsl.cli import main
 
     net_path = str(network_path("peltier_heatpipe/m1.thn"))

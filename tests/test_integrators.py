@@ -9,8 +9,8 @@ import pytest
 
 import nets
 import tnn_dsl
-from tnn_dsl._backends import get_xp
-from tnn_dsl._integrators import StepSizeWarning, check_step, phi1, stable_substeps
+from tnn_dsl.compiler.backends import get_xp
+from tnn_dsl.compiler.integrators import StepSizeWarning, check_step, phi1, stable_substeps
 
 BACKENDS = ["jax", "torch"]
 

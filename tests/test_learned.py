@@ -9,9 +9,9 @@ import pytest
 
 import nets
 import tnn_dsl
-from tnn_dsl import _learned
-from tnn_dsl._backends import get_xp
-from tnn_dsl._ir import LearnFunction, LearnTarget
+from tnn_dsl.compiler import learned as _learned
+from tnn_dsl.compiler.backends import get_xp
+from tnn_dsl.ir.network import LearnFunction, LearnTarget
 
 BACKENDS = ["jax", "torch"]
 

@@ -1,4 +1,4 @@
-"""Linear or MLP (``tnn_dsl._mlp_check``): the doctor trains its extension both ways and keeps the MLP only
+"""Linear or MLP (``tnn_dsl.doctor.mlp_check``): the doctor trains its extension both ways and keeps the MLP only
 when it pays on held-out data."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._data import Experiment
-from tnn_dsl._mlp_check import compare, mlp_text
+from tnn_dsl.data.io import Experiment
+from tnn_dsl.doctor.mlp_check import compare, mlp_text
 
 BASE = """network board "one heater"
 units temperature = degC
@@ -73,7 +73,7 @@ def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
     assert r["mlp"]["val_mae"] < 0.5 * r["linear"]["val_mae"]
     assert "mlp(Q; hidden = [8], activation = tanh)" in r["text"]
     # the linear clause's own law: a conductance is ``nominal·pos1(1 + z)``, positive by construction, with
-    # ``pos1(v) = softplus(4v)/softplus(4)`` (tnn_dsl._learned)
+    # ``pos1(v) = softplus(4v)/softplus(4)`` (tnn_dsl.compiler.learned)
     def pos1(v):
         return np.logaddexp(0.0, 4.0 * v) / np.logaddexp(0.0, 4.0)
 

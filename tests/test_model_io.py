@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tnn_dsl._errors import ModelFileError
-from tnn_dsl._ir import Link, Network, Num, Param, Sensor, ThermalNode, Boundary
-from tnn_dsl._model_io import load_model, save_model
+from tnn_dsl.core.errors import ModelFileError
+from tnn_dsl.ir.network import Link, Network, Num, Param, Sensor, ThermalNode, Boundary
+from tnn_dsl.fit.model_files import load_model, save_model
 
 
 def _net() -> Network:

@@ -1,4 +1,4 @@
-"""Gradient-based MPC (tnn_dsl._mpc) on a one-node RC network, where the answers are known:
+"""Gradient-based MPC (tnn_dsl.control.mpc) on a one-node RC network, where the answers are known:
 
 * the cost gradient (autodiff through the rollout) matches finite differences;
 * offset-free tracking: a plant whose conductance the controller gets wrong by 30 % still settles on the
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._mpc import MPC, closed_loop
+from tnn_dsl.control.mpc import MPC, closed_loop
 
 RC = """
 network rc "one node"

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._ir import Num
+from tnn_dsl.ir.network import Num
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NET = os.path.join(ROOT, "networks")
@@ -234,7 +234,7 @@ def _truth_resistances(u1, t_hx1, t_hp, t_hx2):
     (0.5, (25, 25, 25)), (1.0, (25, 25, 25)), (0.0, (35, 30, 28)), (0.73, (12.5, 19, 40)), (1.4, (60, 50, 45)),
 ])
 def test_truth_heat_pipe_matches_the_case_study(u1, temps):
-    from tnn_dsl._expr import evaluate
+    from tnn_dsl.compiler.expressions import evaluate
 
     net = load("peltier_heatpipe/truth.thn")
     t = dict(zip(("hx1", "hp", "hx2"), (x + C0 for x in temps)))

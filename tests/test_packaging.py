@@ -42,7 +42,7 @@ def test_installed_wheel_parses_a_file_outside_the_checkout(wheel, tmp_path):
         "import tnn_dsl, sys\n"
         "assert 'site' in tnn_dsl.__file__, tnn_dsl.__file__\n"
         "net = tnn_dsl.load('board.thn')\n"
-        "from tnn_dsl._casestudy import truth_network_path\n"
+        "from tnn_dsl.studies.casestudy import truth_network_path\n"
         "p = truth_network_path()\n"
         "assert 'site' in str(p) and p.is_file(), p\n"
         "print(len(net.nodes), net.param('R_a_amb').value)\n"

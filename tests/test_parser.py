@@ -6,7 +6,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl import TnnError
-from tnn_dsl._ir import Binary, Call, Num, Ref, Temp, Unary
+from tnn_dsl.ir.network import Binary, Call, Num, Ref, Temp, Unary
 
 HEAD = "network t\nboundary amb = 20 degC\nnode a C = 10 J/K\nG a -- amb = 1 W/K\n"
 
@@ -186,7 +186,7 @@ def test_ir_json_round_trip():
 
 
 def test_grammar_is_found_from_package_resources(monkeypatch):
-    from tnn_dsl import _parser
+    from tnn_dsl.lang import parser as _parser
 
     text = _parser._grammar_text()
     assert "start:" in text and "propagate" not in text.split("start:")[1][:0]

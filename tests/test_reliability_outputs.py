@@ -18,9 +18,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tnn_dsl._errors import ModelFileError, TnnError
-from tnn_dsl._files import CSV, JSON, THN, atomic_path, check_output
-from tnn_dsl._model_io import is_model_dir, load_model, save_model
+from tnn_dsl.core.errors import ModelFileError, TnnError
+from tnn_dsl.core.files import CSV, JSON, THN, atomic_path, check_output
+from tnn_dsl.fit.model_files import is_model_dir, load_model, save_model
 from tnn_dsl.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -56,7 +56,7 @@ def _user_dir(tmp_path: Path, data: str) -> Path:
 @pytest.fixture
 def no_training(monkeypatch):
     """Any attempt to train fails the test: refusals must come before any work."""
-    import tnn_dsl._train as T
+    import tnn_dsl.fit.train as T
 
     def boom(*a, **k):
         raise AssertionError("training started although the output should have been refused first")
@@ -194,7 +194,7 @@ def test_compile_refuses_an_included_file(tmp_path, capsys):
 
 
 def test_diagnose_refuses_to_overwrite_its_network_before_any_work(tmp_path, capsys, monkeypatch):
-    import tnn_dsl._diagnose as D
+    import tnn_dsl.doctor.diagnose as D
 
     net, data = rc_net(tmp_path), rc_data(tmp_path)
     before = Path(net).read_bytes()
@@ -218,8 +218,8 @@ def test_evaluate_json_inside_the_model_directory_is_refused(tmp_path, capsys):
 
 
 def test_report_directory_and_generate_directory(tmp_path, capsys):
-    from tnn_dsl._casestudy import DATA_DIR
-    from tnn_dsl._report import REPORT_DIR
+    from tnn_dsl.studies.casestudy import DATA_DIR
+    from tnn_dsl.doctor.report import REPORT_DIR
 
     d = tmp_path / "site"
     d.mkdir()
@@ -254,7 +254,7 @@ def test_check_output_kind_rules(tmp_path):
 
 
 def test_failed_swap_keeps_the_old_model_and_leaves_no_stray_files(tmp_path, monkeypatch):
-    import tnn_dsl._model_io as M
+    import tnn_dsl.fit.model_files as M
 
     d = save_model(tmp_path / "m", _net(), _params(), {"run": 1})
 
@@ -277,13 +277,13 @@ def test_a_writer_killed_at_any_moment_leaves_a_complete_model(tmp_path):
         import sys
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_model_io import _net, _params
-        from tnn_dsl._model_io import save_model
+        from tnn_dsl.fit.model_files import save_model
         net, params = _net(), _params()
         print("ready", flush=True)
         for k in range(100000):
             save_model({str(d)!r}, net, params, {{"run": k}})
     """)
-    for delay in (0.05, 0.13, 0.31, 0.57):
+    for delay in (0.02, 0.05, 0.09, 0.13, 0.2, 0.31, 0.45, 0.57):
         proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=str(ROOT))
         try:
             assert proc.stdout.readline().strip() == "ready"
@@ -307,7 +307,7 @@ def test_concurrent_writers_and_a_reader_never_see_the_path_empty(tmp_path):
         import sys
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_model_io import _net, _params
-        from tnn_dsl._model_io import save_model
+        from tnn_dsl.fit.model_files import save_model
         net, params = _net(), _params()
         for k in range(60):
             save_model({str(d)!r}, net, params, {{"run": k, "who": sys.argv[1]}})
@@ -315,7 +315,7 @@ def test_concurrent_writers_and_a_reader_never_see_the_path_empty(tmp_path):
     reader = textwrap.dedent(f"""
         import sys
         sys.path.insert(0, {str(Path(__file__).parent)!r})
-        from tnn_dsl._model_io import load_model
+        from tnn_dsl.fit.model_files import load_model
         for k in range(150):
             tm = load_model({str(d)!r})
             assert tm.params["C_a"].shape == ()

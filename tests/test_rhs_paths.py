@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._ir import Binary, Num
+from tnn_dsl.ir.network import Binary, Num
 
 from nets import B, case_inputs, case_study, peltier_fluid, ref, two_node
 
@@ -132,7 +132,7 @@ def test_rhs_equals_sum_of_heat_flows(backend, name, scaled):
 @pytest.mark.parametrize("integrator", ["euler", "rk4", "expeuler"])
 def test_rollout_steps_match_rhs(backend, integrator):
     """A rollout (sequence context, one sample per step) equals stepping with ``model.rhs`` by hand."""
-    from tnn_dsl._integrators import euler, expeuler, rk4
+    from tnn_dsl.compiler.integrators import euler, expeuler, rk4
 
     model = tnn_dsl.compile(boundary_net(), backend)
     p = model.from_numpy(random_table(model, 2))

@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl._candidates import (
+from tnn_dsl.doctor.candidates import (
     MASS_FRACTION_BOUNDS, apply_structural, build_extended, mass_forcing, mass_grid, mass_lines, structural_candidates,
 )
-from tnn_dsl._compile import compile as _compile
-from tnn_dsl._data import Experiment
-from tnn_dsl._planted import step_inputs
+from tnn_dsl.compiler.model import compile as _compile
+from tnn_dsl.data.io import Experiment
+from tnn_dsl.studies.planted import step_inputs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -136,7 +136,7 @@ _CASES = {
 
 
 def _engine(net, u, dt, backend):
-    from tnn_dsl._diagnose import _make_engine, _split_masks, _State
+    from tnn_dsl.doctor.diagnose import _make_engine, _split_masks, _State
 
     n = u.shape[0]
     y = _sim(net, u, dt)
@@ -234,7 +234,7 @@ def test_extension_text_round_trips_through_the_parser(backend, path, key, cap, 
 
 
 def test_extend_text_comments_the_split_link_out():
-    from tnn_dsl._diagnose import _extend_text, _merged_clauses
+    from tnn_dsl.doctor.diagnose import _extend_text, _merged_clauses
 
     net = tnn_dsl.load(TCLAB)
     cand = _cand(net, "thermal_mass:h1--amb:")

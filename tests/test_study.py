@@ -1,4 +1,4 @@
-"""The case-study pipeline (tnn_dsl._study) on tiny data and budgets: M1, M4 and M5, where M5's frozen
+"""The case-study pipeline (tnn_dsl.studies.thesis) on tiny data and budgets: M1, M4 and M5, where M5's frozen
 Peltier network must be M4's trained one; out-of-distribution evaluation; ratios and tables; plots.
 The full study is ``examples/thesis_case_study.py`` (results in docs/results.md)."""
 
@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl._study import StudyConfig, plot_study, ratios_table, results_table, run_study, thesis_ratios
+from tnn_dsl.studies.thesis import StudyConfig, plot_study, ratios_table, results_table, run_study, thesis_ratios
 
 
 @pytest.mark.parametrize("backend", ["jax"])

@@ -13,9 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tnn_dsl._errors import TnnError
-from tnn_dsl._train import (
-    MIN_WINDOW_SAMPLES, TrainConfig, _from_z, _make_slot, _NumpyOps, _to_z, _windows, auto_window, error_metrics,
+from tnn_dsl.core.errors import TnnError
+from tnn_dsl.fit.simulate import error_metrics
+from tnn_dsl.fit.train import (
+    MIN_WINDOW_SAMPLES, TrainConfig, _from_z, _make_slot, _NumpyOps, _to_z, _windows, auto_window,
     load_config,
 )
 
@@ -210,12 +211,12 @@ def _prbs(rng, n, lo, hi, hold=(30, 150)):
 def _simulated(net, seed, n, dt=2.0, backend="jax"):
     """An Experiment simulated from ``net`` (its written values) with PRBS heater inputs."""
     import tnn_dsl
-    from tnn_dsl._data import Experiment
-    from tnn_dsl._train import simulate
+    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.fit.simulate import simulate
 
     rng = np.random.default_rng(seed)
     U = np.stack([_prbs(rng, n, 0.0, 1.0), _prbs(rng, n, 0.0, 1.0)], axis=1)  # [%] in SI: 0..100 % = 0..1
-    from tnn_dsl._compile import compile as compile_network
+    from tnn_dsl.compiler.model import compile as compile_network
 
     model = compile_network(net, backend=backend, dtype="float64")
     p = model.init_params(seed=0)
@@ -276,7 +277,7 @@ NETS = ROOT / "networks" / "peltier_heatpipe"
 
 @pytest.fixture(scope="module")
 def case_short(tmp_path_factory):
-    from tnn_dsl._casestudy import generate_case_study
+    from tnn_dsl.studies.casestudy import generate_case_study
 
     return generate_case_study(tmp_path_factory.mktemp("cs"), n_ood=0, widen=(), durations=(2400.0, 1200.0, 60.0))
 
@@ -310,7 +311,7 @@ def test_case_study_acceptance(tmp_path):
     import shutil
 
     import tnn_dsl
-    from tnn_dsl._casestudy import generate_case_study
+    from tnn_dsl.studies.casestudy import generate_case_study
 
     cs = generate_case_study(tmp_path / "cs", n_ood=0, widen=())
     res = {}
@@ -344,7 +345,7 @@ STEPS = DATA / "tclab_apmonitor_energy_balance_steps.csv"
 @pytest.mark.parametrize("backend", SLOW_TORCH)
 def test_tclab_real_fit(backend):
     import tnn_dsl
-    from tnn_dsl._data import read_data, split_by_time
+    from tnn_dsl.data.io import read_data, split_by_time
 
     net = tnn_dsl.load(ROOT / "networks" / "tclab" / "tclab.thn")
     (exp,) = read_data(net, PRBS)
@@ -371,7 +372,7 @@ def test_building_titeth_default_windows_fit_the_free_run(backend):
     worse: training MAE 6.4 K, measured 2026-11-23). The fitted model must follow the training part as a
     free run about as well as the one-state model Ti does (1.64 K), and its windows must be 50 samples."""
     import tnn_dsl
-    from tnn_dsl._data import read_data, split_by_time
+    from tnn_dsl.data.io import read_data, split_by_time
 
     net = tnn_dsl.load(ROOT / "networks" / "building" / "titeth.thn")
     (exp,) = read_data(net, BUILDING, time_unit="h")
@@ -387,9 +388,9 @@ def test_building_titeth_default_windows_fit_the_free_run(backend):
 def test_loss_and_gradient_agree_across_backends(case_short):
     """The one trainer on both backends: same loss and gradient for M2 (multiple shooting, all terms on)."""
     import tnn_dsl
-    from tnn_dsl._compile import compile as compile_network
-    from tnn_dsl._data import read_data
-    from tnn_dsl._train import _Trainer
+    from tnn_dsl.compiler.model import compile as compile_network
+    from tnn_dsl.data.io import read_data
+    from tnn_dsl.fit.train import _Trainer
 
     net = tnn_dsl.load(NETS / "m2.thn")
     (exp,) = read_data(net, case_short["train"])
@@ -453,7 +454,8 @@ def test_m5_loads_m4_frozen_and_trains(case_short, tmp_path, backend):
 def test_tanh_coordinates_give_the_same_sigmoid_mlp(backend):
     """``_tanh_to_sigmoid`` maps the weights of a tanh MLP to those of the sigmoid MLP computing the same
     function (exactly, on backend arrays), and ``_sigmoid_to_tanh`` inverts it."""
-    from tnn_dsl._train import _Ops, _sigmoid_to_tanh, _tanh_to_sigmoid
+    from tnn_dsl.compiler.backends.adapter import Backend as _Ops
+    from tnn_dsl.fit.train import _sigmoid_to_tanh, _tanh_to_sigmoid
 
     ops = _Ops(backend)
     rng = np.random.default_rng(4)
@@ -526,7 +528,7 @@ def test_polish_starts_from_adams_last_state(monkeypatch):
     """The L-BFGS polish starts from Adam's last iterate, not from an earlier best-validation state, and
     falls back to that state when it cannot beat its validation MAE."""
     import tnn_dsl
-    from tnn_dsl import _train
+    from tnn_dsl.fit import train as _train
 
     calls = {"n": 0}
 

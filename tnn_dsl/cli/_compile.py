@@ -15,8 +15,8 @@ import shutil
 import subprocess
 import sys
 
-from .._errors import Diagnostic, TnnError
-from .._files import IMAGE, JSON, TEXT, OutputKind, atomic_path, write_text_atomic
+from ..core.errors import Diagnostic, TnnError
+from ..core.files import IMAGE, JSON, TEXT, OutputKind, atomic_path, write_text_atomic
 from ._outputs import add_force_flag, check_outputs
 
 EMITS = ("equations", "ir-json", "graph")
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 def load_network(path: str):
     """A ``.thn`` file through the parser, or an IR JSON file."""
     if path.endswith(".json"):
-        from .._emit import network_from_json
+        from ..ir.emit import network_from_json
 
         try:
             with open(path, "rb") as f:
@@ -82,7 +82,7 @@ def _output_kind(emit: str, out: str) -> OutputKind:
 
 
 def run(args) -> int:
-    from .. import _emit
+    from ..ir import emit as _emit
 
     out = args.output
     if out and out != "-":

@@ -42,10 +42,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._data import read_data
-    from .._files import IMAGE, JSON
-    from .._model_io import _jsonable, load_model
-    from .._train import error_metrics
+    from ..data.io import read_data
+    from ..core.files import IMAGE, JSON
+    from ..fit.model_files import _jsonable, load_model
+    from ..fit.simulate import error_metrics
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.model, *args.data])
     tm = load_model(args.model)
@@ -84,8 +84,8 @@ def plot_predictions(path: str, net, preds) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .._data import from_kelvin
-    from .._files import save_figure
+    from ..data.io import from_kelvin
+    from ..core.files import save_figure
 
     unit = net.temperature_unit
     ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]

@@ -1,12 +1,12 @@
 """What every writing command shares: the ``--force`` flag and the output checks made before any work
-(:func:`tnn_dsl._files.check_output`: never an input, never a file of another kind, writable)."""
+(:func:`tnn_dsl.core.files.check_output`: never an input, never a file of another kind, writable)."""
 
 from __future__ import annotations
 
 import os
 from typing import Iterable
 
-from .._files import OutputKind, check_output, write_text_atomic
+from ..core.files import OutputKind, check_output, write_text_atomic
 
 FORCE_HELP = ("write even where an existing file or directory of another kind is in the way (a directory's "
               "other files are kept; a file is never deleted to make room for a directory)")

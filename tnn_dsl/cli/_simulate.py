@@ -23,12 +23,12 @@ import sys
 
 import numpy as np
 
-from .._errors import Diagnostic, TnnError
-from .._files import CSV, IMAGE, save_figure
+from ..core.errors import Diagnostic, TnnError
+from ..core.files import CSV, IMAGE, save_figure
 from ._outputs import add_force_flag, check_outputs
 
 try:  # the integrators the backends offer; the list is fixed by _integrators.INTEGRATORS
-    from .._integrators import INTEGRATORS as _INTEGRATORS
+    from ..compiler.integrators import INTEGRATORS as _INTEGRATORS
 except Exception:  # noqa: BLE001 - the CLI must still build its parser
     _INTEGRATORS = ("euler", "rk4", "expeuler")
 
@@ -68,13 +68,13 @@ def register(subparsers) -> None:
 def _load(net_arg: str, backend: str, seed: int):
     """→ (network, compiled model, backend params, label)."""
     if os.path.isdir(net_arg):
-        from .._model_io import load_model
+        from ..fit.model_files import load_model
 
         tm = load_model(net_arg)
         model = tm.compiled(backend)
         return tm.network, model, tm.backend_params(backend), f"model {net_arg}"
-    from .._compile import compile as compile_network
-    from .._parser import load
+    from ..compiler.model import compile as compile_network
+    from ..lang.parser import load
 
     net = load(net_arg)
     model = compile_network(net, backend=backend, dtype="float64")
@@ -148,7 +148,7 @@ def simulate_experiment(net, model, params, exp, integrator: str = "rk4", subste
 
 
 def run(args) -> int:
-    from .._data import read_data, write_csv
+    from ..data.io import read_data, write_csv
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
@@ -202,7 +202,7 @@ def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .._data import _unit_scale, from_kelvin
+    from ..data.io import _unit_scale, from_kelvin
 
     unit = net.temperature_unit
     ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]

@@ -83,7 +83,7 @@ def register(subparsers) -> None:
 
 
 def _gamma(values):
-    from .._errors import Diagnostic, TnnError
+    from ..core.errors import Diagnostic, TnnError
 
     if values is None:
         return None
@@ -161,11 +161,11 @@ def _dur(s: float) -> str:
 def run(args) -> int:
     import tnn_dsl
 
-    from .._data import read_data
-    from .._errors import Diagnostic, TnnError
-    from .._files import JSON
-    from .._model_io import MODEL_DIR
-    from .._train import load_config, train
+    from ..data.io import read_data
+    from ..core.errors import Diagnostic, TnnError
+    from ..core.files import JSON
+    from ..fit.model_files import MODEL_DIR
+    from ..fit.train import load_config, train
 
     overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
     overrides["prefit"] = args.opt_prefit
@@ -215,7 +215,7 @@ def run(args) -> int:
         doc = {"model": args.output, "backend": meta.get("backend"), "stopped": stopped,
                "metrics": meta.get("metrics"), "fitted": meta.get("fitted"), "warnings": meta.get("warnings"),
                "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
-        from .._model_io import _jsonable
+        from ..fit.model_files import _jsonable
 
         write_json(args.json, json.dumps(_jsonable(doc), indent=2))
     if stopped == "diverged":

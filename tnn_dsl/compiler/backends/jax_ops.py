@@ -1,0 +1,125 @@
+"""The JAX array namespace. Importing this module enables ``jax_enable_x64`` (float64 by default).
+
+Products by small matrices (``matmul``) are written so that XLA fuses them with their neighbours instead of
+calling a library ``dot`` per product (on CPU each ``dot`` is a separate kernel launch, which dominates the
+cost of a thermal network's right-hand side: 7×7 matrices, hundreds of thousands of steps):
+
+* a small matrix (``K·N ≤`` :data:`SMALL_MATMUL`) applied to an unbatched vector ``a (K,)`` becomes
+  ``sum(a[:, None] · b, 0)`` (a fused multiply-and-reduce);
+* everything else stays ``jnp.matmul``: with a batch axis XLA's ``dot`` is faster than a reduction over the
+  middle axis, and faster than static gathers (slices + concatenate) for the 0/±1 incidence matrices.
+
+Measured on the case study (benchmarks/bench_rollout.py): see the architecture notes, "Compiled model".
+"""
+
+from __future__ import annotations
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from . import _interp_segments
+from . import interp_with
+
+SMALL_MATMUL = 256
+"""Largest ``K·N`` of a matrix that an unbatched vector is multiplied by with multiply-and-sum."""
+
+
+def matmul(a, b):
+    """``a @ b``; for an unbatched vector ``a (K,)`` and a small matrix ``b (K, N)`` (``K·N ≤``
+    :data:`SMALL_MATMUL`) as ``sum(a[:, None]·b, 0)``, which XLA fuses with its neighbours (see the module
+    docstring). Same value as ``jnp.matmul`` up to the order of the additions."""
+    a = jnp.asarray(a)
+    if a.ndim == 1 and getattr(b, "ndim", None) == 2 and b.shape[0] == a.shape[0] and b.size <= SMALL_MATMUL:
+        return jnp.sum(a[:, None] * b, axis=0)
+    return jnp.matmul(a, b)
+
+
+def sigmoid(x):
+    """``1/(1 + e^−x)`` computed as ``½ + ½·tanh(x/2)``: the same function (to round-off), and XLA's CPU
+    ``tanh`` is cheaper than its ``logistic`` (float64: 4.2 vs 6.0 ns per element; float32: 1.7 vs 2.8)."""
+    return 0.5 + 0.5 * jnp.tanh(0.5 * x)
+
+
+class JaxXP:
+    name = "jax"
+
+    def __init__(self, dtype: str = "float64"):
+        self.dtype_name = dtype
+        self.dtype = jnp.float64 if dtype == "float64" else jnp.float32
+
+    exp = staticmethod(jnp.exp)
+    log = staticmethod(jnp.log)
+    sqrt = staticmethod(jnp.sqrt)
+    abs = staticmethod(jnp.abs)
+    expm1 = staticmethod(jnp.expm1)
+    tanh = staticmethod(jnp.tanh)
+    minimum = staticmethod(jnp.minimum)
+    maximum = staticmethod(jnp.maximum)
+    where = staticmethod(jnp.where)
+    softplus = staticmethod(jax.nn.softplus)
+    sigmoid = staticmethod(sigmoid)
+    relu = staticmethod(jax.nn.relu)
+
+    @staticmethod
+    def silu(x):
+        return x * sigmoid(x)
+
+    matmul = staticmethod(matmul)
+
+    @staticmethod
+    def stack(xs, axis=0):
+        return jnp.stack(jnp.broadcast_arrays(*xs), axis=axis)
+
+    @staticmethod
+    def concat(xs, axis=0):
+        return jnp.concatenate(xs, axis=axis)
+
+    @staticmethod
+    def sum(x, axis=None):
+        return jnp.sum(x, axis=axis)
+
+    @staticmethod
+    def broadcast_to(x, shape):
+        return jnp.broadcast_to(x, shape)
+
+    @staticmethod
+    def broadcast_all(*xs):
+        return jnp.broadcast_arrays(*xs)
+
+    @staticmethod
+    def moveaxis(x, src, dst):
+        return jnp.moveaxis(x, src, dst)
+
+    def zeros(self, shape):
+        return jnp.zeros(shape, dtype=self.dtype)
+
+    def ones(self, shape):
+        return jnp.ones(shape, dtype=self.dtype)
+
+    @staticmethod
+    def zeros_like(x):
+        return jnp.zeros_like(x)
+
+    def asarray(self, x, dtype=None):
+        return jnp.asarray(x, dtype=self.dtype if dtype is None else dtype)
+
+    @staticmethod
+    def shape(x):
+        return tuple(jnp.shape(x))
+
+    @staticmethod
+    def solve(a, b):
+        return jnp.linalg.solve(a, b[..., None])[..., 0]
+
+    stop_gradient = staticmethod(jax.lax.stop_gradient)
+
+    def interp(self, x, xs, ys):
+        return interp_with(self, x, *_interp_segments(xs, ys))
+
+    @staticmethod
+    def to_numpy(x):
+        return np.asarray(x)

@@ -1,0 +1,106 @@
+"""The PyTorch array namespace (explicit dtype everywhere; never changes torch's global default)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import _interp_segments
+from . import interp_with
+
+
+class TorchXP:
+    name = "torch"
+
+    def __init__(self, dtype: str = "float64"):
+        self.dtype_name = dtype
+        self.dtype = torch.float64 if dtype == "float64" else torch.float32
+
+    exp = staticmethod(torch.exp)
+    log = staticmethod(torch.log)
+    sqrt = staticmethod(torch.sqrt)
+    abs = staticmethod(torch.abs)
+    expm1 = staticmethod(torch.expm1)
+    tanh = staticmethod(torch.tanh)
+    sigmoid = staticmethod(torch.sigmoid)
+    relu = staticmethod(torch.relu)
+
+    def _t(self, x):
+        return x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=self.dtype)
+
+    def minimum(self, a, b):
+        return torch.minimum(self._t(a), self._t(b))
+
+    def maximum(self, a, b):
+        return torch.maximum(self._t(a), self._t(b))
+
+    def where(self, c, a, b):
+        return torch.where(self._t(c), self._t(a), self._t(b))
+
+    @staticmethod
+    def softplus(x):
+        # threshold 40: log1p(exp(x)) == x to float64 round-off there, as jax.nn.softplus computes
+        return F.softplus(x, beta=1.0, threshold=40.0)
+
+    @staticmethod
+    def silu(x):
+        return F.silu(x)
+
+    matmul = staticmethod(torch.matmul)
+
+    def stack(self, xs, axis=0):
+        xs = [self._t(x) for x in xs]
+        return torch.stack(torch.broadcast_tensors(*xs), dim=axis)
+
+    def concat(self, xs, axis=0):
+        return torch.cat([self._t(x) for x in xs], dim=axis)
+
+    @staticmethod
+    def sum(x, axis=None):
+        return torch.sum(x) if axis is None else torch.sum(x, dim=axis)
+
+    def broadcast_to(self, x, shape):
+        return torch.broadcast_to(self._t(x), tuple(shape))
+
+    def broadcast_all(self, *xs):
+        return torch.broadcast_tensors(*[self._t(x) for x in xs])
+
+    @staticmethod
+    def moveaxis(x, src, dst):
+        return torch.movedim(x, src, dst)
+
+    def zeros(self, shape):
+        return torch.zeros(tuple(shape), dtype=self.dtype)
+
+    def ones(self, shape):
+        return torch.ones(tuple(shape), dtype=self.dtype)
+
+    @staticmethod
+    def zeros_like(x):
+        return torch.zeros_like(x)
+
+    def asarray(self, x, dtype=None):
+        dt = self.dtype if dtype is None else dtype
+        if isinstance(x, torch.Tensor):
+            return x if x.dtype == dt else x.to(dt)
+        return torch.as_tensor(np.asarray(x), dtype=dt)
+
+    @staticmethod
+    def shape(x):
+        return tuple(x.shape) if isinstance(x, torch.Tensor) else tuple(np.shape(x))
+
+    @staticmethod
+    def solve(a, b):
+        return torch.linalg.solve(a, b.unsqueeze(-1)).squeeze(-1)
+
+    @staticmethod
+    def stop_gradient(x):
+        return x.detach() if isinstance(x, torch.Tensor) else x
+
+    def interp(self, x, xs, ys):
+        return interp_with(self, self._t(x), *_interp_segments(xs, ys))
+
+    @staticmethod
+    def to_numpy(x):
+        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)

@@ -1,0 +1,95 @@
+"""Linear or MLP? The model doctor's last step for the dependences it accepted (issue 6, step 4: "the chosen
+``learn`` clause(s), linear or mlp, as the evidence says").
+
+The forward selection fits each dependence as ``linear(v…)`` (cheap, exactly null at zero, a score test).
+When the extended model's held-out residual is still not white, the law may be curved in its variables.
+The evidence is then a fit, not a guess: the extension is trained twice with the shared trainer
+(``tnn_dsl.train``, same data, same options, same time limit) — once as written, once with every
+``linear(…)`` clause of the doctor's block turned into ``mlp(…; hidden = [8], activation = tanh)`` — and the
+MLP is kept only if it pays on the held-out data by the doctor's own test (Diebold–Mariano on the
+held-out squared errors with a charge for the extra parameters, p < ``P_ACCEPT``, and a held-out MAE gain of
+at least ``MIN_GAIN``).
+
+Both variants start from the same nominal values and go through the same trainer, so neither is favoured by
+the doctor's own Levenberg–Marquardt fit.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..analysis.significance import held_out_test
+from .selection import MIN_GAIN, P_ACCEPT
+
+MARK = "# ---- added by `tnnc diagnose`"
+HIDDEN = 8
+
+
+def mlp_text(text: str) -> tuple[str, int]:
+    """``text`` with every ``linear(…)`` clause after the doctor's marker line turned into an MLP with one
+    hidden layer of ``HIDDEN`` tanh units. Returns ``(new text, number of clauses changed)``."""
+    i = text.find(MARK)
+    if i < 0:
+        return text, 0
+    head, tail = text[:i], text[i:]
+    pat = re.compile(r"^(learn\s+.+?\s+as\s+)linear\(([^;()]*)\)\s*$", re.M)
+    new, n = pat.subn(lambda m: f"{m.group(1)}mlp({m.group(2)}; hidden = [{HIDDEN}], activation = tanh)", tail)
+    return head + new, n
+
+
+def _held_out_errors(trained, vals) -> np.ndarray:
+    """Measured − predicted on the held-out experiments, flattened (NaN where not measured), K."""
+    out = []
+    for r in trained.predict(vals):
+        out.append((np.asarray(r["measured"], float) - np.asarray(r["y"], float)).ravel())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _n_params(trained) -> int:
+    """Trainable scalars of a trained model (learned-function weights and free physical parameters)."""
+    model = trained.compiled()
+    return int(sum(int(np.prod(s.shape)) for s in model.param_specs.values() if s.trainable))
+
+
+def compare(text: str, filename: str, train, val, *, backend: str = "jax", time_limit: float = 60.0,
+            say: Callable[[str], None] = lambda s: None) -> dict | None:
+    """Train the extension ``text`` as written (linear clauses) and with its clauses as MLPs on ``train``
+    (Experiments), measure both on ``val`` (Experiments; free runs). Returns None when there is no linear
+    clause to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max, K; trainable parameter
+    count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"), ``reason``, ``text`` (the
+    chosen variant's ``.thn`` text), ``n_clauses``."""
+    from ..lang.parser import loads
+    from ..fit.train import train as train_model
+
+    text_mlp, n = mlp_text(text)
+    if n == 0:
+        return None
+    out: dict = {"n_clauses": n}
+    errors = {}
+    for form, src in (("linear", text), ("mlp", text_mlp)):
+        t0 = time.monotonic()
+        say(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
+        net = loads(src, filename=filename)
+        trained = train_model(net, train, val, backend=backend, time_limit=time_limit, seed=0)
+        e = _held_out_errors(trained, val)
+        errors[form] = e
+        out[form] = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
+                     "k": _n_params(trained), "seconds": round(time.monotonic() - t0, 1),
+                     "stopped": trained.meta.get("stopped")}
+        say(f"    held-out MAE {out[form]['val_mae']:.4g} K ({out[form]['seconds']} s)")
+    k_extra = max(out["mlp"]["k"] - out["linear"]["k"], 1)
+    stat, p, n_eff = held_out_test(errors["linear"], errors["mlp"], k_extra)
+    gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
+    out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
+    if p < P_ACCEPT and gain >= MIN_GAIN:
+        out.update(choice="mlp", text=text_mlp,
+                   reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")
+    else:
+        why = (f"p = {p:.2g} ≥ {P_ACCEPT}" if p >= P_ACCEPT
+               else f"gain {100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %")
+        out.update(choice="linear", text=text, reason=f"the MLP does not pay on held-out data ({why})")
+    return out

@@ -1,0 +1,503 @@
+"""Model directories: what ``tnnc train`` writes and ``tnnc evaluate``/``inspect`` read. No pickle.
+
+A model directory ``MODEL/`` holds
+
+* ``network.thn``        the network's source as written (the main file; included files under ``include/``),
+* ``network.json``       the validated IR (``Network.to_json``), what :func:`load_model` reads,
+* ``params.safetensors`` every array the compiled model reads, float64, SI units (kelvin, K/W, J/K, W ...),
+* ``meta.json``          versions, backend, data-file hashes, normalisation statistics, metrics, the
+                         training curve and the training configuration.
+
+Directories are written to a temporary sibling, flushed to disk and swapped into place in one step, so
+a failed, interrupted or concurrent write never leaves the path without a complete model
+(:func:`save_model`); a directory that is not a model is never replaced. A model trained with one backend loads and predicts identically on the
+other: parameters are stored as float64 numpy arrays and converted by ``Model.from_numpy``.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import platform
+import re
+import secrets
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from ..core.errors import Diagnostic, ModelFileError, TnnError
+from ..core.files import OutputKind, check_output, exchange_paths, fsync_dir, fsync_file, temp_sibling
+from ..core.version import __version__
+from ..ir.network import Network, Span
+from .simulate import as_experiments, error_metrics, simulate
+
+FORMAT = "tnn_dsl-model"
+FORMAT_VERSION = 1
+REQUIRED_FILES = ("network.json", "params.safetensors", "meta.json")
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def versions(backend: str | None = None) -> dict[str, str]:
+    """Versions of the packages a model depends on (recorded in ``meta.json``)."""
+
+    out = {"tnn_dsl": __version__, "python": platform.python_version(), "numpy": np.__version__}
+    for mod in ("jax", "torch", "scipy", "safetensors"):
+        if backend is not None and mod in ("jax", "torch") and mod != backend:
+            continue
+        try:
+            m = __import__(mod)
+            out[mod] = getattr(m, "__version__", "?")
+        except Exception:  # noqa: BLE001 - versions are informational only
+            pass
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    """Make numpy scalars/arrays and paths JSON-serialisable; non-finite floats become ``None``."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if np.isfinite(v) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _err(message: str, path: str | os.PathLike | None = None, hint: str | None = None, line: int = 1, col: int = 1):
+    span = None
+    if path is not None:
+        span = Span(file=str(path), line=line, col=col, end_line=line, end_col=col)
+    return ModelFileError(Diagnostic(message, span=span, hint=hint))
+
+
+# ---------------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------------
+
+
+MODEL_FILES = frozenset({"network.thn", "network.json", "params.safetensors", "meta.json", "include"})
+"""Every name a model directory may hold; a directory holding only these is a (perhaps damaged) model."""
+
+
+def is_model_dir(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a directory this tool wrote as a model: its ``meta.json`` says
+    ``"format": "tnn_dsl-model"``, or it holds nothing but a model's file names (a damaged model)."""
+    p = Path(path)
+    if not p.is_dir():
+        return False
+    try:
+        names = {c.name for c in p.iterdir()}
+    except OSError:
+        return False
+    if names and names <= MODEL_FILES:
+        return True
+    try:
+        meta = json.loads((p / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("format") == FORMAT
+
+
+MODEL_DIR = OutputKind("model directory", is_dir=True, ours=is_model_dir, example="model/")
+"""The output kind of ``tnnc train -o MODEL`` (for :func:`tnn_dsl.core.files.check_output`)."""
+
+
+def save_model(
+    path: str | os.PathLike,
+    network: Network,
+    params: dict[str, np.ndarray],
+    meta: dict[str, Any],
+    *,
+    force: bool = False,
+) -> Path:
+    """Write a model directory; the path always holds a complete model, the old one or the new one.
+
+    ``params``: name -> numpy array (SI). ``meta`` is stored as ``meta.json`` after adding the format
+    header and a ``write_id`` (also in the safetensors header, so a reader can tell a mixed read).
+
+    The new model is written to a temporary sibling directory, every file flushed to disk, then swapped
+    with an existing model in one atomic step (Linux ``renameat2``, macOS ``renamex_np``; elsewhere two
+    renames) and the old model removed. Concurrent writers never leave the path empty. ``path`` must be
+    absent, empty or a model directory (:func:`is_model_dir`); with ``force=True`` an other directory is
+    written into file by file and its other files are kept. Temporary siblings of writers that were
+    killed are removed by the next write."""
+    from safetensors.numpy import save_file
+
+    path = Path(path)
+    try:
+        check_output(path, MODEL_DIR, force=force)
+    except TnnError as err:
+        raise ModelFileError(err.diagnostics) from None
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_temps(path)
+        tmp = temp_sibling(path)
+        tmp.mkdir()
+    except OSError as err:
+        raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
+                   hint="choose a writable place for -o MODEL") from None
+    write_id = secrets.token_hex(8)
+    try:
+        # sources: the main file as network.thn, any included files under include/
+        sources = [Path(s) for s in network.source_files if s and os.path.isfile(s)]
+        written = []
+        if sources:
+            shutil.copyfile(sources[0], tmp / "network.thn")
+            written.append(tmp / "network.thn")
+            if len(sources) > 1:
+                (tmp / "include").mkdir()
+                for s in sources[1:]:
+                    shutil.copyfile(s, tmp / "include" / s.name)
+                    written.append(tmp / "include" / s.name)
+        (tmp / "network.json").write_text(network.to_json(), encoding="utf-8")
+        # np.array(order="C") keeps 0-d arrays 0-d (np.ascontiguousarray would make them 1-d)
+        arrays = {k: np.array(v, dtype=np.float64, order="C") for k, v in params.items()}
+        save_file(arrays, str(tmp / "params.safetensors"),
+                  metadata={"format": FORMAT, "version": str(FORMAT_VERSION), "write_id": write_id})
+        full_meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "write_id": write_id,
+                     "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        full_meta.update(meta)
+        full_meta["write_id"] = write_id
+        (tmp / "meta.json").write_text(json.dumps(_jsonable(full_meta), indent=2, allow_nan=False) + "\n",
+                                       encoding="utf-8")
+        for f in [*written, tmp / "network.json", tmp / "params.safetensors", tmp / "meta.json"]:
+            fsync_file(f)
+        if (tmp / "include").is_dir():
+            fsync_dir(tmp / "include")
+        fsync_dir(tmp)
+        if path.is_dir() and any(path.iterdir()) and not is_model_dir(path):
+            _write_into(tmp, path)  # force=True into a directory of the user's: keep its other files
+        else:
+            _install(tmp, path)
+    except OSError as err:
+        raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
+                   hint="check the free disk space and that the place is writable") from None
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    fsync_dir(parent)
+    return path
+
+
+def _install(tmp: Path, path: Path) -> None:
+    """Put the complete directory ``tmp`` at ``path`` (absent, empty or a model) in one step; what was at
+    ``path`` ends up at ``tmp`` (the caller removes it)."""
+    for _ in range(100):
+        if not path.exists():
+            try:
+                os.rename(tmp, path)
+                return
+            except OSError as err:  # another writer got there first: swap with its model instead
+                if err.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.EISDIR):
+                    raise
+                continue
+        try:
+            if exchange_paths(tmp, path):
+                return
+        except FileNotFoundError:
+            continue  # another writer moved it aside (two-rename fallback): try again
+        # no atomic swap here: the old model goes aside, the new one in, the old one away
+        old = temp_sibling(path, "old")
+        try:
+            os.rename(path, old)
+        except FileNotFoundError:
+            continue
+        try:
+            os.rename(tmp, path)
+        except OSError:
+            if not path.exists():
+                os.rename(old, path)
+            else:
+                shutil.rmtree(old, ignore_errors=True)
+            continue
+        os.rename(old, tmp)  # the caller removes tmp
+        return
+    raise OSError(errno.EBUSY, "other writers kept replacing the model", str(path))
+
+
+def _write_into(tmp: Path, path: Path) -> None:
+    """Move the model files of ``tmp`` into the existing directory ``path`` one by one (each an atomic
+    replace of that name only); nothing else in ``path`` is touched."""
+    # meta.json last: a reader checks its write_id against the parameters'
+    for src in sorted(tmp.rglob("*"), key=lambda q: (q.name == "meta.json", str(q))):
+        dest = path / src.relative_to(tmp)
+        if src.is_dir():
+            dest.mkdir(exist_ok=True)
+        else:
+            os.replace(src, dest)
+    fsync_dir(path)
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Remove ``.NAME.tmp-PID-…`` / ``.NAME.old-PID-…`` siblings of ``path`` left by a writer that was
+    killed (its process no longer exists) and holding nothing but model files (and a library's ``.tmp*``
+    file)."""
+    parent = path.parent if str(path.parent) else Path(".")
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old)-(\d+)-[0-9a-f]{{8}}$")
+    try:
+        entries = list(parent.iterdir())
+    except OSError:
+        return
+    for e in entries:
+        m = pattern.match(e.name)
+        if not m or not e.is_dir() or e.is_symlink() or _process_alive(int(m.group(2))):
+            continue
+        # a model's files, and the temporary file safetensors writes next to params.safetensors
+        if all(c.name in MODEL_FILES or c.name.startswith(".tmp") for c in e.iterdir()):
+            shutil.rmtree(e, ignore_errors=True)
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------
+
+
+def load_model(path: str | os.PathLike) -> "TrainedModel":
+    """Read a model directory written by :func:`save_model` / ``tnnc train``.
+
+    Raises :class:`ModelFileError` (``MODEL/file:line:col: error: ...`` + hint) for a missing directory,
+    a missing or corrupted file, or parameters that do not match the stored network. A read that
+    overlaps a concurrent write (files of two versions) is retried."""
+    for attempt in range(20):
+        try:
+            return _load_model_once(Path(path))
+        except _MixedRead:
+            time.sleep(0.005 * (attempt + 1))
+    return _load_model_once(Path(path), final=True)
+
+
+class _MixedRead(Exception):
+    """The files read belong to two writes (a concurrent save swapped the directory in between)."""
+
+
+def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
+    from safetensors import safe_open
+    from safetensors.numpy import load_file
+
+    if not path.exists():
+        raise _err(f"model directory {path} does not exist", None,
+                   hint="train a model first: tnnc train NET.thn DATA.csv -o MODEL")
+    if not path.is_dir():
+        raise _err(f"{path} is not a model directory (it is a file)", None,
+                   hint="pass the directory written by `tnnc train -o MODEL`")
+    missing = [f for f in REQUIRED_FILES if not (path / f).is_file()]
+    if missing:
+        present = sorted(p.name for p in path.iterdir())
+        raise _err(
+            f"model directory {path} is incomplete: missing {', '.join(missing)}",
+            None,
+            hint=f"the directory holds: {', '.join(present) or 'nothing'}; re-run `tnnc train ... -o {path}`",
+        )
+    # meta.json
+    meta_path = path / "meta.json"
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{meta_path}: meta.json vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
+    except UnicodeDecodeError as e:
+        raise _err(f"meta.json is not UTF-8 text: {e.reason}", meta_path, hint="the model directory is corrupted; re-train")
+    except json.JSONDecodeError as e:
+        raise _err(f"meta.json is not valid JSON: {e.msg}", meta_path, line=e.lineno, col=e.colno,
+                   hint="the model directory is corrupted; re-train or restore meta.json")
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise _err("meta.json is not a tnn_dsl model description (no \"format\": \"tnn_dsl-model\")", meta_path,
+                   hint="pass the directory written by `tnnc train -o MODEL`")
+    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
+        raise _err(f"model format version {meta.get('format_version')} is newer than this tnn_dsl understands "
+                   f"({FORMAT_VERSION})", meta_path, hint="upgrade tnn_dsl")
+    # network.json
+    net_path = path / "network.json"
+    try:
+        network = Network.from_json(net_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{net_path}: network.json vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
+    except Exception as e:  # noqa: BLE001 - pydantic/json errors: all mean a corrupted file
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise _err(f"network.json cannot be read: {first}", net_path, hint="the model directory is corrupted; re-train")
+    # params.safetensors
+    p_path = path / "params.safetensors"
+    try:
+        with safe_open(str(p_path), framework="numpy") as fh:
+            header = fh.metadata() or {}
+        params = {k: np.asarray(v, dtype=np.float64) for k, v in load_file(str(p_path)).items()}
+    except FileNotFoundError:
+        if final:
+            raise _err(f"{p_path}: params.safetensors vanished while it was read", None,
+                       hint="another process is rewriting this model; try again") from None
+        raise _MixedRead from None
+    except Exception as e:  # noqa: BLE001 - safetensors raises several types for a damaged file
+        raise _err(f"{p_path}: params.safetensors cannot be read: {e}", None,
+                   hint="the model directory is corrupted; re-train or restore params.safetensors")
+    if meta.get("write_id") != header.get("write_id") and not final:
+        raise _MixedRead
+    bad = [k for k, v in params.items() if not np.all(np.isfinite(v))]
+    if bad:
+        raise _err(f"{p_path}: params.safetensors holds non-finite values in {', '.join(bad[:5])}", None,
+                   hint="the model directory is corrupted; re-train")
+    return TrainedModel(network, params, meta, path=path)
+
+
+class TrainedModel:
+    """A network with fitted parameters (what a model directory holds).
+
+    * ``network``: the :class:`Network` IR; ``params``: name -> numpy array (SI), every array the
+      compiled model reads; ``meta``: the ``meta.json`` dictionary; ``path``: where it was loaded from.
+    * :meth:`predict` simulates experiments (free run, thesis eq. 4.7); :meth:`evaluate` computes per-sensor
+      MAE, max error (thesis eq. 4.9) and bias in kelvin.
+    """
+
+    def __init__(self, network: Network, params: dict[str, np.ndarray], meta: dict[str, Any] | None = None,
+                 path: str | os.PathLike | None = None):
+        self.network = network
+        self.params = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
+        self.meta = dict(meta or {})
+        self.path = Path(path) if path is not None else None
+        self._models: dict[tuple[str, str], Any] = {}
+
+    def __repr__(self) -> str:
+        where = f" from {self.path}" if self.path else ""
+        return f"TrainedModel({self.network.name!r}, backend={self.backend!r}, {len(self.params)} arrays{where})"
+
+    @property
+    def backend(self) -> str:
+        """The backend the model was trained with (any backend can load it)."""
+        return str(self.meta.get("backend", "jax"))
+
+    def compiled(self, backend: str | None = None, dtype: str = "float64"):
+        """The compiled :class:`Model` for ``backend`` (default: the training backend); cached."""
+        from ..compiler.model import compile as compile_network
+
+        backend = backend or self.backend
+        key = (backend, dtype)
+        if key not in self._models:
+            model = compile_network(self.network, backend=backend, dtype=dtype)
+            self._check_params(model)
+            self._models[key] = model
+        return self._models[key]
+
+    def _check_params(self, model) -> None:
+        specs = model.param_specs
+        missing = [k for k in specs if k not in self.params and not k.startswith("scale:")]
+        wrong = [k for k, s in specs.items() if k in self.params and tuple(self.params[k].shape) != tuple(s.shape)]
+        if missing or wrong:
+            where = f"{self.path / 'params.safetensors'}: " if self.path else ""
+            msg = []
+            if missing:
+                msg.append(f"missing arrays {', '.join(missing[:8])}")
+            if wrong:
+                msg.append("wrong shapes for " + ", ".join(
+                    f"{k} {tuple(self.params[k].shape)} (expected {tuple(specs[k].shape)})" for k in wrong[:8]))
+            raise _err(where + "the stored parameters do not match the network: " + "; ".join(msg), None,
+                       hint="the model directory is corrupted or was edited by hand; re-train")
+
+    def backend_params(self, backend: str | None = None, dtype: str = "float64") -> dict:
+        """The parameters as backend arrays for :meth:`compiled` (missing ``scale:`` entries take the
+        model's defaults)."""
+        model = self.compiled(backend, dtype)
+        base = model.to_numpy(model.init_params(seed=0))
+        base.update({k: v for k, v in self.params.items() if k in base})
+        return model.from_numpy(base)
+
+    def predict(self, data, backend: str | None = None, init: str = "auto",
+                integrator: str | None = None) -> list[dict[str, Any]]:
+        """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
+
+        ``init``: ``"steady"`` (the steady state of the first inputs, thesis §4.5), ``"measured"``
+        (sensor nodes from the first measurements, the rest from the steady state) or ``"auto"``
+        (``measured`` for data that starts mid-file, i.e. ``t[0] > 0``, else ``steady``).
+        Returns one dict per experiment: ``name``, ``t`` (N,) s, ``y`` (N, n_sensors) K predicted,
+        ``measured`` (N, n_sensors) K (NaN where missing), ``states`` (N, n_states) K, ``sensors``,
+        ``state_names``."""
+
+        backend = backend or self.backend
+        model = self.compiled(backend)
+        params = self.backend_params(backend)
+        integ = integrator or self.meta.get("config", {}).get("integrator", "rk4")
+        substeps = self.meta.get("config", {}).get("substeps")
+        out = []
+        for exp in as_experiments(self.network, data):
+            states, y = simulate(model, params, exp, init=init, integrator=integ, substeps=substeps)
+            out.append({
+                "name": exp.name, "t": np.asarray(exp.t), "y": y, "measured": np.asarray(exp.outputs, dtype=float),
+                "states": states, "sensors": list(model.output_names), "state_names": list(model.state_names),
+                "inputs": np.asarray(exp.inputs, dtype=float), "input_names": list(model.input_names),
+            })
+        return out
+
+    def evaluate(self, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
+        """Per-sensor and overall MAE, max absolute error (thesis eq. 4.9), bias (mean of predicted −
+        measured) and RMSE, in kelvin, over the non-missing samples of every experiment."""
+
+        preds = self.predict(data, backend=backend, init=init)
+        return error_metrics(preds, [s.name for s in self.network.sensors])
+
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write this model to a directory (atomic; see :func:`save_model` for ``force``)."""
+        p = save_model(path, self.network, self.params, self.meta, force=force)
+        self.path = Path(p)
+        return self.path
+
+    def nominal_params(self) -> dict[str, float]:
+        """The nominal (as written) value of every constant parameter, SI."""
+        return {p.name: float(p.value) for p in self.network.params if p.is_constant}
+
+
+def data_records(paths: Iterable[str | os.PathLike | None]) -> list[dict[str, Any]]:
+    """``[{path, sha256, bytes}]`` for the data files a model was trained on (for ``meta.json``)."""
+    recs = []
+    for p in paths:
+        if p is None:
+            continue
+        p = Path(p)
+        if p.is_file():
+            recs.append({"path": str(p), "sha256": file_sha256(p), "bytes": p.stat().st_size})
+    return recs
+
+
+__all__ = ["save_model", "load_model", "is_model_dir", "MODEL_DIR", "TrainedModel", "file_sha256", "versions", "data_records"]

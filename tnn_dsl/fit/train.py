@@ -1,0 +1,1172 @@
+"""The trainer: one implementation for both backends (thesis §4.5, eq. 4.6–4.8).
+
+How it works
+------------
+* The trainable quantities (free constants, weights of non-frozen learned functions and, with
+  ``rollout="estimated"``, the initial state of every window) live in ONE flat float64 numpy vector
+  ``z``. Each slot maps to its array by a transform: ``log`` for positive parameters, a scaled sigmoid
+  for bounded ones, identity (scaled) otherwise — so every positive quantity stays positive.
+* The loss is written once against a tiny array namespace (:class:`~tnn_dsl.compiler.backends.adapter.Backend`) and the compiled model contract
+  (``rollout``, ``steady_state``); the backend gives its value and gradient (``jax.value_and_grad``
+  under ``jit``, or torch autograd). The optimisers run on numpy: Adam (with gradient clipping, a
+  divergence guard and early stopping on validation), then an L-BFGS polish (``scipy.optimize``).
+* Loss (thesis eq. 4.8): mean squared error over the non-missing sensor samples (K²)
+  + ``lam`` · mean over windows of the window's max absolute error (K)
+  + Σ ``gamma_i`` · ((θ_i − θ_ref,i)/|θ_ref,i|)² over regularised physical parameters
+  + ``continuity`` · mean squared gap between a window's end state and its successor's estimated
+  initial state (multiple shooting only) + ``weight_decay`` · Σ w² over learned weights.
+* Validation is always a free run over each whole validation experiment (thesis §4.6).
+
+Initial states of a rollout (``rollout``):
+``free`` (each experiment whole, from the steady state of its first inputs), ``steady`` / ``measured``
+(windows starting from the steady state of their first inputs, ``measured``: sensor nodes set to the
+measurement) or ``estimated`` (windows with trainable initial states and a continuity penalty: multiple
+shooting). ``auto`` picks ``free`` for short experiments and ``estimated`` for long ones.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..compiler.backends.adapter import Backend
+from ..core.errors import Diagnostic, TnnError
+from ..data.io import as_experiments
+from ..ir.network import POSITIVE_ROLES, Network
+from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
+from .simulate import _measured_init_arrays, _measured_state, _resolve_init, simulate
+
+__all__ = ["TrainConfig", "train", "evaluate", "load_config"]
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------
+
+ROLLOUTS = ("auto", "free", "steady", "measured", "estimated")
+INITS = ("auto", "steady", "measured")
+
+
+@dataclass
+class TrainConfig:
+    """Every training option (all also ``tnnc train`` flags and YAML keys). Defaults work without
+    tuning on the networks in ``networks/``.
+
+    Units: ``window`` and ``time_limit`` in s; ``lam`` weights a max error in K against a mean squared
+    error in K²; ``gamma`` weights squared *relative* deviations from the reference values."""
+
+    backend: str = "jax"
+    """``jax`` or ``torch``."""
+    torch_compile: bool | None = None
+    """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; the
+    case study's M2 trained 2.5× faster in all, compilation included, benchmarks/bench_train.py). ``None``:
+    the ``TNN_TORCH_COMPILE`` environment variable (default off)."""
+    dtype: str = "float64"
+    seed: int = 0
+    integrator: str = "rk4"
+    """``euler`` (thesis eq. 4.7), ``rk4`` or ``expeuler``."""
+    substeps: int | None = None
+    rollout: str = "auto"
+    """``auto``, ``free``, ``steady``, ``measured`` or ``estimated`` (see the module docstring)."""
+    window: float | None = None
+    """Window length (s) for windowed rollouts; ``None``: :func:`auto_window` (600 s, and at least
+    :data:`MIN_WINDOW_SAMPLES` samples of the coarsest training file)."""
+    batch_size: int = 0
+    """Windows per optimiser step; 0 = all (full batch)."""
+    epochs: int = 300
+    """Adam steps over the whole training set."""
+    lr: float = 0.02
+    """Adam step size in transformed coordinates (0.02 ≈ 2 % of a positive parameter per step)."""
+    lr_final: float = 0.1
+    """Cosine decay of the step size to ``lr · lr_final`` at the last epoch."""
+    clip: float | None = None
+    """Global gradient-norm clip; ``None``: clip at 10× the running mean norm."""
+    lam: float = 0.0
+    """λ of eq. 4.8: weight of the max absolute error over each window."""
+    gamma: float | dict[str, float] = 0.0
+    """γ of eq. 4.8: weight of ((θ − θ_ref)/θ_ref)² per free physical parameter (one number for all,
+    or ``{name: γ}``)."""
+    weight_decay: float = 0.0
+    """L2 weight on learned-function weights."""
+    continuity: float = 10.0
+    """Weight of the multiple-shooting continuity penalty (``rollout=estimated``)."""
+    lbfgs_iters: int = 1000
+    """L-BFGS polish iterations after Adam (0 to skip). The polish starts from Adam's last state, keeps
+    the iterate with the best validation MAE (Adam's best if none is better) and stops after 100
+    iterations without a better one."""
+    patience: int = 80
+    """Early stopping: epochs without a better validation MAE, checked from half of ``epochs`` on (a free
+    run's validation error often rises while a learned function leaves its nominal value, then falls)."""
+    val_every: int = 0
+    """Validate every N epochs; 0 = automatically (validation takes ≤ ~40 % of the time; from step counts,
+    so the schedule — and the model picked — is the same on every machine and backend)."""
+    val_fraction: float = 0.0
+    """Without validation files: hold out the last fraction of each training file."""
+    init: str = "auto"
+    """Initial state of free runs (validation, prediction): ``steady``, ``measured`` or ``auto``
+    (``measured`` for a part that starts mid-file, else ``steady``)."""
+    freeze: list[str] = field(default_factory=list)
+    """Parameter names or learned-function names kept fixed."""
+    init_from: str | None = None
+    """A model directory whose arrays (same name and shape) initialise this model."""
+    prefit: bool = True
+    """Pre-fit ``replace``-mode flow functions to the nominal physics flow."""
+    centre_sigmoid: bool = True
+    """Optimise sigmoid MLPs in tanh coordinates (σ(a) = ½ + ½·tanh(a/2), see ``_tanh_to_sigmoid``):
+    the same functions and stored weights, but zero-centred hidden units with unit slope, so the steps
+    of Adam are not spent moving the next layer's bias against its weights."""
+    max_restarts: int = 6
+    """Divergence guard: how often the best state is restored with a smaller step before giving up."""
+    time_limit: float | None = None
+    """Stop Adam after this many seconds (the best state is kept)."""
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.backend not in ("jax", "torch"):
+            problems.append(f"backend must be jax or torch, not {self.backend!r}")
+        if self.dtype not in ("float64", "float32"):
+            problems.append(f"dtype must be float64 or float32, not {self.dtype!r}")
+        if self.rollout not in ROLLOUTS:
+            problems.append(f"rollout must be one of {', '.join(ROLLOUTS)}, not {self.rollout!r}")
+        if self.init not in INITS:
+            problems.append(f"init must be one of {', '.join(INITS)}, not {self.init!r}")
+        if self.integrator not in ("euler", "rk4", "expeuler"):
+            problems.append(f"integrator must be euler, rk4 or expeuler, not {self.integrator!r}")
+        for name in (("window",) if self.window is not None else ()) + ("lr",):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                problems.append(f"{name} must be a positive number, not {getattr(self, name)!r}")
+        for name in ("epochs", "lbfgs_iters", "patience", "val_every", "batch_size", "max_restarts"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                problems.append(f"{name} must be a non-negative integer, not {v!r}")
+        if not (0.0 <= float(self.val_fraction) < 1.0):
+            problems.append(f"val_fraction must be in [0, 1), not {self.val_fraction!r}")
+        for name in ("lam", "weight_decay", "continuity", "lr_final"):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) >= 0):
+                problems.append(f"{name} must be a non-negative number, not {getattr(self, name)!r}")
+        if isinstance(self.freeze, str):
+            self.freeze = [s for s in self.freeze.replace(",", " ").split() if s]
+        if problems:
+            raise TnnError([Diagnostic(f"training option: {p}", hint="see `tnnc train --help`") for p in problems])
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def load_config(path: str | os.PathLike | None = None, **overrides) -> TrainConfig:
+    """A :class:`TrainConfig` from a YAML file (keys = option names, ``-`` or ``_``) and overrides
+    (``None`` values ignored). Unknown keys are an error naming the known ones."""
+    import yaml
+
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as e:
+            raise TnnError(Diagnostic(f"cannot read the training config {p}: {e.strerror}",
+                                      hint="pass an existing YAML file to --config"))
+        try:
+            loaded = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            from ..ir.network import Span
+
+            span = Span(file=str(p), line=mark.line + 1, col=mark.column + 1, end_line=mark.line + 1,
+                        end_col=mark.column + 2) if mark is not None else None
+            raise TnnError(Diagnostic(f"the training config is not valid YAML: {getattr(e, 'problem', e)}",
+                                      span=span, hint="write `key: value` lines, e.g. `epochs: 200`"))
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise TnnError(Diagnostic(f"{p}: the training config must be a mapping of option: value",
+                                      hint="write `key: value` lines, e.g. `epochs: 200`"))
+        known = {f.name for f in dataclasses.fields(TrainConfig)}
+        for k, v in loaded.items():
+            key = str(k).replace("-", "_")
+            if key not in known:
+                import difflib
+
+                close = difflib.get_close_matches(key, sorted(known), n=1)
+                hint = f"did you mean `{close[0]}`?" if close else f"known options: {', '.join(sorted(known))}"
+                raise TnnError(Diagnostic(f"{p}: unknown training option {k!r}", hint=hint))
+            data[key] = v
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return TrainConfig(**data)
+    except TypeError as e:
+        raise TnnError(Diagnostic(f"training config: {e}"))
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter transforms: flat unconstrained z <-> named arrays
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Slot:
+    name: str
+    shape: tuple[int, ...]
+    start: int
+    size: int
+    transform: str  # log | sigmoid | ident | lower | upper
+    lo: float = 0.0
+    hi: float = 1.0
+    offset: float = 0.0
+    scale: float = 1.0
+
+
+def _make_slot(name: str, spec, value: np.ndarray, start: int, role: str | None) -> _Slot:
+    shape = tuple(int(s) for s in np.shape(value))
+    size = int(np.prod(shape)) if shape else 1
+    lo = spec.lower if spec.lower is not None and np.isfinite(spec.lower) else None
+    hi = spec.upper if spec.upper is not None and np.isfinite(spec.upper) else None
+    positive = bool(spec.positive) or (role in POSITIVE_ROLES)
+    if spec.kind != "physical":
+        return _Slot(name, shape, start, size, "ident", offset=0.0, scale=1.0)
+    if positive and lo is not None:
+        lo = max(lo, 0.0)
+    if positive and lo is None:
+        lo = 0.0
+    if lo is not None and hi is not None and hi > lo:
+        return _Slot(name, shape, start, size, "sigmoid", lo=float(lo), hi=float(hi))
+    if lo is not None:
+        return _Slot(name, shape, start, size, "log" if lo == 0.0 and positive else "lower", lo=float(lo))
+    if hi is not None:
+        return _Slot(name, shape, start, size, "upper", hi=float(hi))
+    v = float(np.max(np.abs(value))) if size else 0.0
+    scale = 1.0 if role in ("temperature", "offset") else (v if v > 0 else 1.0)
+    return _Slot(name, shape, start, size, "ident", offset=0.0, scale=scale)
+
+
+def _to_z(slot: _Slot, value: np.ndarray) -> np.ndarray:
+    v = np.asarray(value, dtype=float).reshape(-1)
+    t = slot.transform
+    if t == "log":
+        return np.log(np.maximum(v, 1e-300))
+    if t == "lower":
+        return np.log(np.maximum(v - slot.lo, 1e-12 * max(1.0, abs(slot.lo))))
+    if t == "upper":
+        return np.log(np.maximum(slot.hi - v, 1e-12 * max(1.0, abs(slot.hi))))
+    if t == "sigmoid":
+        p = np.clip((v - slot.lo) / (slot.hi - slot.lo), 1e-6, 1 - 1e-6)
+        return np.log(p) - np.log1p(-p)
+    return (v - slot.offset) / slot.scale
+
+
+def _from_z(slot: _Slot, zs, ops):
+    t = slot.transform
+    if t == "log":
+        v = ops.exp(zs)
+    elif t == "lower":
+        v = slot.lo + ops.exp(zs)
+    elif t == "upper":
+        v = slot.hi - ops.exp(zs)
+    elif t == "sigmoid":
+        v = slot.lo + (slot.hi - slot.lo) * ops.sigmoid(zs)
+    else:
+        v = slot.offset + slot.scale * zs if (slot.offset != 0.0 or slot.scale != 1.0) else zs
+    return v.reshape(slot.shape)
+
+
+class _NumpyOps:
+    backend = "numpy"
+
+    @staticmethod
+    def exp(x):
+        return np.exp(x)
+
+    @staticmethod
+    def sigmoid(x):
+        return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
+# ---------------------------------------------------------------------------------------------
+# Windows
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Window:
+    exp: int
+    start: int
+    length: int
+    succ: tuple[int, int] | None = None  # (successor window id, offset in this window)
+
+
+MIN_WINDOW_SAMPLES = 50
+"""Fewest samples in an automatic window (``TrainConfig.window=None``)."""
+DEFAULT_WINDOW_S = 600.0
+"""The automatic window (s) where the data are sampled at ``dt ≤ 12 s``."""
+
+
+def auto_window(exps) -> float:
+    """The automatic window length (s): ``max(600 s, 50·dt)`` with ``dt`` the coarsest sample time of ``exps``.
+
+    600 s suits data sampled every second (the case study, TCLab); at 5-minute sampling (buildings) it would be
+    3 samples, and a multiple-shooting window that short is all initial state: its loss falls while the
+    free run gets worse (measured on Bacher & Madsen's TiTeTh: training free-run MAE 6.4 K with 600 s windows,
+    1.4 K with 50 samples)."""
+    dt = max(float(e.dt) for e in exps)
+    return max(DEFAULT_WINDOW_S, MIN_WINDOW_SAMPLES * dt)
+
+
+def _windows(exps, window_s: float) -> list[_Window]:
+    out: list[_Window] = []
+    for e_i, e in enumerate(exps):
+        n = int(e.n_steps) if hasattr(e, "n_steps") else len(e.t)
+        L = max(2, int(round(window_s / float(e.dt))) + 1)
+        if n <= L:
+            out.append(_Window(e_i, 0, n))
+            continue
+        starts = list(range(0, n - L + 1, L - 1))
+        if starts[-1] + L < n:
+            starts.append(n - L)
+        ids = []
+        for s in starts:
+            ids.append(len(out))
+            out.append(_Window(e_i, s, L))
+        for a, b in zip(ids[:-1], ids[1:]):
+            out[a].succ = (b, out[b].start - out[a].start)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The trainer
+# ---------------------------------------------------------------------------------------------
+
+
+def _tanh_to_sigmoid(p: dict, fn: str, K: int) -> None:
+    """In place: weights ``W'k, b'k`` of a tanh MLP with ``K`` hidden layers → the weights of the sigmoid
+    MLP computing the same function (``p["<fn>.Wk"]``, ``p["<fn>.bk"]``; numpy, JAX or torch arrays).
+
+    With σ(a) = ½ + ½·tanh(a/2), hidden unit k of the sigmoid net is ½ + ½·t_k with t_k the tanh net's
+    unit: first layer ``W0 = 2W'0, b0 = 2b'0``; hidden → hidden ``Wk = 4W'k, bk = 2b'k − 2·Σ_rows W'k``;
+    last layer ``WK = 2W'K, bK = b'K − Σ_rows W'K``. A linear change of coordinates: the trainer runs
+    Adam and L-BFGS on the primed (centred, unit-slope) weights."""
+    for k in range(K + 1):
+        W, b = p[f"{fn}.W{k}"], p[f"{fn}.b{k}"]
+        if k == 0:
+            p[f"{fn}.W0"], p[f"{fn}.b0"] = 2.0 * W, 2.0 * b
+        elif k < K:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 4.0 * W, 2.0 * b - 2.0 * W.sum(0)
+        else:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 2.0 * W, b - W.sum(0)
+
+
+def _sigmoid_to_tanh(p: dict, fn: str, K: int) -> None:
+    """In place, numpy: the inverse of :func:`_tanh_to_sigmoid`."""
+    for k in range(K + 1):
+        W, b = np.asarray(p[f"{fn}.W{k}"], dtype=float), np.asarray(p[f"{fn}.b{k}"], dtype=float)
+        if k == 0:
+            p[f"{fn}.W0"], p[f"{fn}.b0"] = W / 2.0, b / 2.0
+        elif k < K:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 4.0, (b + W.sum(0) / 2.0) / 2.0
+        else:
+            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 2.0, b + W.sum(0) / 2.0
+
+
+class _Stop(Exception):
+    pass
+
+
+def _net_of(network) -> Network:
+    if isinstance(network, Network):
+        return network
+    from ..lang.parser import load
+
+    return load(network)
+
+
+def _nominal_network(net: Network) -> Network:
+    return net.model_copy(update={"learned": []})
+
+
+class _Trainer:
+    def __init__(self, net: Network, exps: list, vals: list, cfg: TrainConfig, model, callback=None,
+                 log: Callable[[str], None] | None = None):
+        self.net, self.exps, self.vals, self.cfg, self.model = net, exps, vals, cfg, model
+        self.callback = callback
+        self.log = log or (lambda msg: None)
+        self.ops = Backend(cfg.backend, cfg.dtype)
+        self.warnings: list[str] = []
+        self.curve: list[dict[str, Any]] = []
+        self.stopped = "completed"
+        self.normalisation: dict[str, Any] = {}
+        self.loaded: set[str] = set()
+        self._lbfgs_end = cfg.epochs + cfg.lbfgs_iters
+
+    # -- parameters ----------------------------------------------------------------------
+    def initial_params(self) -> dict[str, np.ndarray]:
+        cfg, model = self.cfg, self.model
+        params = {k: np.asarray(v, dtype=np.float64) for k, v in model.to_numpy(model.init_params(seed=cfg.seed)).items()}
+        sources: list[tuple[str, set[str] | None]] = []
+        if cfg.init_from:
+            sources.append((cfg.init_from, None))
+        for fn in self.net.learned:
+            if fn.init_from:
+                src = fn.init_from
+                if not os.path.isabs(src) and fn.span is not None and fn.span.file:
+                    cand = Path(fn.span.file).parent / src
+                    src = str(cand) if cand.exists() else src
+                sources.append((src, {fn.name}))
+        for src, only in sources:
+
+            if only is not None and all(any(k.startswith(f + ".") for k in self.loaded) for f in only):
+                continue  # already initialised by --init-from
+
+            other = load_model(src)
+            copied = []
+            for k, v in other.params.items():
+                fn_name = k.split(".", 1)[0] if "." in k else None
+                if only is not None:
+                    # the function's arrays; matched by name, else by identical targets
+                    fn = next(f for f in self.net.learned if f.name in only)
+                    src_fn = next((f for f in other.network.learned if f.name == fn.name
+                                   and [t.name for t in f.targets] == [t.name for t in fn.targets]), None)
+                    if src_fn is None:
+                        src_fn = next((f for f in other.network.learned
+                                       if [t.name for t in f.targets] == [t.name for t in fn.targets]), None)
+                    if src_fn is None:
+                        raise TnnError(Diagnostic(
+                            f"learned function {fn.name} is initialised from {src}, but that model has no function "
+                            f"with targets {', '.join(t.name for t in fn.targets)}", span=fn.span,
+                            hint="init_from must name a model trained with the same learn targets"))
+                    if fn_name != src_fn.name:
+                        continue
+                    k = fn.name + k[len(src_fn.name):]
+                if k in params and np.shape(params[k]) == np.shape(v):
+                    params[k] = np.asarray(v, dtype=np.float64).copy()
+                    copied.append(k)
+            if not copied:
+                raise TnnError(Diagnostic(f"init_from {src}: no array of that model matches this network",
+                                          hint="initialise from a model of the same network (same names and shapes)"))
+            self.loaded.update(copied)
+            self.log(f"initialised {len(copied)} arrays from {src}")
+        return params
+
+    def nominal_runs(self, params: dict[str, np.ndarray]):
+        """Simulate the nominal (no learned functions) network on the training data."""
+        from ..compiler.model import compile as compile_network
+
+        nom_net = _nominal_network(self.net)
+        nom = compile_network(nom_net, backend=self.cfg.backend, dtype=self.cfg.dtype,
+                              torch_compile=self.cfg.torch_compile)
+        npar = nom.to_numpy(nom.init_params(seed=0))
+        for k in npar:
+            if k in params and np.shape(params[k]) == np.shape(npar[k]):
+                npar[k] = params[k]
+        bp = nom.from_numpy(npar)
+        runs = []
+        for e in self.exps:
+            states, y = simulate(nom, bp, e, init=self.cfg.init, integrator=self.cfg.integrator,
+                                 substeps=self.cfg.substeps, params_np=npar)
+            if not np.all(np.isfinite(states)):
+                raise TnnError(Diagnostic(
+                    f"the nominal model does not simulate on {e.name}: its temperatures become non-finite",
+                    hint="check the nominal values (capacities, resistances) and the integrator step; "
+                         "try --integrator expeuler or --substeps"))
+            runs.append(states)
+        return nom, bp, runs
+
+    def set_stats(self, params, nom, nom_params, runs) -> None:
+        """Input normalisation (and output scales) of learned functions from the nominal simulation."""
+        specs = self.model.param_specs
+        names = list(nom.state_names)
+        U = np.concatenate([np.asarray(e.inputs, dtype=float) for e in self.exps])
+        T = np.concatenate(runs)
+        inputs = list(self.model.input_names)
+        flows = None
+        for fn in self.net.learned:
+            if any(k.startswith(fn.name + ".") for k in self.loaded):
+                continue  # keeps the statistics of the model it came from
+            xs = []
+            for a in fn.inputs:
+                if a.kind == "node" and a.name in names:
+                    xs.append(T[:, names.index(a.name)])
+                elif a.kind == "input" and a.name in inputs:
+                    xs.append(U[:, inputs.index(a.name)])
+                elif a.name in params and np.size(params[a.name]) == 1:
+                    xs.append(np.full(1, float(np.asarray(params[a.name]).reshape(()))))
+                else:
+                    xs.append(np.zeros(1))
+            mean = np.array([(np.max(x) + np.min(x)) / 2 for x in xs]) if xs else np.zeros(0)
+            half = np.array([(np.max(x) - np.min(x)) / 2 for x in xs]) if xs else np.zeros(0)
+            floor = np.maximum(1e-3 * np.abs(mean), 1e-9)
+            for i, a in enumerate(fn.inputs):
+                if a.kind == "node":
+                    floor[i] = max(floor[i], 0.5)  # K: a node that barely moves is not scaled up to noise
+            scale = np.maximum(half, floor)
+            ysc = []
+            for t in fn.targets:
+                if t.kind == "param":
+                    p = next((q for q in self.net.params if q.name == t.name), None)
+                    v = abs(p.value) if p is not None and p.value is not None else 0.0
+                    ysc.append(v if v > 0 else 1.0)
+                elif t.kind == "flow":
+                    if flows is None:
+                        flows = self._nominal_flows(nom, nom_params, T, U)
+                    f = flows.get(t.name)
+                    ysc.append(max(float(np.sqrt(np.mean(f ** 2))), 1e-3) if f is not None else 1.0)
+                else:  # heat load: the node's typical heat throughput
+                    ysc.append(self._node_heat_scale(nom, nom_params, T, U, t.name, flows))
+            for arr, val in (("x_mean", mean), ("x_scale", scale), ("y_scale", np.array(ysc, dtype=float))):
+                k = f"{fn.name}.{arr}"
+                if k in params and np.shape(params[k]) == np.shape(val):
+                    params[k] = val
+            self.normalisation[fn.name] = {
+                "inputs": [a.name for a in fn.inputs], "x_mean": mean.tolist(), "x_scale": scale.tolist(),
+                "x_min": [float(np.min(x)) for x in xs], "x_max": [float(np.max(x)) for x in xs],
+                "targets": [t.name for t in fn.targets], "y_scale": [float(v) for v in ysc],
+            }
+        for fn in self.net.learned:
+            if fn.name not in self.normalisation:
+                k = f"{fn.name}.x_mean"
+                if k in params:
+                    xm, xs_ = params[k], params.get(f"{fn.name}.x_scale", np.ones_like(params[k]))
+                    self.normalisation[fn.name] = {
+                        "inputs": [a.name for a in fn.inputs], "x_mean": xm.tolist(), "x_scale": xs_.tolist(),
+                        "x_min": (xm - xs_).tolist(), "x_max": (xm + xs_).tolist(),
+                        "targets": [t.name for t in fn.targets], "from": "init_from"}
+
+    def _nominal_flows(self, nom, nom_params, T, U, max_points: int = 20000) -> dict[str, np.ndarray]:
+        idx = np.linspace(0, len(T) - 1, min(len(T), max_points)).astype(int)
+        hf = nom.heat_flows(nom_params, self.ops.asarray(T[idx]), self.ops.asarray(U[idx]))
+        return {k: self.ops.numpy(v) for k, v in hf.items()}
+
+    def _node_heat_scale(self, nom, nom_params, T, U, node, flows) -> float:
+        names = list(nom.state_names)
+        try:
+            i = names.index(node)
+            idx = np.linspace(0, len(T) - 1, min(len(T), 20000)).astype(int)
+            d = self.ops.numpy(nom.rhs(nom_params, self.ops.asarray(T[idx]), self.ops.asarray(U[idx])))[:, i]
+            C = next((p.value for p in self.net.params
+                      if p.name == next(n.capacitance for n in self.net.nodes if n.name == node)), None)
+            if C is not None:
+                v = float(np.sqrt(np.mean((C * d) ** 2)))
+                if v > 0:
+                    return max(v, 1e-3)
+        except (ValueError, StopIteration):
+            pass
+        return 1.0
+
+    def prefit_replace(self, params, nom, nom_params, runs) -> None:
+        """``replace``-mode flow functions: least squares on the nominal physics flow along the nominal run."""
+        fns = [fn for fn in self.net.learned if fn.replace and not fn.frozen
+               and not any(k.startswith(fn.name + ".") for k in self.loaded) and fn.name not in self.cfg.freeze]
+        if not fns or not self.cfg.prefit:
+            return
+        from scipy.optimize import minimize
+
+        U = np.concatenate([np.asarray(e.inputs, dtype=float) for e in self.exps])
+        T = np.concatenate(runs)
+        idx = np.linspace(0, len(T) - 1, min(len(T), 4000)).astype(int)
+        target = self._nominal_flows(nom, nom_params, T[idx], U[idx], max_points=len(idx))
+        Tb, Ub = self.ops.asarray(T[idx]), self.ops.asarray(U[idx])
+        specs = self.model.param_specs
+        for fn in fns:
+            names = [k for k, s in specs.items() if k.startswith(fn.name + ".") and s.kind == "weights"]
+            slots, start = [], 0
+            for k in names:
+                sl = _make_slot(k, specs[k], params[k], start, None)
+                slots.append(sl)
+                start += sl.size
+            z0 = np.concatenate([_to_z(s, params[k]) for s, k in zip(slots, names)])
+            fixed = self.model.from_numpy(params)
+            tnames = [t.name for t in fn.targets]
+            ysc = {t: max(float(np.sqrt(np.mean(target[t] ** 2))), 1e-6) for t in tnames if t in target}
+            if not ysc:
+                continue
+            tgt = {t: self.ops.asarray(target[t]) for t in ysc}
+            ops, model = self.ops, self.model
+
+            def loss(z, data, slots=slots, fixed=fixed, tgt=tgt, ysc=ysc):
+                p = dict(fixed)
+                for s in slots:
+                    p[s.name] = _from_z(s, z[s.start:s.start + s.size], ops)
+                hf = model.heat_flows(p, Tb, Ub)
+                tot = 0.0
+                for t, y in tgt.items():
+                    tot = tot + ops.sum(((hf[t] - y) / ysc[t]) ** 2) / y.shape[0]
+                return tot
+
+            vg = ops.value_and_grad(loss)
+            res = minimize(lambda z: _safe(vg(z, None)), z0, jac=True, method="L-BFGS-B",
+                           options={"maxiter": 500})
+            for s, k in zip(slots, names):
+                params[k] = _from_z(s, res.x[s.start:s.start + s.size], _NumpyOps)
+            self.log(f"pre-fitted {fn.name} to the nominal {', '.join(tnames)} (relative RMS error "
+                     f"{math.sqrt(max(res.fun, 0.0) / max(len(tgt), 1)):.3g})")
+
+    # -- layout and loss -----------------------------------------------------------------
+    def layout(self, params: dict[str, np.ndarray]) -> None:
+        cfg, specs = self.cfg, self.model.param_specs
+        frozen_fns = {fn.name for fn in self.net.learned if fn.frozen}
+        freeze = set(cfg.freeze)
+        known = set(specs) | {fn.name for fn in self.net.learned}
+        unknown = sorted(freeze - known)
+        if unknown:
+            import difflib
+
+            close = difflib.get_close_matches(unknown[0], sorted(known), n=1)
+            raise TnnError(Diagnostic(f"freeze: no parameter or learned function named {unknown[0]!r}",
+                                      hint=f"did you mean {close[0]!r}?" if close else
+                                      f"trainable names: {', '.join(k for k, s in specs.items() if s.trainable)}"))
+        roles = {p.name: p.role for p in self.net.params}
+        self.slots: list[_Slot] = []
+        start = 0
+        for k, s in specs.items():
+            if not s.trainable or k in freeze:
+                continue
+            owner = k.split(".", 1)[0]
+            if s.kind != "physical" and (owner in freeze or owner in frozen_fns):
+                continue
+            sl = _make_slot(k, s, params[k], start, roles.get(k))
+            self.slots.append(sl)
+            start += sl.size
+        self.n_param_z = start
+        if start == 0:
+            raise TnnError(Diagnostic(
+                f"network {self.net.name} has nothing to train: no free parameter and no learn clause"
+                + (" (all frozen)" if freeze or frozen_fns else ""),
+                hint="mark parameters `free` or add a `learn` line"))
+        self.params0 = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
+        self.fixed = self.model.from_numpy(self.params0)
+        # regularisation towards the reference values (eq. 4.8)
+        g = cfg.gamma
+        self.reg = []
+        for sl in self.slots:
+            if specs[sl.name].kind != "physical":
+                continue
+            w = g.get(sl.name, 0.0) if isinstance(g, dict) else float(g)
+            if w > 0:
+                ref = self.params0[sl.name]
+                self.reg.append((sl, float(w), ref, np.maximum(np.abs(ref), 1e-12)))
+        self.weight_slots = [sl for sl in self.slots if specs[sl.name].kind == "weights"]
+        # sigmoid MLPs whose every weight is trained move in tanh coordinates (cfg.centre_sigmoid)
+        trained = {sl.name for sl in self.slots}
+        self.tanh_coords: list[tuple[str, int]] = []
+        if cfg.centre_sigmoid:
+            for fn in self.net.learned:
+                K = len(fn.hidden)
+                if fn.kind == "mlp" and fn.activation == "sigmoid" and K > 0 and all(
+                        f"{fn.name}.{a}{k}" in trained for k in range(K + 1) for a in "Wb"):
+                    self.tanh_coords.append((fn.name, K))
+
+    def params_from_z(self, z, ops=None) -> dict:
+        ops = ops or self.ops
+        p = dict(self.fixed) if ops is self.ops else dict(self.params0)
+        for sl in self.slots:
+            p[sl.name] = _from_z(sl, z[sl.start:sl.start + sl.size], ops)
+        for fn, K in self.tanh_coords:
+            _tanh_to_sigmoid(p, fn, K)
+        return p
+
+    def z_from_params(self, params: dict[str, np.ndarray]) -> np.ndarray:
+        """The parameter part of ``z`` for numpy ``params`` (the inverse of :meth:`params_from_z`)."""
+        p = dict(params)
+        for fn, K in self.tanh_coords:
+            _sigmoid_to_tanh(p, fn, K)
+        return np.concatenate([_to_z(sl, p[sl.name]) for sl in self.slots])
+
+    def numpy_params(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        p = self.params_from_z(np.asarray(z, dtype=float), _NumpyOps)
+        return {k: np.asarray(v, dtype=np.float64) for k, v in p.items()}
+
+    def build_batches(self, runs) -> None:
+        """Groups of equal-length rollouts (arrays) and their static description."""
+        cfg = self.cfg
+        mode = cfg.rollout
+        window = auto_window(self.exps) if cfg.window is None else float(cfg.window)
+        self.window = window
+        if mode == "auto":
+            longest = max(e.n_steps for e in self.exps)
+            dt = min(float(e.dt) for e in self.exps)
+            mode = "free" if longest <= 3 * (window / dt + 1) else "estimated"
+        self.mode = mode
+        n_states = len(self.model.state_names)
+        mapping = _measured_state(self.model, self.net, self.params0)
+        self.groups: list[dict[str, Any]] = []
+        self.n_x0 = 0
+        if mode == "free":
+            for e_i, e in enumerate(self.exps):
+                Y = np.asarray(e.outputs, dtype=float)[None]
+                init = _resolve_init(cfg.init, e)
+                mask0, vals0 = _measured_init_arrays(mapping, n_states, Y[:, 0])
+                if init != "measured":
+                    mask0[:] = False
+                self.groups.append({"dt": float(e.dt), "init": "measured", "windows": [_Window(e_i, 0, e.n_steps)],
+                                    "U": np.asarray(e.inputs, dtype=float)[None], "Y": Y,
+                                    "mask0": mask0, "vals0": vals0})
+            return
+        wins = _windows(self.exps, window)
+        by_len: dict[tuple[float, int], list[int]] = {}
+        for w_i, w in enumerate(wins):
+            by_len.setdefault((float(self.exps[w.exp].dt), w.length), []).append(w_i)
+        if mode == "estimated":
+            guess = np.zeros((len(wins), n_states))
+            for w_i, w in enumerate(wins):
+                guess[w_i] = runs[w.exp][w.start]
+                y0 = np.asarray(self.exps[w.exp].outputs, dtype=float)[w.start]
+                m, v = _measured_init_arrays(mapping, n_states, y0)
+                guess[w_i] = np.where(m, v, guess[w_i])
+            self.x0_guess = guess
+            self.n_x0 = len(wins)
+        self.wins = wins
+        for (dt, L), ids in by_len.items():
+            U = np.stack([np.asarray(self.exps[wins[i].exp].inputs, dtype=float)[wins[i].start:wins[i].start + L] for i in ids])
+            Y = np.stack([np.asarray(self.exps[wins[i].exp].outputs, dtype=float)[wins[i].start:wins[i].start + L] for i in ids])
+            mask0, vals0 = _measured_init_arrays(mapping, n_states, Y[:, 0])
+            if mode == "steady":
+                mask0[:] = False
+            self.groups.append({"dt": dt, "init": "estimated" if mode == "estimated" else "measured",
+                                "windows": [wins[i] for i in ids], "ids": np.array(ids), "U": U, "Y": Y,
+                                "mask0": mask0, "vals0": vals0})
+
+    def batch_arrays(self, rng: np.random.Generator | None):
+        """The per-step data: list (one per group) of dicts of backend arrays, and the statics."""
+        out, statics = [], []
+        for g in self.groups:
+            B = len(g["windows"])
+            sel = np.arange(B)
+            if rng is not None and self.cfg.batch_size and self.cfg.batch_size < B:
+                sel = np.sort(rng.choice(B, size=self.cfg.batch_size, replace=False))
+            Y = g["Y"][sel]
+            M = np.isfinite(Y)
+            d = {"U": g["U"][sel], "Y": np.where(M, Y, 0.0), "M": M}
+            st = {"dt": g["dt"], "init": g["init"], "n_valid": max(int(M.sum()), 1), "B": len(sel)}
+            if g["init"] == "estimated":
+                ids = g["ids"][sel]
+                cb, ck, cj, cw = [], [], [], []
+                for b, i in enumerate(ids):
+                    w = self.wins[i]
+                    if w.succ is not None:
+                        cb.append(b); ck.append(w.succ[1]); cj.append(w.succ[0]); cw.append(1.0)
+                if not cb:
+                    cb, ck, cj, cw = [0], [0], [int(ids[0])], [0.0]
+                d.update({"idx": ids.astype(np.int64), "cb": np.array(cb, dtype=np.int64),
+                          "ck": np.array(ck, dtype=np.int64), "cj": np.array(cj, dtype=np.int64),
+                          "cw": np.array(cw, dtype=float)})
+                st["n_pairs"] = max(float(sum(cw)), 1.0)
+            else:
+                d.update({"mask0": g["mask0"][sel], "vals0": g["vals0"][sel]})
+            out.append(d)
+            statics.append(st)
+        return self.ops.tree(out), statics
+
+    def make_loss(self, statics):
+        cfg, model, ops = self.cfg, self.model, self.ops
+        n_states = len(model.state_names)
+        n_x0, n_param_z = self.n_x0, self.n_param_z
+        x0_guess = ops.asarray(self.x0_guess) if n_x0 else None
+        n_windows = sum(st["B"] for st in statics)
+        n_valid = max(sum(st["n_valid"] for st in statics), 1)
+
+        def loss(z, data):
+            params = self.params_from_z(z)
+            X0 = None
+            if n_x0:
+                X0 = x0_guess + z[n_param_z:].reshape((n_x0, n_states))
+            sse, mx, cont = 0.0, 0.0, 0.0
+            for st, d in zip(statics, data):
+                if st["init"] == "estimated":
+                    T0 = X0[d["idx"]]
+                else:
+                    T0 = ops.where(d["mask0"], d["vals0"], model.steady_state(params, d["U"][:, 0, :]))
+                states, yh = model.rollout(params, T0, d["U"], st["dt"], integrator=cfg.integrator,
+                                           substeps=cfg.substeps)
+                err = ops.where(d["M"], yh - d["Y"], 0.0 * yh)
+                sse = sse + ops.sum(err * err) / n_valid
+                if cfg.lam > 0:
+                    mx = mx + ops.sum(ops.amax(ops.abs(err), (1, 2)))
+                if st["init"] == "estimated" and cfg.continuity > 0:
+                    gap = states[d["cb"], d["ck"]] - X0[d["cj"]]
+                    cont = cont + ops.sum((gap * gap).sum(-1) * d["cw"]) / (st["n_pairs"] * n_states)
+            total = sse
+            if cfg.lam > 0:
+                total = total + cfg.lam * mx / n_windows
+            if n_x0 and cfg.continuity > 0:
+                total = total + cfg.continuity * cont
+            for sl, w, ref, den in self.reg:
+                dv = (params[sl.name] - ops.asarray(ref)) / ops.asarray(den)
+                total = total + w * ops.sum(dv * dv)
+            if cfg.weight_decay > 0:
+                for sl in self.weight_slots:
+                    total = total + cfg.weight_decay * ops.sum(params[sl.name] ** 2)
+            return total
+
+        return loss
+
+    # -- validation ----------------------------------------------------------------------
+    def validate(self, z: np.ndarray, exps=None) -> float:
+        exps = self.vals if exps is None else exps
+        pn = self.numpy_params(z)
+        bp = self.model.from_numpy(pn)
+        abs_sum, n = 0.0, 0
+        for e in exps:
+            _, y = simulate(self.model, bp, e, init=self.cfg.init, integrator=self.cfg.integrator,
+                            substeps=self.cfg.substeps, params_np=pn)
+            err = y - np.asarray(e.outputs, dtype=float)
+            m = np.isfinite(np.asarray(e.outputs, dtype=float))
+            if not np.all(np.isfinite(y[m])):
+                return math.inf
+            abs_sum += float(np.abs(err[m]).sum())
+            n += int(m.sum())
+        return abs_sum / max(n, 1)
+
+    # -- optimisation --------------------------------------------------------------------
+    def run(self) -> np.ndarray:
+        cfg = self.cfg
+        rng = np.random.default_rng(cfg.seed)
+        z = np.concatenate([self.z_from_params(self.params0)]
+                           + ([np.zeros(self.n_x0 * len(self.model.state_names))] if self.n_x0 else []))
+        minibatch = bool(cfg.batch_size) and any(len(g["windows"]) > cfg.batch_size for g in self.groups)
+        data, statics = self.batch_arrays(None)
+        full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        if minibatch:
+            bdata, bstatics = self.batch_arrays(rng)
+            batch_vg = self.ops.value_and_grad(self.make_loss(bstatics))
+        has_val = bool(self.vals)
+        t0 = time.perf_counter()
+        best_z = z.copy()
+        loss0, g0 = full_vg(z, data)
+        if not math.isfinite(loss0) or not np.all(np.isfinite(g0)):
+            raise TnnError(Diagnostic(
+                "the initial model gives a non-finite loss: the simulation blows up with the starting values",
+                hint="check the nominal values and the integrator (try --integrator expeuler or --substeps 4)"))
+        best_loss = loss0
+        best_val = self.validate(z) if has_val else math.inf
+        t_val = time.perf_counter() - t0
+        self.record(0, loss0, best_val, t0, "start")
+        best_epoch, since_best = 0, 0
+        m = np.zeros_like(z)
+        v = np.zeros_like(z)
+        b1, b2, eps = 0.9, 0.999, 1e-8
+        lr_scale, restarts, step = 1.0, 0, 0
+        gnorm_ema = None
+        val_every = cfg.val_every or self.auto_val_every()
+        loss = loss0
+        val = best_val
+        t_epoch = None
+        try:
+            for epoch in range(1, cfg.epochs + 1):
+                te = time.perf_counter()
+                lr = cfg.lr * lr_scale * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * (epoch - 1) / max(cfg.epochs, 1))))
+                n_batches = 1 if not minibatch else max(1, math.ceil(max(len(g["windows"]) for g in self.groups) / cfg.batch_size))
+                diverged = False
+                ep_loss = 0.0
+                for _ in range(n_batches):
+                    z_prev = z
+                    if minibatch:
+                        bdata, _ = self.batch_arrays(rng)
+                        loss, g = batch_vg(z, bdata)
+                    else:
+                        loss, g = full_vg(z, data)
+                    if (not math.isfinite(loss) or not np.all(np.isfinite(g))
+                            or loss > 1e4 * max(best_loss, 1e-12) + 1e3):
+                        diverged = True
+                        break
+                    ep_loss += loss / n_batches
+                    gn = float(np.linalg.norm(g))
+                    limit = cfg.clip if cfg.clip is not None else (10.0 * gnorm_ema if gnorm_ema else None)
+                    if limit is not None and gn > limit > 0:
+                        g = g * (limit / gn)
+                        gn = limit
+                    gnorm_ema = gn if gnorm_ema is None else 0.9 * gnorm_ema + 0.1 * gn
+                    step += 1
+                    m = b1 * m + (1 - b1) * g
+                    v = b2 * v + (1 - b2) * g * g
+                    mh = m / (1 - b1 ** step)
+                    vh = v / (1 - b2 ** step)
+                    z = z - lr * mh / (np.sqrt(vh) + eps)
+                if not diverged and not has_val and ep_loss < best_loss:
+                    best_loss, best_z, best_epoch = ep_loss, (z_prev if n_batches == 1 else z).copy(), epoch
+                # validation
+                dt_ep = time.perf_counter() - te
+                if epoch > 1:  # the first epoch includes compilation
+                    t_epoch = dt_ep if t_epoch is None else 0.8 * t_epoch + 0.2 * dt_ep
+                if has_val and not diverged:
+                    if epoch <= 2 or epoch % max(val_every, 1) == 0 or epoch == cfg.epochs:
+                        tv = time.perf_counter()
+                        val = self.validate(z)
+                        t_val = (time.perf_counter() - tv) if epoch == 1 else 0.5 * t_val + 0.5 * (time.perf_counter() - tv)
+                        if not math.isfinite(val):
+                            diverged = True
+                        elif val < best_val:
+                            best_val, best_z, best_epoch = val, z.copy(), epoch
+                            best_loss = min(best_loss, ep_loss)
+                            since_best = 0
+                if diverged:
+                    restarts += 1
+                    msg = (f"epoch {epoch}: the loss diverged (non-finite or exploding); restored the best state "
+                           f"(epoch {best_epoch}) and lowered the step to {cfg.lr * lr_scale * 0.3:.3g}")
+                    self.warnings.append(msg)
+                    self.log("warning: " + msg)
+                    if restarts > cfg.max_restarts:
+                        self.stopped = "diverged"
+                        self.warnings.append(
+                            f"training diverged {restarts} times; stopped at epoch {epoch} and kept the best model "
+                            f"(epoch {best_epoch}); lower --lr or use --integrator expeuler")
+                        raise _Stop
+                    z = best_z.copy()
+                    m[:] = 0.0
+                    v[:] = 0.0
+                    step = 0
+                    lr_scale *= 0.3
+                    continue
+                since_best = epoch - best_epoch
+                self.record(epoch, ep_loss, val, t0, "adam",
+                            eta=(cfg.epochs - epoch) * t_epoch * (1 + 0.4 * has_val) if t_epoch else math.nan)
+                if cfg.patience and since_best >= cfg.patience and epoch >= cfg.epochs // 2:
+                    self.stopped = "early_stopping"
+                    self.log(f"early stopping at epoch {epoch}: no better validation MAE for {since_best} epochs")
+                    break
+                if cfg.time_limit is not None and time.perf_counter() - t0 > cfg.time_limit:
+                    self.stopped = "time_limit"
+                    break
+        except _Stop:
+            return best_z
+        except KeyboardInterrupt:
+            self.stopped = "interrupted"
+            self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {best_epoch})")
+            return best_z
+        # L-BFGS polish on the full training loss, from Adam's last state (lower training loss than an
+        # early best-validation state; that one stays the fallback)
+        if cfg.lbfgs_iters > 0:
+            start = z if np.all(np.isfinite(z)) else best_z
+            return self.polish(start, full_vg, data, best_val if has_val else best_loss, has_val, t0,
+                               fallback=best_z)
+        return best_z.copy()
+
+    def auto_val_every(self) -> int:
+        """Validation period when ``val_every = 0``: validation costs at most ~40 % of the time and runs at
+        least ~25 times. Estimated from step counts, not timings, so a run is the same on every machine
+        and backend: a free validation run of N steps against one epoch ≈ 3 × the rollout length of each
+        group of windows (forward + backward; the windows of a group run as one batch)."""
+        n_val = sum(int(e.n_steps) for e in self.vals)
+        n_epoch = 3 * sum(int(g["U"].shape[1]) for g in self.groups)
+        return int(min(max(1, math.ceil(n_val / max(0.4 * n_epoch, 1))), max(1, self.cfg.epochs // 25)))
+
+    def polish(self, z, full_vg, data, best, has_val, t0, val_every: int = 10, patience: int = 10,
+               fallback: np.ndarray | None = None):
+        """L-BFGS-B on the full training loss from ``z``; returns the iterate with the best validation MAE
+        (checked every ``val_every`` iterations; the polish stops after ``patience`` checks without a
+        better one), or ``fallback`` (default ``z``) when none beats ``best`` (``fallback``'s score).
+
+        The loss is divided by its value at ``z`` first: scipy's stopping test compares the decrease
+        with ``max(|f|, 1)``, so an unscaled loss of 1e-4 K² would stop after one iteration."""
+        from scipy.optimize import minimize
+
+        it = [0]
+        epoch0 = self.curve[-1]["epoch"] if self.curve else 0
+        self._lbfgs_end = epoch0 + self.cfg.lbfgs_iters
+        f0 = _safe(full_vg(z, data))[0]
+        scale = 1.0 / f0 if math.isfinite(f0) and f0 > 0 else 1.0
+        state = {"best": best, "z": None, "last_loss": math.nan, "since": 0}
+
+        def fun(x):
+            v, g = _safe(full_vg(x, data))
+            state["last_loss"] = v
+            return v * scale, g * scale
+
+        def check(xk, final=False):
+            if has_val:
+                val = self.validate(xk)
+                if math.isfinite(val) and val < state["best"]:
+                    state["best"], state["z"], state["since"] = val, np.array(xk, copy=True), 0
+                else:
+                    state["since"] += 1
+                self.record(epoch0 + it[0], state["last_loss"], val, t0, "lbfgs")
+            elif final:
+                loss = _safe(full_vg(xk, data))[0]
+                if math.isfinite(loss) and loss <= state["best"]:
+                    state["best"], state["z"] = loss, np.array(xk, copy=True)
+                self.record(epoch0 + it[0], loss, math.nan, t0, "lbfgs")
+
+        def cb(xk):
+            it[0] += 1
+            if self.cfg.time_limit is not None and time.perf_counter() - t0 > self.cfg.time_limit:
+                raise _Stop
+            if it[0] % val_every == 0:
+                check(xk)
+                if has_val and state["since"] >= patience:
+                    raise _Stop  # the validation MAE stopped improving: keep its best iterate
+
+        cand = None
+        try:
+            res = minimize(fun, z, jac=True, method="L-BFGS-B", callback=cb,
+                           options={"maxiter": self.cfg.lbfgs_iters, "ftol": 1e-12, "gtol": 1e-12})
+            cand = res.x
+        except _Stop:
+            if self.cfg.time_limit is not None and time.perf_counter() - t0 > self.cfg.time_limit:
+                self.stopped = "time_limit"
+        except KeyboardInterrupt:
+            self.stopped = "interrupted"
+            self.warnings.append("interrupted during the L-BFGS polish; kept the best model")
+        if cand is not None and np.all(np.isfinite(cand)) and it[0] % val_every != 0:
+            check(cand, final=True)
+        elif cand is not None and not has_val:
+            check(cand, final=True)
+        if state["z"] is not None:
+            return state["z"]
+        self.log("the L-BFGS polish did not improve the " + ("validation MAE" if has_val else "training loss")
+                 + "; kept the Adam result")
+        return np.array(z if fallback is None else fallback, copy=True)
+
+    def record(self, epoch, loss, val, t0, phase, eta=math.nan):
+        best = min([r["val_mae"] for r in self.curve if math.isfinite(r["val_mae"])] + [val if math.isfinite(val) else math.inf])
+        rec = {"epoch": int(epoch), "phase": phase, "loss": float(loss), "val_mae": float(val),
+               "time": time.perf_counter() - t0}
+        self.curve.append(rec)
+        if self.callback is not None:
+            total = self.cfg.epochs if phase != "lbfgs" else self._lbfgs_end
+            self.callback({**rec, "epochs": total, "best_val_mae": best, "elapsed": rec["time"],
+                           "eta": eta})
+
+
+def _safe(res: tuple[float, np.ndarray]) -> tuple[float, np.ndarray]:
+    v, g = res
+    if not math.isfinite(v) or not np.all(np.isfinite(g)):
+        return 1e30, np.zeros_like(g)
+    return v, g
+
+
+# ---------------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------------
+
+
+def train(network, data, val=None, *, config: TrainConfig | dict | str | os.PathLike | None = None,
+          out: str | os.PathLike | None = None, force: bool = False,
+          callback: Callable[[dict], None] | None = None,
+          log: Callable[[str], None] | None = None, **options):
+    """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
+
+    Parameters
+    ----------
+    network : Network or path to a ``.thn`` file
+    data : training data: path(s) or ``Experiment``(s); several files are trained together
+    val : validation data (path(s) or ``Experiment``s); validation is a free run over each experiment.
+        Without it, ``val_fraction`` holds out the end of each training file, else the training loss
+        decides early stopping.
+    config : :class:`TrainConfig`, a dict of options or a YAML file; ``**options`` override it.
+    out : model directory to write (atomically), also after Ctrl-C or divergence (best state kept). It is
+        checked before training starts: it must be absent, empty or a model directory, unless ``force``
+        (then the model's files are written into the directory and its other files are kept).
+    callback : ``f(info)`` after each epoch: ``epoch, epochs, phase, loss, val_mae, best_val_mae,
+        elapsed, eta`` (s).
+    log : ``f(message)`` for notes and warnings (default: silent).
+
+    Returns a :class:`TrainedModel`; ``meta["metrics"]`` holds training and validation errors (K),
+    ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
+    (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
+    from ..compiler.model import compile as compile_network
+    from ..data.io import split_by_time
+    from ..core.files import check_output
+
+    if isinstance(config, TrainConfig):
+        cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
+    elif isinstance(config, dict):
+        cfg = load_config(None, **{**config, **options})
+    else:
+        cfg = load_config(config, **options)
+    if out is not None:
+        check_output(out, MODEL_DIR, force=force, inputs=[*_input_paths(network, data, val), cfg.init_from])
+    net = _net_of(network)
+    exps = as_experiments(net, data)
+    if not exps:
+        raise TnnError(Diagnostic("no training data given", hint="pass at least one CSV or Parquet file"))
+    vals = as_experiments(net, val)
+    if not vals and cfg.val_fraction > 0:
+        parts = [split_by_time(e, 1.0 - cfg.val_fraction) for e in exps]
+        exps, vals = [a for a, _ in parts], [b for _, b in parts]
+    for e in exps + vals:
+        if e.n_steps < 2:
+            raise TnnError(Diagnostic(f"{e.path}: {e.name} has {e.n_steps} sample(s); training needs at least 2",
+                                      hint="pass a longer data file"))
+        if not np.isfinite(np.asarray(e.outputs, dtype=float)).any():
+            raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
+                                      hint="check the sensor columns named in the network"))
+    model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
+    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
+    t_start = time.perf_counter()
+    params = tr.initial_params()
+    nom, nom_bp, runs = tr.nominal_runs(params)
+    tr.set_stats(params, nom, nom_bp, runs)
+    tr.prefit_replace(params, nom, nom_bp, runs)
+    tr.layout(params)
+    tr.build_batches(runs)
+    z = tr.run()
+    final = tr.numpy_params(z)
+    trained = TrainedModel(net, final, meta={}, path=None)
+    trained._models[(cfg.backend, cfg.dtype)] = model
+    metrics: dict[str, Any] = {}
+    metrics["train"] = _metrics_or_nan(trained, exps, cfg)
+    if vals:
+        metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
+    fitted = {}
+    for sl in tr.slots:
+        if model.param_specs[sl.name].kind == "physical":
+            fitted[sl.name] = {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
+    trained.meta = {
+        "network": net.name,
+        "backend": cfg.backend,
+        "dtype": cfg.dtype,
+        "versions": versions(cfg.backend),
+        "data": {"train": _data_desc(exps), "validation": _data_desc(vals)},
+        "data_files": data_records(sorted({e.path for e in exps + vals if getattr(e, "path", None)})),
+        "normalisation": tr.normalisation,
+        "metrics": metrics,
+        "fitted": fitted,
+        "curve": tr.curve,
+        "config": cfg.to_dict(),
+        "rollout": tr.mode,
+        "window_s": None if tr.mode == "free" else tr.window,
+        "stopped": tr.stopped,
+        "warnings": tr.warnings,
+        "train_seconds": time.perf_counter() - t_start,
+    }
+    if out is not None:
+        trained.save(out, force=force)
+    return trained
+
+
+def _input_paths(network, data, val) -> list:
+    """The files a training run reads (for the output check): the network's sources and the data paths."""
+    paths: list = []
+    if isinstance(network, (str, os.PathLike)):
+        paths.append(network)
+    else:
+        paths.extend(getattr(network, "source_files", ()) or ())
+    for d in (data, val):
+        items = d if isinstance(d, (list, tuple)) else [d]
+        paths.extend(x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items)
+    return paths
+
+
+def _metrics_or_nan(trained, exps, cfg):
+    try:
+        return trained.evaluate(exps, backend=cfg.backend, init=cfg.init)
+    except FloatingPointError:
+        return {"mae": math.nan}
+
+
+def _data_desc(exps) -> list[dict[str, Any]]:
+    return [{"name": e.name, "path": getattr(e, "path", None), "n_samples": int(e.n_steps), "dt": float(e.dt),
+             "t0": float(np.asarray(e.t)[0]), "notes": list(getattr(e, "notes", ()))} for e in exps]
+
+
+def evaluate(model, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
+    """Errors of a trained model (a :class:`TrainedModel` or a model directory) on data: per-sensor and
+    overall MAE, max error (thesis eq. 4.9), bias and RMSE in K. Free run from the steady state of the
+    first inputs (``init="measured"``: sensor nodes from the first measurement)."""
+
+    tm = model if isinstance(model, TrainedModel) else load_model(model)
+    return tm.evaluate(data, backend=backend, init=init)

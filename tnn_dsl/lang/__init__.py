@@ -1,0 +1,1 @@
+"""tnn_dsl.lang."""

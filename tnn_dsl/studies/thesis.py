@@ -1,0 +1,313 @@
+"""The thesis's case study (chapter 5, Table 5.1, Figure 5.6), runnable end to end.
+
+Used by ``examples/thesis_case_study.py`` (full budgets) and ``tnnc demo`` (budgets that fit in 10 minutes
+on two cores). Steps:
+
+1. generate the case-study data (``generate_case_study``; cached by its manifest);
+2. train the model variants M1–M5 of Table 5.1 on ``train.csv`` with ``val.csv`` for early stopping
+   (M5 = M4's Peltier network, frozen, loaded from the M4 model just trained, + M3's heat-pipe MLP);
+3. validation MAE and max error (thesis eq. 4.9), free run from the steady state of the first inputs;
+4. out of distribution: MAE averaged over the ``ood_<P>_<k>.csv`` sets per widening P (Figure 5.6);
+5. the ratios the thesis reports (``THESIS``) computed from our numbers, side by side.
+
+Everything measured is returned as a plain dict (and written as ``results.json``); nothing is hard-coded
+but the thesis's own reported ratios, which are labelled as such.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..core.files import OutputKind, check_output, save_figure, write_text_atomic
+
+__all__ = ["StudyConfig", "run_study", "thesis_ratios", "THESIS", "results_table", "plot_study", "MODELS"]
+
+MODELS = {
+    "M1": ("m1.thn", "analytic Peltier, constant heat pipe"),
+    "M2": ("m2.thn", "analytic Peltier, linear heat pipe"),
+    "M3": ("m3.thn", "analytic Peltier, MLP heat pipe"),
+    "M4": ("m4.thn", "MLP Peltier, constant heat pipe"),
+    "M5": ("m5.thn", "frozen MLP Peltier (M4) + MLP heat pipe"),
+}
+
+THESIS = {
+    "M1/M2 validation MAE": 4.2,
+    "M1/M3 validation MAE": 3.1,
+    "M3 − M2 validation MAE [mK]": 11.0,
+    "M4 − M1 validation MAE [mK]": 10.0,
+    "M5 improvement over M4 [%]": 26.0,
+    "M5/M3 validation MAE": 2.5,
+    "M4 growth at +40 % (×)": 7.0,
+    "M5 growth at +40 % (×)": 7.0,
+    "M1 growth at +40 % (×)": float("nan"),
+    "M2 growth at +40 % (×)": 4.0,
+    "M3 growth at +40 % (×)": 3.0,
+}
+"""What the thesis reports (§6.2, Table 6.1; case-study.md "What the thesis reports"). M1's growth is not
+given separately (\"3–4× for M1–M3\")."""
+
+
+@dataclass
+class StudyConfig:
+    """Budgets and sizes. ``durations`` (train, val, ood) s overrides the data lengths (quick runs);
+    ``n_ood`` sets per widening; ``epochs``/``time_limit`` (s, per model) bound training."""
+
+    backend: str = "jax"
+    epochs: int = 300
+    time_limit: float | None = 240.0
+    lbfgs_iters: int = 100
+    n_ood: int = 10
+    widen: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4)
+    durations: tuple[float, float, float] | None = None
+    models: tuple[str, ...] = ("M1", "M2", "M3", "M4", "M5")
+    seed: int = 0
+    train_options: dict = field(default_factory=dict)
+
+
+def _networks_dir() -> Path:
+    from .casestudy import network_path
+
+    return Path(network_path("peltier_heatpipe/m1.thn")).parent
+
+
+def _m5_network(m4_dir: Path):
+    """m5.thn with its frozen Peltier function's ``init_from`` pointed at the M4 model just trained."""
+    from ..lang.parser import load
+
+    net = load(str(_networks_dir() / "m5.thn"))
+    learned = [fn.model_copy(update={"init_from": str(m4_dir)}) if fn.init_from else fn for fn in net.learned]
+    return net.model_copy(update={"learned": learned})
+
+
+STUDY_FILES = frozenset({"data", "data-quick", "models", "results.json", "report.md", "ood.png", "validation.png"})
+
+
+def _is_study_dir(p: Path) -> bool:
+    return all(c.name in STUDY_FILES for c in p.iterdir())
+
+
+STUDY_DIR = OutputKind("case-study output directory", is_dir=True, ours=_is_study_dir, example="tnnc-demo")
+"""What :func:`run_study` (``tnnc demo``) writes: data sets, model directories, results, report, plots."""
+
+
+def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = None,
+              config: StudyConfig | None = None, progress: Callable[[str], None] | None = None,
+              *, force: bool = False) -> dict:
+    """Run the study; write ``out_dir/models/<m>``, ``out_dir/results.json``; → the results dict::
+
+        {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
+         "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
+    """
+    from .casestudy import generate_case_study
+    from ..lang.parser import load
+    from ..fit.train import train
+
+    cfg = config or StudyConfig()
+    order = [m for m in MODELS if m in cfg.models]
+    if "M5" in order and "M4" not in order:
+        raise ValueError("M5 needs M4 (its frozen Peltier network comes from the trained M4)")
+    say = progress or (lambda msg: None)
+    out = Path(out_dir)
+    check_output(out, STUDY_DIR, force=force)
+    out.mkdir(parents=True, exist_ok=True)
+    data_dir = Path(data_dir) if data_dir is not None else out / "data"
+    t_start = time.perf_counter()
+    say(f"[1/3] case-study data in {data_dir}")
+    data = generate_case_study(data_dir, widen=cfg.widen, n_ood=cfg.n_ood, durations=cfg.durations,
+                               backend=cfg.backend, progress=lambda m: say("      " + m))
+    results: dict = {"config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
+                     "data": {"dir": str(data_dir), "train": data["train"], "val": data["val"],
+                              "n_ood": cfg.n_ood, "widen": list(cfg.widen), "cached": data["cached"]},
+                     "models": {}}
+    nets = _networks_dir()
+    say(f"[2/3] training {', '.join(order)} ({cfg.backend}, ≤ {cfg.epochs} epochs"
+        + (f", ≤ {cfg.time_limit:g} s each" if cfg.time_limit else "") + ")")
+    trained = {}
+    for i, name in enumerate(order):
+        fname, what = MODELS[name]
+        net = _m5_network(out / "models" / "m4") if name == "M5" else load(str(nets / fname))
+        t0 = time.perf_counter()
+        last = [t0]
+
+        def cb(info, name=name):
+            now = time.perf_counter()
+            if now - last[0] >= 10.0:
+                last[0] = now
+                v = info.get("val_mae")
+                vs = f", validation MAE {v * 1e3:.1f} mK" if v is not None and math.isfinite(v) else ""
+                say(f"      {name}: epoch {info.get('epoch')}/{info.get('epochs')} ({info.get('phase')}){vs}, "
+                    f"{now - t0:.0f} s")
+
+        opts = dict(backend=cfg.backend, epochs=cfg.epochs, time_limit=cfg.time_limit, lbfgs_iters=cfg.lbfgs_iters,
+                    seed=cfg.seed, **cfg.train_options)
+        say(f"      {name} ({what}) [{i + 1}/{len(order)}]")
+        tm = train(net, data["train"], val=data["val"], out=out / "models" / name.lower(), callback=cb, **opts)
+        trained[name] = tm
+        val = tm.meta["metrics"].get("validation", {})
+        results["models"][name] = {
+            "network": fname, "what": what,
+            "validation": {"mae": float(val.get("mae", math.nan)), "max_error": float(val.get("max_error", math.nan))},
+            "train": {"mae": float(tm.meta["metrics"]["train"].get("mae", math.nan))},
+            "train_seconds": float(tm.meta.get("train_seconds", time.perf_counter() - t0)),
+            "stopped": tm.meta.get("stopped"), "epochs": len(tm.meta.get("curve", [])),
+            "n_trainable": int(sum(int(np.prod(np.shape(tm.params[k]))) for k, s in
+                                   tm.compiled(cfg.backend).param_specs.items() if s.trainable)),
+        }
+        say(f"      {name}: validation MAE {results['models'][name]['validation']['mae'] * 1e3:.1f} mK, max "
+            f"{results['models'][name]['validation']['max_error'] * 1e3:.0f} mK "
+            f"({results['models'][name]['train_seconds']:.0f} s, {tm.meta.get('stopped')})")
+
+    if cfg.n_ood > 0 and cfg.widen:
+        say(f"[3/3] out of distribution: {len(cfg.widen)} widenings × {cfg.n_ood} sets × {len(order)} models")
+        for name in order:
+            tm = trained[name]
+            ood, ood_max = {}, {}
+            for p, paths in data["ood"].items():
+                ev = tm.evaluate(paths, backend=cfg.backend)
+                maes = [e["mae"] for e in ev["experiments"]]
+                ood[p] = float(np.mean(maes))
+                ood_max[p] = float(np.mean([e["max_error"] for e in ev["experiments"]]))
+            results["models"][name]["ood"] = ood
+            results["models"][name]["ood_max"] = ood_max
+            say(f"      {name}: " + ", ".join(f"+{p} %: {v * 1e3:.0f} mK" for p, v in ood.items()))
+    results["ratios"] = thesis_ratios(results)
+    results["seconds"] = time.perf_counter() - t_start
+    write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
+    return results
+
+
+def thesis_ratios(results: dict) -> dict[str, dict[str, float]]:
+    """``{quantity: {"thesis": x, "ours": y}}`` for every ratio the thesis reports that our run can compute."""
+    m = results["models"]
+
+    def v(name):
+        return m[name]["validation"]["mae"] if name in m else math.nan
+
+    def growth(name):
+        if name not in m or "ood" not in m[name]:
+            return math.nan
+        ood = m[name]["ood"]
+        key = max(ood, key=lambda k: float(k)) if ood else None
+        return ood[key] / v(name) if key else math.nan
+
+    ours = {
+        "M1/M2 validation MAE": v("M1") / v("M2"),
+        "M1/M3 validation MAE": v("M1") / v("M3"),
+        "M3 − M2 validation MAE [mK]": (v("M3") - v("M2")) * 1e3,
+        "M4 − M1 validation MAE [mK]": (v("M4") - v("M1")) * 1e3,
+        "M5 improvement over M4 [%]": (1 - v("M5") / v("M4")) * 100,
+        "M5/M3 validation MAE": v("M5") / v("M3"),
+        "M4 growth at +40 % (×)": growth("M4"),
+        "M5 growth at +40 % (×)": growth("M5"),
+        "M1 growth at +40 % (×)": growth("M1"),
+        "M2 growth at +40 % (×)": growth("M2"),
+        "M3 growth at +40 % (×)": growth("M3"),
+    }
+    return {k: {"thesis": THESIS[k], "ours": float(ours[k])} for k in THESIS}
+
+
+def _f(x: float, fmt: str) -> str:
+    return "–" if x is None or not math.isfinite(x) else format(x, fmt)
+
+
+def results_table(results: dict) -> str:
+    """The M1–M5 table (Markdown): validation MAE and max (mK), MAE per widening (mK), growth at the widest."""
+    m = results["models"]
+    widen = [f"{round(float(w) * 100)}" for w in results["data"].get("widen", [])]
+    head = "| model | what | trainable | val. MAE [mK] | val. max [mK] | " + " | ".join(f"+{p} % MAE" for p in widen)
+    head += " | growth at widest |" if widen else ""
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for name, r in m.items():
+        ood = r.get("ood", {})
+        cells = [name, r["what"], str(r.get("n_trainable", "")), _f(r["validation"]["mae"] * 1e3, ".1f"),
+                 _f(r["validation"]["max_error"] * 1e3, ".0f")]
+        cells += [_f(ood.get(p, math.nan) * 1e3, ".0f") for p in widen]
+        if widen:
+            g = ood.get(widen[-1], math.nan) / r["validation"]["mae"] if ood else math.nan
+            cells.append(_f(g, ".1f") + "×")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def ratios_table(results: dict) -> str:
+    lines = ["| quantity | thesis | ours |", "|---|---|---|"]
+    for k, r in results["ratios"].items():
+        lines.append(f"| {k} | {_f(r['thesis'], '.3g')} | {_f(r['ours'], '.3g')} |")
+    return "\n".join(lines)
+
+
+def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
+    """``ood.png`` (validation MAE and MAE per widening, the thesis's Figure 5.6) and ``validation.png``
+    (T_out error through the validation run per model). Returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    m = results["models"]
+    widen = results["data"].get("widen", [])
+    if widen and any("ood" in r for r in m.values()):
+        fig, ax = plt.subplots(figsize=(6.5, 4.2))
+        xs = [0] + [round(float(w) * 100) for w in widen]
+        for name, r in m.items():
+            if "ood" not in r:
+                continue
+            ys = [r["validation"]["mae"] * 1e3] + [r["ood"][f"{x}"] * 1e3 for x in xs[1:]]
+            ax.plot(xs, ys, "o-", label=f"{name}: {r['what']}")
+        ax.set_yscale("log")
+        ax.set_xlabel("input bounds widened by [%] (0 = validation set)")
+        ax.set_ylabel("T_out MAE [mK] (mean over data sets)")
+        ax.set_title(f"out-of-distribution error (cf. thesis Fig. 5.6), {results['data'].get('n_ood')} sets per level",
+                     fontsize=9)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        p = out / "ood.png"
+        save_figure(fig, p, dpi=110)
+        plt.close(fig)
+        written.append(str(p))
+    # validation trajectories
+    from ..fit.model_files import load_model
+
+    models_dir = Path(results.get("models_dir", out.parent / "models"))
+    preds = {}
+    for name in m:
+        d = models_dir / name.lower()
+        if d.is_dir():
+            try:
+                tm = load_model(d)
+                preds[name] = tm.predict(results["data"]["val"], backend=results["config"].get("backend", "jax"))[0]
+            except Exception:  # noqa: BLE001 - a plot must not break the study
+                continue
+    if preds:
+        fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+        first = next(iter(preds.values()))
+        t = first["t"] / 3600
+        ax[0].plot(t, first["measured"][:, 0] - 273.15, color="k", lw=1.0, label="truth (validation)")
+        for name, p in preds.items():
+            ax[0].plot(t, p["y"][:, 0] - 273.15, lw=0.9, label=name)
+            ax[1].plot(t, (p["y"][:, 0] - p["measured"][:, 0]) * 1e3, lw=0.9, label=name)
+        ax[0].set_ylabel("T_out [°C]")
+        ax[1].set_ylabel("error [mK]")
+        ax[1].set_xlabel("time [h]")
+        for a in ax:
+            a.grid(alpha=0.3)
+            a.legend(fontsize=7, ncol=3)
+        ax[0].set_title("validation run: free-run prediction per model (cf. thesis Fig. 5.4)", fontsize=9)
+        fig.tight_layout()
+        p = out / "validation.png"
+        save_figure(fig, p, dpi=110)
+        plt.close(fig)
+        written.append(str(p))
+    return written
