@@ -22,7 +22,6 @@ Two measurements, each the median of ``--repeats`` runs after a warm-up call, fl
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import statistics
 import sys
@@ -95,8 +94,9 @@ def model_ladder(repeats: int, steps: int = 20_000, B: int = 256, N: int = 390):
     import jax.numpy as jnp
 
     sys.path.insert(0, str(HERE.parent))
-    import tnn_dsl
     from bench_rollout import case_inputs, random_weights
+
+    import tnn_dsl
 
     rows = []
     for name in ("m1", "m2", "m3"):

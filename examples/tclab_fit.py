@@ -97,8 +97,8 @@ def main(argv=None) -> int:
     print(f"TCLab two-node network fitted on {PRBS.name} (first {args.split:.0%}), backend {args.backend}, "
           f"{took:.0f} s, stopped: {tm.meta['stopped']}")
     print()
-    print(f"| data | MAE T1 (K) | MAE T2 (K) | MAE (K) | max (K) | nominal MAE (K) |")
-    print(f"|---|---|---|---|---|---|")
+    print("| data | MAE T1 (K) | MAE T2 (K) | MAE (K) | max (K) | nominal MAE (K) |")
+    print("|---|---|---|---|---|---|")
     for label, ev, nom in rows:
         s = ev["sensors"]
         print(f"| {label} | {s['T1']['mae']:.3f} | {s['T2']['mae']:.3f} | {ev['mae']:.3f} | {ev['max_error']:.3f} | "

@@ -61,7 +61,7 @@ def main(argv=None) -> int:
         e_open = float(np.nanmean(np.abs(y_open[:, 1] - exp.outputs[:, 1])))
         rows.append((label, e_ekf, e_open))
         runs.append((label, exp, Y, res, y_open, drop))
-    print(f"\n| run (T1 used, T2 estimated) | T2 MAE, EKF [K] | T2 MAE, open loop [K] | better by |")
+    print("\n| run (T1 used, T2 estimated) | T2 MAE, EKF [K] | T2 MAE, open loop [K] | better by |")
     print("|---|---|---|---|")
     for label, a, b in rows:
         print(f"| {label} | {a:.3f} | {b:.3f} | {(1 - a / b) * 100:.0f} % |")

@@ -7,8 +7,26 @@ docs/architecture.md. Temperatures in kelvin.
 from __future__ import annotations
 
 from tnn_dsl.ir.network import (
-    Binary, Boundary, Call, Fluid, Input, LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param,
-    Peltier, Radiation, Ref, Sensor, Source, Table, Temp, ThermalNode,
+    Binary,
+    Boundary,
+    Call,
+    Fluid,
+    Input,
+    LearnFunction,
+    LearnInput,
+    LearnTarget,
+    Link,
+    Network,
+    Num,
+    Param,
+    Peltier,
+    Radiation,
+    Ref,
+    Sensor,
+    Source,
+    Table,
+    Temp,
+    ThermalNode,
 )
 
 K0 = 273.15

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import nets
 import numpy as np
 import pytest
 
-import nets
 import tnn_dsl
 
 
@@ -69,7 +69,6 @@ def test_case_study_all_components_agree_4h():
 
 def test_steady_state_and_its_gradient_agree():
     import jax
-    import torch
 
     net = nets.case_study("mlp", extra=True)
     mj, mt = tnn_dsl.compile(net, "jax"), tnn_dsl.compile(net, "torch")

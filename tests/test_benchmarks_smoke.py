@@ -74,9 +74,10 @@ def test_machine_info_names_versions():
 @pytest.mark.skipif(not HAS_CC, reason="no C compiler")
 @pytest.mark.parametrize("integrator", ["euler", "rk4"])
 def test_c_loop_matches_numpy_backend(integrator):
-    import tnn_dsl
     from _c_loop import build_c_rollout
     from bench_rollout import NET, case_inputs, random_weights
+
+    import tnn_dsl
 
     net = tnn_dsl.load(NET)
     model = tnn_dsl.compile(net, "numpy")

@@ -10,7 +10,12 @@ import pandas as pd
 import pytest
 
 from tnn_dsl.studies.casestudy import (
-    HOLD_S, case_study_inputs, generate_case_study, step_sequence, truth_network_path, widened_bounds,
+    HOLD_S,
+    case_study_inputs,
+    generate_case_study,
+    step_sequence,
+    truth_network_path,
+    widened_bounds,
 )
 
 

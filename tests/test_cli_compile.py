@@ -6,12 +6,11 @@ import json
 import os
 
 import pytest
+from test_emit import case_study, tclab_lag
 
 from tnn_dsl import Network
-from tnn_dsl.ir import emit as _emit
 from tnn_dsl.cli import main
-
-from test_emit import case_study, tclab_lag
+from tnn_dsl.ir import emit as _emit
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 M2 = os.path.join(ROOT, "networks", "peltier_heatpipe", "m2.thn")

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-import warnings
 
+import nets
 import numpy as np
 import pytest
 
-import nets
 import tnn_dsl
 from tnn_dsl import TnnError
 from tnn_dsl.compiler.physics import STEFAN_BOLTZMANN

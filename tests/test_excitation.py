@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl.core.errors import DataError, TnnError
 from tnn_dsl.analysis.sensitivity import excitation, hankel_matrix, hankel_metrics
+from tnn_dsl.core.errors import DataError, TnnError
 
 
 def test_hankel_matrix_layout():
@@ -123,8 +123,8 @@ def test_file_errors(tmp_path):
 
 def test_with_network_and_cli(tmp_path, capsys):
     load = pytest.importorskip("tnn_dsl.lang.parser").load
-    from tnn_dsl.studies.casestudy import network_path
     from tnn_dsl.cli import main
+    from tnn_dsl.studies.casestudy import network_path
 
     net_path = str(network_path("peltier_heatpipe/m1.thn"))
     net = load(net_path)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import warnings
 
+import nets
 import numpy as np
 import pytest
 
-import nets
 import tnn_dsl
 from tnn_dsl.compiler.backends import get_xp
 from tnn_dsl.compiler.integrators import StepSizeWarning, check_step, phi1, stable_substeps

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 
+import nets
 import numpy as np
 import pytest
 
-import nets
 import tnn_dsl
 from tnn_dsl.compiler import learned as _learned
 from tnn_dsl.compiler.backends import get_xp

@@ -4,15 +4,13 @@ predictions (the part that needs the compiler is skipped until it is importable)
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tnn_dsl.core.errors import ModelFileError
-from tnn_dsl.ir.network import Link, Network, Num, Param, Sensor, ThermalNode, Boundary
 from tnn_dsl.fit.model_files import load_model, save_model
+from tnn_dsl.ir.network import Boundary, Link, Network, Num, Param, Sensor, ThermalNode
 
 
 def _net() -> Network:

@@ -13,15 +13,14 @@ import textwrap
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tnn_dsl.cli import main
 from tnn_dsl.core.errors import ModelFileError, TnnError
 from tnn_dsl.core.files import CSV, JSON, THN, atomic_path, check_output
 from tnn_dsl.fit.model_files import is_model_dir, load_model, save_model
-from tnn_dsl.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_cli_simulate import RC, rc_data  # noqa: E402
@@ -218,8 +217,8 @@ def test_evaluate_json_inside_the_model_directory_is_refused(tmp_path, capsys):
 
 
 def test_report_directory_and_generate_directory(tmp_path, capsys):
-    from tnn_dsl.studies.casestudy import DATA_DIR
     from tnn_dsl.doctor.report import REPORT_DIR
+    from tnn_dsl.studies.casestudy import DATA_DIR
 
     d = tmp_path / "site"
     d.mkdir()

@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from nets import B, case_inputs, case_study, peltier_fluid, ref, two_node
 
 import tnn_dsl
 from tnn_dsl.ir.network import Binary, Num
-
-from nets import B, case_inputs, case_study, peltier_fluid, ref, two_node
 
 
 def boundary_net():

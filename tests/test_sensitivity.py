@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from tnn_dsl.analysis.sensitivity import fisher_analysis
 from tnn_dsl.core.errors import TnnError
 from tnn_dsl.ir.network import Num, Ref
-from tnn_dsl.analysis.sensitivity import fisher_analysis
 
 BACKENDS = ["jax", "torch"]
 
@@ -71,9 +71,9 @@ def test_fisher_rejects_bad_sigma():
 compile_mod = pytest.importorskip("tnn_dsl.compiler.model", reason="the compiler is not there yet")
 
 import tnn_dsl  # noqa: E402
+from tnn_dsl.analysis.sensitivity import sensitivity  # noqa: E402
 from tnn_dsl.compiler.model import compile as _compile_net  # noqa: E402
 from tnn_dsl.studies.casestudy import network_path  # noqa: E402
-from tnn_dsl.analysis.sensitivity import sensitivity  # noqa: E402
 
 C2K = 273.15
 CASE_INPUTS = {"I": 1.5, "u1": 0.5, "Ta": 22 + C2K, "Tf1": 25 + C2K, "Tf2": 25 + C2K}
@@ -208,8 +208,8 @@ def test_same_results_on_both_backends(m1_reports):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
-    from tnn_dsl.data.io import Experiment
     from tnn_dsl.analysis.sensitivity import _Ops, _trajectory_sensitivity
+    from tnn_dsl.data.io import Experiment
 
     model = _compile_net(m1, backend=backend, dtype="float64")
     n = 301
@@ -270,8 +270,8 @@ def series_net():
 
 
 def _series_data(net, tmp_path=None, seconds: int = 3 * 3600, dt: float = 10.0):
-    from tnn_dsl.studies.casestudy import step_sequence
     from tnn_dsl.data.io import Experiment
+    from tnn_dsl.studies.casestudy import step_sequence
 
     n = int(seconds / dt) + 1
     rng = np.random.default_rng(7)

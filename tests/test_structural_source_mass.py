@@ -18,11 +18,16 @@ import numpy as np
 import pytest
 
 import tnn_dsl
+from tnn_dsl.compiler.model import compile as _compile
 from tnn_dsl.doctor.candidates import (
-    apply_structural, source_lag_forcing, source_line_moved, source_mass_lines, source_mass_values, source_tau_grid,
+    apply_structural,
+    source_lag_forcing,
+    source_line_moved,
+    source_mass_lines,
+    source_mass_values,
+    source_tau_grid,
     structural_candidates,
 )
-from tnn_dsl.compiler.model import compile as _compile
 from tnn_dsl.studies.planted import step_inputs
 
 HERE = os.path.dirname(os.path.abspath(__file__))

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import warnings
 
+import nets
 import numpy as np
 import pytest
 
-import nets
 import tnn_dsl
 from tnn_dsl import TnnError
 

@@ -16,7 +16,14 @@ from hypothesis import strategies as st
 from tnn_dsl.core.errors import TnnError
 from tnn_dsl.fit.simulate import error_metrics
 from tnn_dsl.fit.train import (
-    MIN_WINDOW_SAMPLES, TrainConfig, _from_z, _make_slot, _NumpyOps, _to_z, _windows, auto_window,
+    MIN_WINDOW_SAMPLES,
+    TrainConfig,
+    _from_z,
+    _make_slot,
+    _NumpyOps,
+    _to_z,
+    _windows,
+    auto_window,
     load_config,
 )
 
@@ -210,7 +217,6 @@ def _prbs(rng, n, lo, hi, hold=(30, 150)):
 
 def _simulated(net, seed, n, dt=2.0, backend="jax"):
     """An Experiment simulated from ``net`` (its written values) with PRBS heater inputs."""
-    import tnn_dsl
     from tnn_dsl.data.io import Experiment
     from tnn_dsl.fit.simulate import simulate
 

@@ -5,7 +5,15 @@ from __future__ import annotations
 import pytest
 
 from tnn_dsl.lang.units import (
-    UnitError, describe_dim, dim_div, dim_eq, dim_mul, dim_pow, format_dim, is_temperature_unit, parse_quantity,
+    UnitError,
+    describe_dim,
+    dim_div,
+    dim_eq,
+    dim_mul,
+    dim_pow,
+    format_dim,
+    is_temperature_unit,
+    parse_quantity,
     unit_dim,
 )
 

@@ -75,4 +75,11 @@ def __dir__() -> list[str]:
     return sorted(__all__)
 
 
-__all__ = ["Network", "TnnError", "DataError", "ModelFileError", "Diagnostic", "__version__", *_LAZY]
+__all__ = [
+    "Network", "TnnError", "DataError", "ModelFileError", "Diagnostic", "__version__",
+    "load", "loads", "compile", "Model", "ParamSpec", "TorchCompileWarning", "read_data", "Experiment",
+    "split_by_time", "train", "evaluate", "TrainConfig", "load_model", "TrainedModel", "sensitivity",
+    "excitation", "diagnose", "Diagnosis", "ekf", "EKFResult", "tune_process_noise", "MPC", "closed_loop",
+    "generate_case_study", "run_study", "StudyConfig",
+]
+assert set(__all__) == {"Network", "TnnError", "DataError", "ModelFileError", "Diagnostic", "__version__", *_LAZY}

@@ -1166,7 +1166,7 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
     steady_j = ops.jit(steady)
     ones = np.ones(P)
     T_star_b, y_star_b = steady_j(ops.arr(ones))
-    T_star, y_star = ops.np(T_star_b), ops.np(y_star_b)
+    T_star = ops.np(T_star_b)
     if not np.all(np.isfinite(T_star)):
         raise TnnError(Diagnostic("the steady state for these inputs is not finite",
                                   hint="check the inputs (a Peltier current too large for its heat sink?)"))

@@ -47,8 +47,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..doctor.diagnose import diagnose
     from ..core.files import JSON, THN
+    from ..doctor.diagnose import diagnose
     from ..doctor.report import REPORT_DIR
 
     check_outputs(args, [(args.output, THN, "-o"), (args.report, REPORT_DIR, "--report"), (args.json, JSON, "--json")],

@@ -42,8 +42,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..data.io import read_data
     from ..core.files import IMAGE, JSON
+    from ..data.io import read_data
     from ..fit.model_files import _jsonable, load_model
     from ..fit.simulate import error_metrics
 
@@ -84,8 +84,8 @@ def plot_predictions(path: str, net, preds) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..data.io import from_kelvin
     from ..core.files import save_figure
+    from ..data.io import from_kelvin
 
     unit = net.temperature_unit
     ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]

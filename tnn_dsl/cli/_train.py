@@ -161,9 +161,9 @@ def _dur(s: float) -> str:
 def run(args) -> int:
     import tnn_dsl
 
-    from ..data.io import read_data
     from ..core.errors import Diagnostic, TnnError
     from ..core.files import JSON
+    from ..data.io import read_data
     from ..fit.model_files import MODEL_DIR
     from ..fit.train import load_config, train
 

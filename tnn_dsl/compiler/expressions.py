@@ -20,8 +20,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .backends import _interp_segments, interp_with
 from ..ir.network import Binary, Call, Num, Ref, Table, Temp, Unary
+from .backends import _interp_segments, interp_with
 
 Getter = Callable[[Any], Any]
 """``getter(env) -> value``: how a compiled expression reads a parameter, input or temperature."""

@@ -28,24 +28,23 @@ Flow names: ``"<link>.Q"`` (into the link's ``a``), ``"<radiation>.Q"`` (into ``
 
 from __future__ import annotations
 
+import graphlib
+import math
 import os
 import types
 import warnings
-
-import graphlib
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from ..core.errors import Diagnostic, TnnError
+from ..ir.network import POSITIVE_ROLES, Network
 from . import learned as _learned
 from . import physics as _physics
 from .backends import get_xp
-from ..core.errors import Diagnostic, TnnError
 from .expressions import compile_expr, dependencies
 from .integrators import INTEGRATORS, check_step, euler, expeuler, rk4
-from ..ir.network import POSITIVE_ROLES, Network
 
 NOMINAL_T = 298.15
 """K: the temperature at which nominal quantities (time constants, default normalisation) are taken."""
@@ -1559,7 +1558,7 @@ class Model:
 
     def _jac(self, prep, T, u):
         """Jacobian ``∂f/∂T (..., n, n)`` (no gradient w.r.t. parameters)."""
-        core, xp = self._core, self.xp
+        core = self._core
         if self.backend == "jax":
             import jax
             import jax.numpy as jnp

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
@@ -88,7 +88,7 @@ class MPC:
     # -- the cost and its gradient on the backend ------------------------------------------------
 
     def _build(self):
-        m, H, nc = self.model, self.H, len(self.ctrl_idx)
+        m, nc = self.model, len(self.ctrl_idx)
         ni = len(m.input_names)
         sel = np.zeros((nc, ni))
         for j, i in enumerate(self.ctrl_idx):

@@ -552,7 +552,7 @@ def _time(tab: _Table, time_col: str | None, time_unit: str | None, dt: float | 
         if time_unit is not None:
             if time_unit not in _TIME_UNITS:
                 raise DataError(Diagnostic(f"unknown time unit {time_unit!r}",
-                                           hint=f"use one of s, ms, min, h, d"))
+                                           hint="use one of s, ms, min, h, d"))
             factor = _TIME_UNITS[time_unit]
         else:
             factor = _suffix_unit(tab.columns[j]) or 1.0

@@ -47,8 +47,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..ir.network import (
-    Binary, Call, LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref, Table,
-    Temp, ThermalNode, Unary, walk,
+    Binary,
+    LearnFunction,
+    LearnInput,
+    LearnTarget,
+    Link,
+    Network,
+    Num,
+    Param,
+    Radiation,
+    Ref,
+    Temp,
+    ThermalNode,
+    walk,
 )
 
 __all__ = ["Column", "Candidate", "Extended", "build_extended", "refs_in", "var_label", "fn_name",

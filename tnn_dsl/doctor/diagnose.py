@@ -58,14 +58,19 @@ from scipy.signal import lfilter
 
 from ..analysis import residuals as R
 from ..analysis.significance import held_out_test as _held_out_test
-from .selection import CLOSE_RATIO, MIN_GAIN, P_ACCEPT
-from .candidates import (
-    STRUCTURAL_KINDS, Candidate, Column, Extended, apply_structural, build_extended, fn_name, structural_candidates,
-    var_label,
-)
 from ..core.errors import Diagnostic, TnnError
 from ..core.files import THN, check_output, write_text_atomic
 from ..ir.network import POSITIVE_ROLES, Input, Network, Param
+from .candidates import (
+    STRUCTURAL_KINDS,
+    Candidate,
+    Extended,
+    apply_structural,
+    build_extended,
+    structural_candidates,
+    var_label,
+)
+from .selection import CLOSE_RATIO, MIN_GAIN, P_ACCEPT
 
 __all__ = ["diagnose", "Diagnosis", "Finding"]
 

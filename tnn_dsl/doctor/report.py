@@ -10,7 +10,6 @@ import html
 import io
 import math
 import os
-
 from pathlib import Path
 
 import numpy as np

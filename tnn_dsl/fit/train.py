@@ -26,14 +26,13 @@ shooting). ``auto`` picks ``free`` for short experiments and ``estimated`` for l
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
@@ -478,7 +477,6 @@ class _Trainer:
 
     def set_stats(self, params, nom, nom_params, runs) -> None:
         """Input normalisation (and output scales) of learned functions from the nominal simulation."""
-        specs = self.model.param_specs
         names = list(nom.state_names)
         U = np.concatenate([np.asarray(e.inputs, dtype=float) for e in self.exps])
         T = np.concatenate(runs)
@@ -748,7 +746,10 @@ class _Trainer:
                 for b, i in enumerate(ids):
                     w = self.wins[i]
                     if w.succ is not None:
-                        cb.append(b); ck.append(w.succ[1]); cj.append(w.succ[0]); cw.append(1.0)
+                        cb.append(b)
+                        ck.append(w.succ[1])
+                        cj.append(w.succ[0])
+                        cw.append(1.0)
                 if not cb:
                     cb, ck, cj, cw = [0], [0], [int(ids[0])], [0.0]
                 d.update({"idx": ids.astype(np.int64), "cb": np.array(cb, dtype=np.int64),
@@ -1068,8 +1069,8 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
     ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
     (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
     from ..compiler.model import compile as compile_network
-    from ..data.io import split_by_time
     from ..core.files import check_output
+    from ..data.io import split_by_time
 
     if isinstance(config, TrainConfig):
         cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})

@@ -29,8 +29,29 @@ from lark.exceptions import UnexpectedCharacters, UnexpectedEOF, UnexpectedInput
 
 from ..core.errors import Diagnostic, TnnError
 from ..ir.network import (
-    CALL_FUNCTIONS, Binary, Boundary, Call, Fluid, Input, LearnFunction, LearnInput, LearnTarget, Link, Network,
-    Num, Param, Peltier, Radiation, Ref, Sensor, Source, Span, Table, Temp, ThermalNode, Unary,
+    CALL_FUNCTIONS,
+    Binary,
+    Boundary,
+    Call,
+    Fluid,
+    Input,
+    LearnFunction,
+    LearnInput,
+    LearnTarget,
+    Link,
+    Network,
+    Num,
+    Param,
+    Peltier,
+    Radiation,
+    Ref,
+    Sensor,
+    Source,
+    Span,
+    Table,
+    Temp,
+    ThermalNode,
+    Unary,
 )
 from .units import TEMPERATURE_UNITS, UnitError, dim_eq, format_dim, parse_quantity, unit_scale
 

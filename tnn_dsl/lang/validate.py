@@ -22,7 +22,18 @@ import re
 
 from ..core.errors import Diagnostic, TnnError
 from ..ir.network import (
-    Binary, Call, LearnFunction, LearnInput, Network, Num, Param, Ref, Span, Table, Temp, Unary,
+    Binary,
+    Call,
+    LearnFunction,
+    LearnInput,
+    Network,
+    Num,
+    Param,
+    Ref,
+    Span,
+    Table,
+    Temp,
+    Unary,
 )
 from .units import describe_dim, dim_div, dim_eq, dim_mul, dim_pow, format_dim, unit_dim
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..doctor.candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
 from ..data.io import Experiment
+from ..doctor.candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
 from ..ir.network import Network
 
 __all__ = ["Planted", "step_inputs", "plant", "find_candidate"]

@@ -106,9 +106,9 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
          "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
     """
-    from .casestudy import generate_case_study
-    from ..lang.parser import load
     from ..fit.train import train
+    from ..lang.parser import load
+    from .casestudy import generate_case_study
 
     cfg = config or StudyConfig()
     order = [m for m in MODELS if m in cfg.models]

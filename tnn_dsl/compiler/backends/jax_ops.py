@@ -21,8 +21,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import _interp_segments
-from . import interp_with
+from . import _interp_segments, interp_with  # noqa: E402
 
 SMALL_MATMUL = 256
 """Largest ``K·N`` of a matrix that an unbatched vector is multiplied by with multiply-and-sum."""

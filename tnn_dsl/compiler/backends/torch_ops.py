@@ -6,8 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import _interp_segments
-from . import interp_with
+from . import _interp_segments, interp_with
 
 
 class TorchXP:
