@@ -208,7 +208,8 @@ def test_same_results_on_both_backends(m1_reports):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
-    from tnn_dsl.analysis.sensitivity import _Ops, _trajectory_sensitivity
+    from tnn_dsl.analysis.sensitivity import _trajectory_sensitivity
+    from tnn_dsl.compiler.backends.adapter import backend_of
     from tnn_dsl.data.io import Experiment
 
     model = _compile_net(m1, backend=backend, dtype="float64")
@@ -219,7 +220,7 @@ def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
     exp = Experiment(name="short", path="", t=np.arange(n, dtype=float), dt=1.0, inputs=u,
                      outputs=np.full((n, 1), np.nan), input_names=tuple(m1.input_names), output_names=("T_out",))
     base = model.init_params(seed=0)
-    ops = _Ops(model, next(iter(base.values())))
+    ops = backend_of(model)
     names = ["pe.seebeck", "C_hx2", "pe.Q_hot"]
 
     def with_scales(s):
@@ -232,9 +233,9 @@ def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
     assert S.shape == (n, 1, 3)
 
     def run(scales):
-        p = with_scales(ops.arr(scales))
-        T0 = model.steady_state(p, ops.arr(u[0]))
-        return ops.np(model.rollout(p, T0, ops.arr(u), 1.0, integrator="rk4")[1])
+        p = with_scales(ops.asarray(scales))
+        T0 = model.steady_state(p, ops.asarray(u[0]))
+        return ops.numpy(model.rollout(p, T0, ops.asarray(u), 1.0, integrator="rk4")[1])
 
     h = 1e-5
     for k in range(3):

@@ -57,6 +57,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..compiler.backends.adapter import Backend, backend_of
 from ..core.errors import DataError, Diagnostic, TnnError
 from ..ir.network import Network, Num
 
@@ -731,78 +732,6 @@ def fisher_analysis(S: np.ndarray, names: Sequence[str], sigma: float = 0.1, *, 
 # =============================================================================================
 
 
-class _Ops:
-    """Array creation, conversion, jit and Jacobians for the model's backend."""
-
-    def __init__(self, model, ref):
-        self.backend = model.backend
-        self.model = model
-        if self.backend == "jax":
-            import jax
-            import jax.numpy as jnp
-
-            self.jax, self.jnp = jax, jnp
-            self.dtype = getattr(ref, "dtype", jnp.float64)
-        elif self.backend == "torch":
-            import torch
-
-            self.torch = torch
-            self.dtype = ref.dtype if hasattr(ref, "dtype") else torch.float64
-        else:  # pragma: no cover - compile() only builds these two
-            raise ValueError(f"unknown backend {self.backend!r}")
-
-    def arr(self, x) -> Any:
-        x = np.asarray(x, dtype=float)
-        if self.backend == "jax":
-            return self.jnp.asarray(x, dtype=self.dtype)
-        return self.torch.as_tensor(x, dtype=self.dtype)
-
-    def np(self, x) -> np.ndarray:
-        if self.backend == "torch":
-            return x.detach().cpu().numpy().astype(float)
-        return np.asarray(x, dtype=float)
-
-    def jit(self, fn):
-        if self.backend != "jax":
-            return fn
-        jitted = self.jax.jit(fn)
-        state = {"ok": True}
-
-        def call(*args):
-            if state["ok"]:
-                try:
-                    return jitted(*args)
-                except (self.jax.errors.ConcretizationTypeError, self.jax.errors.TracerBoolConversionError,
-                        self.jax.errors.TracerArrayConversionError, self.jax.errors.TracerIntegerConversionError):
-                    state["ok"] = False
-            return fn(*args)
-
-        return call
-
-    def jacobian(self, fn, x) -> np.ndarray:
-        """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector):
-        numpy array of shape ``fn(x).shape + (len(x),)``."""
-        xb = self.arr(x)
-        if self.backend == "jax":
-            return np.asarray(self.jax.jacfwd(fn)(xb), dtype=float)
-        torch = self.torch
-        try:
-            return self.np(torch.func.jacfwd(fn)(xb))
-        except Exception:  # noqa: BLE001 - vmap-incompatible op in the model: one jvp per column
-            pass
-        try:
-            cols = []
-            for k in range(len(x)):
-                e = torch.zeros_like(xb)
-                e[k] = 1
-                _, t = torch.func.jvp(fn, (xb,), (e,))
-                cols.append(self.np(t))
-            return np.stack(cols, axis=-1)
-        except Exception:  # noqa: BLE001 - no forward-mode rule: reverse mode
-            jac = torch.autograd.functional.jacobian(fn, xb)
-            return self.np(jac)
-
-
 # =============================================================================================
 # Sensitivity
 # =============================================================================================
@@ -1127,9 +1056,8 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
     if params:
         for k, v in params.items():
             base[k] = v
-    ref = next(iter(base.values())) if base else None
-    ops = _Ops(model, ref)
-    base = {k: (ops.arr(v) if isinstance(v, (np.ndarray, float, int, np.floating)) else v) for k, v in base.items()}
+    ops = backend_of(model)
+    base = {k: (ops.asarray(v) if isinstance(v, (np.ndarray, float, int, np.floating)) else v) for k, v in base.items()}
 
     all_targets, skipped = _targets(network)
     if targets is not None:
@@ -1156,17 +1084,17 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
         return p
 
     u_np, notes = _input_vector(network, inputs, experiments)
-    u = ops.arr(u_np)
+    u = ops.asarray(u_np)
 
     def steady(s):
         p = with_scales(s)
         T = model.steady_state(p, u)
         return T, model.outputs(p, T, u)
 
-    steady_j = ops.jit(steady)
+    steady_j = ops.jit(steady, fallback=True)
     ones = np.ones(P)
-    T_star_b, y_star_b = steady_j(ops.arr(ones))
-    T_star = ops.np(T_star_b)
+    T_star_b, y_star_b = steady_j(ops.asarray(ones))
+    T_star = ops.numpy(T_star_b)
     if not np.all(np.isfinite(T_star)):
         raise TnnError(Diagnostic("the steady state for these inputs is not finite",
                                   hint="check the inputs (a Peltier current too large for its heat sink?)"))
@@ -1180,7 +1108,7 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
             "∂f/∂T is singular at the steady state: some node has no heat path to a boundary",
             hint="connect every node to a boundary (or a fluid) through links")) from None
     dy_ds = H_T @ dT_ds + H_s  # (n_out, P)
-    residual = float(np.max(np.abs(ops.np(model.rhs(with_scales(ops.arr(ones)), T_star_b, u)))))
+    residual = float(np.max(np.abs(ops.numpy(model.rhs(with_scales(ops.asarray(ones)), T_star_b, u)))))
     if residual > 1e-6:
         notes.append(f"the steady state leaves |dT/dt| up to {residual:.2g} K/s: not fully converged")
 
@@ -1193,8 +1121,8 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
         for a_k, a in enumerate(alphas):
             s = ones.copy()
             s[i] = a
-            _, y = steady_j(ops.arr(s))
-            ys[a_k] = ops.np(y)
+            _, y = steady_j(ops.asarray(s))
+            ys[a_k] = ops.numpy(y)
         note = t["note"]
         if not np.all(np.isfinite(ys)):
             note = (note + "; " if note else "") + "no finite steady state for part of the α range"
@@ -1256,7 +1184,7 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
         recommendations=recs, notes=notes, min_effect=min_effect)
 
 
-def _local_jacobians(model, ops: _Ops, with_scales, T_np: np.ndarray, u, P: int):
+def _local_jacobians(model, ops: Backend, with_scales, T_np: np.ndarray, u, P: int):
     """``∂f/∂T (n_s, n_s)``, ``∂f/∂α (n_s, P)``, ``∂h/∂T (n_o, n_s)``, ``∂h/∂α (n_o, P)`` at ``T``, ``u`` and
     ``α = 1`` (``f`` = ``model.rhs``, ``h`` = ``model.outputs``), by one forward-mode Jacobian."""
     n_s = T_np.shape[-1]
@@ -1264,25 +1192,23 @@ def _local_jacobians(model, ops: _Ops, with_scales, T_np: np.ndarray, u, P: int)
     def g(z):
         p = with_scales(z[n_s:])
         T = z[:n_s]
-        if ops.backend == "jax":
-            return ops.jnp.concatenate([model.rhs(p, T, u), model.outputs(p, T, u)])
-        return ops.torch.cat([model.rhs(p, T, u), model.outputs(p, T, u)])
+        return model.xp.concat([model.rhs(p, T, u), model.outputs(p, T, u)])
 
     J = ops.jacobian(g, np.concatenate([T_np, np.ones(P)]))
     return J[:n_s, :n_s], J[:n_s, n_s:], J[n_s:, :n_s], J[n_s:, n_s:]
 
 
-def _trajectory_sensitivity(model, ops: _Ops, with_scales, scale_names, exp, integrator: str, init: str) -> np.ndarray:
+def _trajectory_sensitivity(model, ops: Backend, with_scales, scale_names, exp, integrator: str, init: str) -> np.ndarray:
     """``S`` (N, n_out, P): ``∂y(t_k)/∂α`` along one experiment (eq. 3.2 by forward-mode AD through the rollout)."""
     P = len(scale_names)
     n_s = len(model.state_names)
     u_np = np.asarray(exp.inputs, dtype=float)
-    U = ops.arr(u_np)
-    u0 = ops.arr(u_np[0])
+    U = ops.asarray(u_np)
+    u0 = ops.asarray(u_np[0])
     ones = np.ones(P)
-    p1 = with_scales(ops.arr(ones))
+    p1 = with_scales(ops.asarray(ones))
     T0 = model.steady_state(p1, u0)
-    T0_np = ops.np(T0)
+    T0_np = ops.numpy(T0)
     if init == "steady":
         J_T, J_s, _, _ = _local_jacobians(model, ops, with_scales, T0_np, u0, P)
         dT0 = -np.linalg.solve(J_T, J_s)

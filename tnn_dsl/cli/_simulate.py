@@ -81,74 +81,9 @@ def _load(net_arg: str, backend: str, seed: int):
     return net, model, model.init_params(seed=seed), net_arg
 
 
-def _to_backend(x: np.ndarray, backend: str):
-    if backend == "torch":
-        import torch
-
-        return torch.as_tensor(np.asarray(x, dtype=np.float64))
-    import jax.numpy as jnp
-
-    return jnp.asarray(np.asarray(x, dtype=np.float64))
-
-
-def _np(x) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu()
-    return np.asarray(x, dtype=np.float64)
-
-
-def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how: str) -> tuple[np.ndarray, list[str]]:
-    """The initial state (n_states,) K and notes. ``how="steady"``: steady state of ``u0`` (n_inputs,) SI;
-    ``"measured"``: that, with each sensed node (and its lag state) shifted so that the sensor reads
-    ``y0`` (n_outputs,) K; nodes read by several sensors take the mean shift; NaN readings are skipped."""
-    backend = model.backend
-    ub = _to_backend(u0, backend)
-    T0 = _np(model.steady_state(params, ub))
-    notes: list[str] = []
-    if not np.all(np.isfinite(T0)):
-        raise TnnError(Diagnostic("the steady state of the first inputs could not be computed (not finite)",
-                                  hint="check the network's parameters; a node with no path to a boundary has no steady state"))
-    if y0 is None:
-        return T0, notes
-    y_model = _np(model.outputs(params, _to_backend(T0, backend), ub))
-    gap = y0 - y_model
-    if how == "steady":
-        worst = np.nanmax(np.abs(gap)) if np.isfinite(gap).any() else 0.0
-        if worst > 1.0:
-            k = int(np.nanargmax(np.abs(gap)))
-            notes.append(f"note: started at the steady state of the first inputs, {model.output_names[k]} is "
-                         f"{abs(gap[k]):.2f} K {'below' if gap[k] > 0 else 'above'} its first measurement; "
-                         f"if the run does not start at rest use --init measured")
-        return T0, notes
-    idx = {n: i for i, n in enumerate(model.state_names)}
-    shifts: dict[int, list[float]] = {}
-    for k, s in enumerate(net.sensors):
-        if not np.isfinite(gap[k]):
-            continue
-        for name in (s.node, f"{s.name}.lag"):
-            if name in idx:
-                shifts.setdefault(idx[name], []).append(float(gap[k]))
-    T = T0.copy()
-    for i, g in shifts.items():
-        T[i] += float(np.mean(g))
-    moved = sorted({model.state_names[i] for i in shifts})
-    notes.append(f"note: initial state: steady state of the first inputs, with {', '.join(moved) or 'no state'} moved to "
-                 f"the first measurements")
-    return T, notes
-
-
-def simulate_experiment(net, model, params, exp, integrator: str = "rk4", substeps: int | None = None,
-                        init: str = "steady"):
-    """Free run of one :class:`Experiment` → (states (N, n_states) K, outputs (N, n_outputs) K, notes)."""
-    y0 = exp.outputs[0] if np.isfinite(exp.outputs[0]).any() else None
-    T0, notes = initial_state(net, model, params, exp.inputs[0], y0, init)
-    states, outputs = model.rollout(params, _to_backend(T0, model.backend), _to_backend(exp.inputs, model.backend),
-                                    float(exp.dt), integrator=integrator, substeps=substeps)
-    return _np(states), _np(outputs), notes
-
-
 def run(args) -> int:
     from ..data.io import read_data, write_csv
+    from ..fit.simulate import simulate_experiment
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))

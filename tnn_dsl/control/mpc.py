@@ -28,6 +28,7 @@ from typing import Mapping
 
 import numpy as np
 
+from ..compiler.backends.adapter import Backend, backend_of
 from ..core.errors import Diagnostic, TnnError
 
 __all__ = ["MPC", "closed_loop", "ClosedLoopResult"]
@@ -97,45 +98,22 @@ class MPC:
         span = self.hi - self.lo
         oi = self.out_idx
 
-        if m.backend == "jax":
-            import jax
-            import jax.numpy as jnp
+        B = backend_of(m)
+        xp = m.xp
+        sel_b, keep_b, span_b = (B.asarray(a) for a in (sel, keep, span))
 
-            sel_j, keep_j, span_j = jnp.asarray(sel), jnp.asarray(keep), jnp.asarray(span)
+        def cost(useq, x0, ubase, r, uprev, d):
+            U = ubase[None, :] * keep_b[None, :] + useq @ sel_b
+            U = xp.concat([U, U[-1:]], axis=0)
+            _, y = m.rollout(self.params, x0, U, self.dt, integrator=self.integrator, substeps=self.substeps)
+            e = y[1:, oi] + d - r
+            moves = (useq - xp.concat([uprev[None, :], useq[:-1]], axis=0)) / span_b
+            return self.wy * B.xp.mean(e * e) + self.rho * B.xp.sum(moves * moves)
 
-            def c(useq, x0, ubase, r, uprev, d):
-                U = ubase[None, :] * keep_j[None, :] + useq @ sel_j
-                U = jnp.concatenate([U, U[-1:]], axis=0)
-                _, y = m.rollout(self.params, x0, U, self.dt, integrator=self.integrator, substeps=self.substeps)
-                e = y[1:, oi] + d - r
-                moves = (useq - jnp.concatenate([uprev[None, :], useq[:-1]], axis=0)) / span_j
-                return self.wy * jnp.mean(e * e) + self.rho * jnp.sum(moves * moves)
-
-            vg = jax.jit(jax.value_and_grad(c))
-
-            def f(useq, x0, ubase, r, uprev, d):
-                v, g = vg(jnp.asarray(useq), jnp.asarray(x0), jnp.asarray(ubase), jnp.asarray(r),
-                          jnp.asarray(uprev), jnp.asarray(d))
-                return float(v), np.asarray(g, dtype=np.float64)
-            return f
-
-        import torch
-
-        dtype = m.xp.dtype
-        sel_t, keep_t, span_t = (torch.as_tensor(a, dtype=dtype) for a in (sel, keep, span))
+        vg = B.value_and_grad(cost)
 
         def f(useq, x0, ubase, r, uprev, d):
-            us = torch.as_tensor(useq, dtype=dtype).requires_grad_(True)
-            U = torch.as_tensor(ubase, dtype=dtype)[None, :] * keep_t[None, :] + us @ sel_t
-            U = torch.cat([U, U[-1:]], dim=0)
-            _, y = m.rollout(self.params, torch.as_tensor(x0, dtype=dtype), U, self.dt, integrator=self.integrator,
-                             substeps=self.substeps)
-            e = y[1:, oi] + float(d) - torch.as_tensor(r, dtype=dtype)
-            prev = torch.as_tensor(uprev, dtype=dtype)[None, :]
-            moves = (us - torch.cat([prev, us[:-1]], dim=0)) / span_t
-            J = self.wy * torch.mean(e * e) + self.rho * torch.sum(moves * moves)
-            (g,) = torch.autograd.grad(J, us)
-            return float(J.detach()), g.detach().cpu().numpy().astype(np.float64)
+            return vg(useq, *(B.asarray(np.asarray(a, dtype=np.float64)) for a in (x0, ubase, r, uprev, d)))
         return f
 
     # -- one solve ---------------------------------------------------------------------------------
@@ -193,12 +171,6 @@ class ClosedLoopResult:
     iterations: list[int] = field(default_factory=list)
 
 
-def _to_np(x) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu()
-    return np.asarray(x, dtype=np.float64)
-
-
 def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float = 1.0,
                 plant_substeps: int | None = None, progress=None) -> ClosedLoopResult:
     """Simulate ``mpc`` controlling ``plant`` (a compiled model: the true system).
@@ -227,8 +199,8 @@ def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float
     out_p = list(plant.output_names).index(mpc.output)
     u = inputs[0].copy()
     u[mpc.ctrl_idx] = mpc.lo
-    xp_state = _to_np(plant.steady_state(plant_params, pxp.asarray(u)))
-    xm = _to_np(m.steady_state(mpc.params, mxp.asarray(u)))
+    xp_state = Backend.numpy(plant.steady_state(plant_params, pxp.asarray(u)))
+    xm = Backend.numpy(m.steady_state(mpc.params, mxp.asarray(u)))
     ys, us, ss, ds = [], [], [], []
     solve_s, iters = [], []
     import time
@@ -242,8 +214,8 @@ def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float
             k1 = min(N, k0 + every)
             u = inputs[k0].copy()
             u[mpc.ctrl_idx] = u_prev
-            y_plant = float(_to_np(plant.outputs(plant_params, pxp.asarray(xp_state), pxp.asarray(u)))[out_p])
-            y_model = float(_to_np(m.outputs(mpc.params, mxp.asarray(xm), mxp.asarray(u)))[mpc.out_idx])
+            y_plant = float(Backend.numpy(plant.outputs(plant_params, pxp.asarray(xp_state), pxp.asarray(u)))[out_p])
+            y_model = float(Backend.numpy(m.outputs(mpc.params, mxp.asarray(xm), mxp.asarray(u)))[mpc.out_idx])
             d = y_plant - y_model
             H = mpc.H
             r = setpoint[np.minimum(k0 + every * np.arange(1, H + 1), N - 1)]
@@ -257,7 +229,7 @@ def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float
             Up = np.concatenate([U, U[-1:]], axis=0)
             st, yp = plant.rollout(plant_params, pxp.asarray(xp_state), pxp.asarray(Up), plant_dt,
                                    substeps=plant_substeps)
-            st, yp = _to_np(st), _to_np(yp)
+            st, yp = Backend.numpy(st), Backend.numpy(yp)
             ss.append(st[:-1])
             ys.append(yp[:-1, out_p])
             us.append(U)
@@ -267,7 +239,7 @@ def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float
             Um = np.stack([U[0], U[0]])
             sm, _ = m.rollout(mpc.params, mxp.asarray(xm), mxp.asarray(Um), mpc.dt, integrator=mpc.integrator,
                               substeps=mpc.substeps)
-            xm = _to_np(sm)[-1]
+            xm = Backend.numpy(sm)[-1]
             if progress is not None:
                 progress(k1, N, y_plant, u_prev)
     return ClosedLoopResult(

@@ -58,6 +58,7 @@ from scipy.signal import lfilter
 
 from ..analysis import residuals as R
 from ..analysis.significance import held_out_test as _held_out_test
+from ..compiler.backends.adapter import backend_of
 from ..core.errors import Diagnostic, TnnError
 from ..core.files import THN, check_output, write_text_atomic
 from ..ir.network import POSITIVE_ROLES, Input, Network, Param
@@ -325,94 +326,40 @@ class _Engine:
                 ys.append(y)
             return xp.concat(ys, 0).reshape(-1)[idx]
 
-        if self.backend == "jax":
-            import jax
-            import jax.numpy as jnp
+        B = backend_of(model)
+        zeros = lambda n: B.zeros(n)  # noqa: E731
 
-            def jac_chunk(base, tangents, idx):
-                theta0 = jnp.zeros(tangents.shape[1])
-                f = lambda th: out_flat(base, th, idx)  # noqa: E731
-                return jax.vmap(lambda v: jax.jvp(f, (theta0,), (v,))[1])(tangents)
+        def jac_chunk(base, tangents, idx):
+            """∂outputs[idx]/∂θ along each row of ``tangents`` (m, n_θ) → (m, len(idx))."""
+            return B.batched_jvp(lambda th: out_flat(base, th, idx), (zeros(tangents.shape[1]),), (tangents,))
 
-            def jac_forced(base, tan_theta, tan_F, idx):
-                theta0 = jnp.zeros(tan_theta.shape[1])
-                F0 = jnp.zeros(tan_F.shape[1:])
-                f = lambda th, F: out_forced(base, th, F, idx)  # noqa: E731
-                return jax.vmap(lambda a, b: jax.jvp(f, (theta0, F0), (a, b))[1])(tan_theta, tan_F)
+        def jac_forced(base, tan_theta, tan_F, idx):
+            F0 = B.xp.zeros(tuple(tan_F.shape[1:]), dtype=B.dtype)
+            return B.batched_jvp(lambda th, F: out_forced(base, th, F, idx), (zeros(tan_theta.shape[1]), F0),
+                                 (tan_theta, tan_F))
 
-            def point(base, tangents, X, U):
-                """∂rhs/∂θ and ∂outputs/∂θ at given states/inputs (no time loop): (m, N, ns), (m, N, n_out)."""
-                theta0 = jnp.zeros(tangents.shape[1])
-                f = lambda th: (model.rhs(with_theta(base, th), X, U), model.outputs(with_theta(base, th), X, U))  # noqa: E731
-                return jax.vmap(lambda v: jax.jvp(f, (theta0,), (v,))[1])(tangents)
+        def point(base, tangents, X, U):
+            """∂rhs/∂θ and ∂outputs/∂θ at given states/inputs (no time loop): (m, N, ns), (m, N, n_out)."""
+            def f(th):
+                p = with_theta(base, th)
+                return model.rhs(p, X, U), model.outputs(p, X, U)
 
-            def inv_cap(base, X, U):
-                """∂rhs/∂(forcing) with every forcing input at 1 W: 1/C per node state (N, ns)."""
-                dU = jnp.concatenate([jnp.zeros(U.shape[:-1] + (U.shape[-1] - nf,)), jnp.ones(U.shape[:-1] + (nf,))], -1)
-                return jax.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
+            return B.batched_jvp(f, (zeros(tangents.shape[1]),), (tangents,))
 
-            self._sim = jax.jit(simulate)
-            self._jac = jax.jit(jac_chunk)
-            self._jac_forced = jax.jit(jac_forced)
-            self._point = jax.jit(point)
-            self._inv_cap = jax.jit(inv_cap)
-            self._to = lambda d: {k: jnp.asarray(v) for k, v in d.items()}  # noqa: E731
-            self._np = np.asarray
-        else:
-            import torch
+        def inv_cap(base, X, U):
+            """∂rhs/∂(forcing) with every forcing input at 1 W: 1/C per node state (N, ns)."""
+            dU = xp.concat([B.xp.zeros(tuple(U.shape[:-1]) + (U.shape[-1] - nf,), dtype=B.dtype),
+                            B.xp.ones(tuple(U.shape[:-1]) + (nf,), dtype=B.dtype)], -1)
+            return B.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
 
-            def jac_chunk(base, tangents, idx):
-                import torch.func as tf
-
-                idx_t = torch.as_tensor(idx)
-                theta0 = torch.zeros(tangents.shape[1], dtype=torch.float64)
-                f = lambda th: out_flat(base, th, idx_t)  # noqa: E731
-                try:
-                    return tf.vmap(lambda v: tf.jvp(f, (theta0,), (v,))[1])(tangents)
-                except Exception:  # noqa: BLE001 - a model not vmap-able: one JVP per direction
-                    return torch.stack([tf.jvp(f, (theta0,), (v,))[1] for v in tangents])
-
-            def sim_nograd(p):
-                with torch.no_grad():
-                    return simulate(p)
-
-            def jac_forced(base, tan_theta, tan_F, idx):
-                import torch.func as tf
-
-                idx_t = torch.as_tensor(idx)
-                theta0 = torch.zeros(tan_theta.shape[1], dtype=torch.float64)
-                F0 = torch.zeros(tan_F.shape[1:], dtype=torch.float64)
-                f = lambda th, F: out_forced(base, th, F, idx_t)  # noqa: E731
-                try:
-                    return tf.vmap(lambda a, b: tf.jvp(f, (theta0, F0), (a, b))[1])(tan_theta, tan_F)
-                except Exception:  # noqa: BLE001 - not vmap-able: one JVP per direction
-                    return torch.stack([tf.jvp(f, (theta0, F0), (a, b))[1] for a, b in zip(tan_theta, tan_F)])
-
-            def point(base, tangents, X, U):
-                import torch.func as tf
-
-                theta0 = torch.zeros(tangents.shape[1], dtype=torch.float64)
-                f = lambda th: (model.rhs(with_theta(base, th), X, U), model.outputs(with_theta(base, th), X, U))  # noqa: E731
-                try:
-                    return tf.vmap(lambda v: tf.jvp(f, (theta0,), (v,))[1])(tangents)
-                except Exception:  # noqa: BLE001
-                    outs = [tf.jvp(f, (theta0,), (v,))[1] for v in tangents]
-                    return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs])
-
-            def inv_cap(base, X, U):
-                import torch.func as tf
-
-                dU = torch.cat([torch.zeros(*U.shape[:-1], U.shape[-1] - nf, dtype=torch.float64),
-                                torch.ones(*U.shape[:-1], nf, dtype=torch.float64)], -1)
-                return tf.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
-
-            self._sim = sim_nograd
-            self._jac_forced = lambda b, a, F, idx: jac_forced(b, a, F, idx).detach()  # noqa: E731
-            self._point = lambda b, t, X, U: tuple(x.detach() for x in point(b, t, X, U))  # noqa: E731
-            self._inv_cap = lambda b, X, U: inv_cap(b, X, U).detach()  # noqa: E731
-            self._jac = lambda base, tangents, idx: jac_chunk(base, torch.as_tensor(tangents), idx).detach()  # noqa: E731
-            self._to = lambda d: {k: torch.as_tensor(np.asarray(v), dtype=torch.float64) for k, v in d.items()}  # noqa: E731
-            self._np = lambda x: x.detach().cpu().numpy()  # noqa: E731
+        jac_j, jac_forced_j = B.jit(jac_chunk), B.jit(jac_forced)
+        self._sim = B.jit(B.no_grad(simulate))
+        self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
+        self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
+        self._point = B.jit(point)
+        self._inv_cap = B.jit(inv_cap)
+        self._to = B.tree
+        self._np = B.numpy
 
     # -- evaluation -----------------------------------------------------------------------------
 

@@ -34,6 +34,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..compiler.backends.adapter import backend_of
 from ..core.errors import Diagnostic, TnnError
 
 __all__ = ["ekf", "EKFResult", "open_loop", "tune_process_noise", "DEFAULT_PROCESS_NOISE", "DEFAULT_MEAS_NOISE", "DEFAULT_INIT_STD"]
@@ -279,27 +280,6 @@ def _update_predict(m, solve, step, meas, jac_step, jac_meas, use_idx, R, Qd, I,
     return xp_, Pp, xf, Pf, yf, m.where(ok, innov, float("nan") + 0.0 * yhat), nis_terms, ll
 
 
-def _torch_jacobian(f, n_out: int, batched: bool):
-    """``J(x, u) = ∂f/∂x (n_out, n)`` by reverse-mode autodiff. ``batched``: one forward pass over ``n_out``
-    copies of ``x`` and one backward pass (row ``i`` of the gradient of ``Σ_i f(X_i)_i`` is ``∂f_i/∂x``);
-    otherwise one backward pass per output. (``torch.func.jacfwd`` gives the same numbers but its per-op
-    overhead makes a 5000-step filter ~20× slower on small networks.)"""
-    import torch
-
-    def jac(x, u):
-        with torch.enable_grad():
-            if batched:
-                X = x.detach().unsqueeze(0).expand(n_out, x.shape[0]).clone().requires_grad_(True)
-                Y = f(X, u)
-                (g,) = torch.autograd.grad(torch.diagonal(Y).sum(), X)
-                return g
-            xr = x.detach().clone().requires_grad_(True)
-            y = f(xr, u)
-            rows = [torch.autograd.grad(y[i], xr, retain_graph=i < n_out - 1)[0] for i in range(n_out)]
-            return torch.stack(rows)
-    return jac
-
-
 def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str | None = None, *,
         process_noise: float | Mapping[str, float] | None = None,
         meas_noise: float | Mapping[str, float] | None = None,
@@ -346,46 +326,24 @@ def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str
     n = setup.ns + setup.na
     use_idx = list(setup.use_idx)
 
-    if model.backend == "jax":
-        import jax
-        import jax.numpy as jnp
+    B = backend_of(model)
+    m = B.xp
+    batched = setup.na == 0  # reverse-mode rows in one pass need a step that takes a batch of states
+    jac_step = B.jacobian_fn(step, n, batched=batched)
+    jac_meas = B.jacobian_fn(meas, len(model.output_names), batched=batched)
+    R, Qd, I = (B.asarray(a) for a in (setup.R, setup.Qd, np.eye(n)))
+    idx = B.asarray(np.asarray(use_idx, dtype=np.int64))
 
-        jac_step = jax.jacfwd(step)
-        jac_meas = jax.jacfwd(meas)
-        R, Qd, I = (jnp.asarray(a) for a in (setup.R, setup.Qd, np.eye(n)))
-        idx = jnp.asarray(use_idx)
+    def body(carry, uy):
+        x, P = carry
+        u, y = uy
+        xp_, Pp, xf, Pf, yf, inn, nis, ll = _update_predict(m, B.solve, step, meas, jac_step, jac_meas, idx, R, Qd,
+                                                            I, x, P, u, y)
+        return (xp_, Pp), (xf, m.sqrt(B.clip_min(m.diagonal(Pf), 0.0)), yf, inn, nis, ll)
 
-        def body(carry, uy):
-            x, P = carry
-            u, y = uy
-            xp_, Pp, xf, Pf, yf, inn, nis, ll = _update_predict(jnp, jnp.linalg.solve, step, meas, jac_step,
-                                                                jac_meas, idx, R, Qd, I, x, P, u, y)
-            return (xp_, Pp), (xf, jnp.sqrt(jnp.clip(jnp.diagonal(Pf), 0.0)), yf, inn, nis, ll)
-
-        run = jax.jit(lambda x0, P0, U, Y: jax.lax.scan(body, (x0, P0), (U, Y))[1])
-        xs, sd, ys, inn, nis, ll = (np.asarray(a, dtype=np.float64) for a in run(
-            jnp.asarray(setup.x0), jnp.asarray(setup.P0), jnp.asarray(setup.inputs), jnp.asarray(setup.y)))
-    else:
-        import torch
-
-        dtype = model.xp.dtype
-        batched = setup.na == 0
-        jac_step = _torch_jacobian(step, n, batched)
-        jac_meas = _torch_jacobian(meas, len(model.output_names), batched)
-        R, Qd, I = (torch.as_tensor(a, dtype=dtype) for a in (setup.R, setup.Qd, np.eye(n)))
-        U = torch.as_tensor(setup.inputs, dtype=dtype)
-        Y = torch.as_tensor(setup.y, dtype=dtype)
-        x = torch.as_tensor(setup.x0, dtype=dtype)
-        P = torch.as_tensor(setup.P0, dtype=dtype)
-        idx = torch.as_tensor(use_idx)
-        outs = []
-        with torch.no_grad():
-            for k in range(N):
-                x, P, xf, Pf, yf, inn, nis, ll = _update_predict(torch, torch.linalg.solve, step, meas, jac_step,
-                                                                 jac_meas, idx, R, Qd, I, x, P, U[k], Y[k])
-                outs.append((xf, torch.sqrt(torch.clamp(torch.diagonal(Pf), min=0.0)), yf, inn, nis, ll))
-        xs, sd, ys, inn, nis, ll = (torch.stack([o[i] for o in outs]).cpu().numpy().astype(np.float64)
-                                    for i in range(6))
+    run = B.jit(B.no_grad(lambda x0, P0, U, Y: B.scan(body, (x0, P0), (U, Y))[1]))
+    xs, sd, ys, inn, nis, ll = (B.numpy(a) for a in run(
+        B.asarray(setup.x0), B.asarray(setup.P0), B.asarray(setup.inputs), B.asarray(setup.y)))
 
     ns = setup.ns
     th = xs[:, ns:]

@@ -9,11 +9,12 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..compiler.backends.adapter import Backend
+from ..compiler.backends.adapter import backend_of
+from ..core.errors import Diagnostic, TnnError
 from ..data.io import as_experiments
 from ..ir.network import Network
 
-__all__ = ["simulate", "error_metrics", "as_experiments"]
+__all__ = ["simulate", "error_metrics", "as_experiments", "initial_state", "simulate_experiment"]
 
 
 def _resolve_init(init: str, exp) -> str:
@@ -61,22 +62,13 @@ def _sim_fn(model, integrator: str, dt: float, substeps):
     if hit is not None and hit[0] is model:
         return hit[1]
 
-    if model.backend == "jax":
-        import jax
-        import jax.numpy as jnp
+    B = backend_of(model)
 
-        def f(params, U, mask, vals):
-            T0 = jnp.where(mask, vals, model.steady_state(params, U[0]))
-            return model.rollout(params, T0, U, dt, integrator=integrator, substeps=substeps)
+    def f(params, U, mask, vals):
+        T0 = model.xp.where(mask, vals, model.steady_state(params, U[0]))
+        return model.rollout(params, T0, U, dt, integrator=integrator, substeps=substeps)
 
-        fn = jax.jit(f)
-    else:
-        import torch
-
-        def fn(params, U, mask, vals):
-            with torch.no_grad():
-                T0 = torch.where(mask, vals, model.steady_state(params, U[0]))
-                return model.rollout(params, T0, U, dt, integrator=integrator, substeps=substeps)
+    fn = B.jit(B.no_grad(f))
 
     if len(_SIM_CACHE) > 64:
         _SIM_CACHE.clear()
@@ -90,7 +82,7 @@ def simulate(model, params, exp, init: str = "steady", integrator: str = "rk4", 
 
     ``init``: ``steady`` (steady state of the first inputs), ``measured`` (sensor nodes from the first
     measurement, the rest steady) or ``auto``. Returns ``states (N, n_states)`` K, ``y (N, n_out)`` K."""
-    ops = Backend(model.backend)
+    ops = backend_of(model)
     init = _resolve_init(init, exp)
     n_states = len(model.state_names)
     if init == "measured":
@@ -135,3 +127,54 @@ def _stats(e: np.ndarray) -> dict[str, float]:
         return {"mae": math.nan, "max_error": math.nan, "bias": math.nan, "rmse": math.nan, "n": 0}
     return {"mae": float(np.mean(np.abs(e))), "max_error": float(np.max(np.abs(e))), "bias": float(np.mean(e)),
             "rmse": float(np.sqrt(np.mean(e * e))), "n": int(e.size)}
+
+
+def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how: str) -> tuple[np.ndarray, list[str]]:
+    """The initial state (n_states,) K and notes. ``how="steady"``: steady state of ``u0`` (n_inputs,) SI;
+    ``"measured"``: that, with each sensed node (and its lag state) shifted so that the sensor reads
+    ``y0`` (n_outputs,) K; nodes read by several sensors take the mean shift; NaN readings are skipped."""
+    B = backend_of(model)
+    ub = B.asarray(np.asarray(u0, dtype=np.float64))
+    T0 = B.numpy(model.steady_state(params, ub))
+    notes: list[str] = []
+    if not np.all(np.isfinite(T0)):
+        raise TnnError(Diagnostic("the steady state of the first inputs could not be computed (not finite)",
+                                  hint="check the network's parameters; a node with no path to a boundary has no steady state"))
+    if y0 is None:
+        return T0, notes
+    y_model = B.numpy(model.outputs(params, B.asarray(T0), ub))
+    gap = y0 - y_model
+    if how == "steady":
+        worst = np.nanmax(np.abs(gap)) if np.isfinite(gap).any() else 0.0
+        if worst > 1.0:
+            k = int(np.nanargmax(np.abs(gap)))
+            notes.append(f"note: started at the steady state of the first inputs, {model.output_names[k]} is "
+                         f"{abs(gap[k]):.2f} K {'below' if gap[k] > 0 else 'above'} its first measurement; "
+                         f"if the run does not start at rest use --init measured")
+        return T0, notes
+    idx = {n: i for i, n in enumerate(model.state_names)}
+    shifts: dict[int, list[float]] = {}
+    for k, s in enumerate(net.sensors):
+        if not np.isfinite(gap[k]):
+            continue
+        for name in (s.node, f"{s.name}.lag"):
+            if name in idx:
+                shifts.setdefault(idx[name], []).append(float(gap[k]))
+    T = T0.copy()
+    for i, g in shifts.items():
+        T[i] += float(np.mean(g))
+    moved = sorted({model.state_names[i] for i in shifts})
+    notes.append(f"note: initial state: steady state of the first inputs, with {', '.join(moved) or 'no state'} moved to "
+                 f"the first measurements")
+    return T, notes
+
+
+def simulate_experiment(net, model, params, exp, integrator: str = "rk4", substeps: int | None = None,
+                        init: str = "steady"):
+    """Free run of one :class:`Experiment` → (states (N, n_states) K, outputs (N, n_outputs) K, notes)."""
+    y0 = exp.outputs[0] if np.isfinite(exp.outputs[0]).any() else None
+    T0, notes = initial_state(net, model, params, exp.inputs[0], y0, init)
+    B = backend_of(model)
+    states, outputs = model.rollout(params, B.asarray(T0), B.asarray(np.asarray(exp.inputs, dtype=np.float64)),
+                                    float(exp.dt), integrator=integrator, substeps=substeps)
+    return B.numpy(states), B.numpy(outputs), notes

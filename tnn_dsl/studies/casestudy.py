@@ -35,6 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..compiler.backends.adapter import backend_of
 from ..core.errors import Diagnostic, TnnError
 from ..core.files import OutputKind, check_output, write_text_atomic
 
@@ -175,27 +176,18 @@ class _Truth:
         """U (B, N, n_inputs) SI → (states (B, N, n_states) K, outputs (B, N, n_outputs) K): start at the
         steady state of the first inputs, RK4 with ``SAMPLE_DT/TRUTH_DT`` sub-steps per sample."""
         m = self.model
-        Ub = _to_backend(U, m.backend)
+        B = backend_of(m)
+        Ub = B.asarray(np.asarray(U, dtype=np.float64))
         u0 = Ub[:, 0, :]
         T0 = m.steady_state(self.params, u0)
-        resid = np.abs(_np(m.rhs(self.params, T0, u0))).max()
+        resid = np.abs(B.numpy(m.rhs(self.params, T0, u0))).max()
         if not np.isfinite(resid) or resid > 1e-8:
             raise TnnError(Diagnostic(
                 f"the steady state of {self.path} for the first inputs did not converge (max |dT/dt| = {resid:.3g} K/s)",
                 hint="check the truth network's derived parameters for values outside their physical range"))
         substeps = int(round(SAMPLE_DT / TRUTH_DT))
         states, outputs = m.rollout(self.params, T0, Ub, SAMPLE_DT, integrator="rk4", substeps=substeps)
-        return _np(states), _np(outputs)
-
-
-def _to_backend(x: np.ndarray, backend: str):
-    if backend == "torch":
-        import torch
-
-        return torch.as_tensor(np.asarray(x, dtype=np.float64))
-    import jax.numpy as jnp
-
-    return jnp.asarray(np.asarray(x, dtype=np.float64))
+        return B.numpy(states), B.numpy(outputs)
 
 
 _TRUTHS: dict[tuple, _Truth] = {}
@@ -209,12 +201,6 @@ def _truth(backend: str, path: Path) -> _Truth:
     if key not in _TRUTHS:
         _TRUTHS[key] = _Truth(backend=backend, path=path)
     return _TRUTHS[key]
-
-
-def _np(x) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu()
-    return np.asarray(x, dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,46 +1,81 @@
-"""One adapter over the two autodiff backends: conversions, a few array operations and the transforms
-(value-and-gradient, ...) that the trainer, the sensitivity pass, the doctor, the filter and the
-controller need. Everything above :mod:`tnn_dsl.compiler` talks to JAX or torch through it."""
+"""One adapter over the two autodiff backends, used by everything above the compiler.
+
+The trainer, the sensitivity pass, the model doctor, the Kalman filter and the controller write their
+numerics once, against the compiled model (:class:`~tnn_dsl.compiler.protocol.CompiledModel`) and this
+adapter; only the adapter knows how JAX and torch spell a transform.
+
+=====================  ============================================  ==========================================
+operation              JAX                                           torch
+=====================  ============================================  ==========================================
+``asarray``/``numpy``  ``jnp.asarray`` / ``np.asarray``              ``torch.from_numpy`` / ``.detach().numpy()``
+``jit``                ``jax.jit`` (``fallback``: eager on a          the function itself
+                       tracer error)
+``no_grad``            the function itself                           ``torch.no_grad()`` around it
+``value_and_grad``     ``jax.jit(jax.value_and_grad)``               ``torch.autograd.grad``
+``jvp``                ``jax.jvp``                                   ``torch.func.jvp``
+``batched_jvp``        ``jax.vmap`` of ``jax.jvp``                   ``torch.func.vmap`` of ``jvp``, else a loop
+``jacobian``           ``jax.jacfwd``                                ``torch.func.jacfwd``, else jvp columns,
+                                                                     else reverse mode
+``jacobian_fn``        ``jax.jacfwd``                                reverse mode, one pass for a batch of rows
+``scan``               ``jax.lax.scan``                              a Python loop, outputs stacked
+=====================  ============================================  ==========================================
+
+Arrays are float64 unless the adapter is made with ``dtype="float32"``; integer and boolean numpy arrays
+keep their kind.
+"""
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-__all__ = ["Backend"]
+__all__ = ["Backend", "backend_of"]
+
+BACKENDS = ("jax", "torch")
 
 
 class Backend:
-    """A tiny array namespace over jax.numpy / torch, and the backend's value-and-gradient."""
+    """The array conversions, the few operations above the model's namespace, and the autodiff
+    transforms of one backend. ``Backend("jax")``, ``Backend("torch", "float32")``."""
 
-    def __init__(self, backend: str, dtype: str = "float64"):
-        self.backend = backend
+    def __init__(self, name: str, dtype: str = "float64"):
+        if name not in BACKENDS:
+            raise ValueError(f"no autodiff backend {name!r}; use one of {', '.join(BACKENDS)}")
+        if dtype not in ("float64", "float32"):
+            raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
+        self.name = self.backend = name
         self.dtype_name = dtype
-        if backend == "jax":
+        if name == "jax":
             import jax
             import jax.numpy as jnp
 
             jax.config.update("jax_enable_x64", True)
             self.jax, self.xp = jax, jnp
             self.dtype = jnp.float64 if dtype == "float64" else jnp.float32
-        elif backend == "torch":
+        else:
             import torch
 
             self.torch = self.xp = torch
             self.dtype = torch.float64 if dtype == "float64" else torch.float32
-        else:
-            raise ValueError(backend)
 
-    # -- conversions ----------------------------------------------------------------------
-    def asarray(self, x):
+    def __repr__(self) -> str:
+        return f"Backend({self.name!r}, {self.dtype_name!r})"
+
+    # -- conversions ------------------------------------------------------------------------------
+
+    def asarray(self, x) -> Any:
+        """A backend array from a numpy array, a list or a number (floats in the adapter's dtype)."""
+        if self.name == "torch" and isinstance(x, self.torch.Tensor):
+            return x.to(self.dtype) if x.is_floating_point() else x
         x = np.asarray(x)
-        if self.backend == "jax":
+        if self.name == "jax":
             return self.xp.asarray(x, dtype=self.dtype) if x.dtype.kind == "f" else self.xp.asarray(x)
-        t = self.torch.from_numpy(np.ascontiguousarray(x))
+        t = self.torch.from_numpy(np.asarray(x, order="C"))  # (ascontiguousarray would make 0-d arrays 1-d)
         return t.to(self.dtype) if x.dtype.kind == "f" else t
 
     def tree(self, d):
+        """:meth:`asarray` over nested dicts, lists and tuples."""
         if isinstance(d, dict):
             return {k: self.tree(v) for k, v in d.items()}
         if isinstance(d, (list, tuple)):
@@ -49,16 +84,22 @@ class Backend:
 
     @staticmethod
     def numpy(x) -> np.ndarray:
+        """A float64 numpy array from a backend array (detached from any graph)."""
         if hasattr(x, "detach"):
             x = x.detach().cpu()
         return np.asarray(x, dtype=np.float64)
 
-    # -- operations -----------------------------------------------------------------------
+    def zeros(self, shape: Sequence[int] | int) -> Any:
+        return self.xp.zeros(tuple(np.atleast_1d(shape).tolist()) if not isinstance(shape, int) else (shape,),
+                             dtype=self.dtype)
+
+    # -- operations not in the model's namespace ----------------------------------------------------
+
     def exp(self, x):
         return self.xp.exp(x)
 
     def sigmoid(self, x):
-        return self.jax.nn.sigmoid(x) if self.backend == "jax" else self.torch.sigmoid(x)
+        return self.jax.nn.sigmoid(x) if self.name == "jax" else self.torch.sigmoid(x)
 
     def where(self, c, a, b):
         return self.xp.where(c, a, b)
@@ -70,25 +111,162 @@ class Backend:
         return self.xp.sum(x)
 
     def amax(self, x, axes):
-        return self.xp.max(x, axis=axes) if self.backend == "jax" else self.torch.amax(x, dim=axes)
+        return self.xp.max(x, axis=axes) if self.name == "jax" else self.torch.amax(x, dim=axes)
 
-    # -- autodiff -------------------------------------------------------------------------
+    def clip_min(self, x, lo: float):
+        return self.xp.clip(x, lo) if self.name == "jax" else self.torch.clamp(x, min=lo)
+
+    def solve(self, a, b):
+        return self.xp.linalg.solve(a, b)
+
+    # -- transforms ---------------------------------------------------------------------------------
+
+    def jit(self, fn: Callable, *, fallback: bool = False) -> Callable:
+        """``jax.jit(fn)``; torch runs ``fn`` as it is. ``fallback=True``: if JAX cannot trace ``fn`` (a
+        Python branch on a traced value), run it eagerly from then on."""
+        if self.name != "jax":
+            return fn
+        jitted = self.jax.jit(fn)
+        if not fallback:
+            return jitted
+        errors = (self.jax.errors.ConcretizationTypeError, self.jax.errors.TracerBoolConversionError,
+                  self.jax.errors.TracerArrayConversionError, self.jax.errors.TracerIntegerConversionError)
+        state = {"ok": True}
+
+        def call(*args):
+            if state["ok"]:
+                try:
+                    return jitted(*args)
+                except errors:
+                    state["ok"] = False
+            return fn(*args)
+
+        return call
+
+    def no_grad(self, fn: Callable) -> Callable:
+        """``fn`` without building an autodiff graph (torch); JAX builds none anyway."""
+        if self.name != "torch":
+            return fn
+        torch = self.torch
+
+        def call(*args, **kw):
+            with torch.no_grad():
+                return fn(*args, **kw)
+
+        return call
+
     def value_and_grad(self, f: Callable) -> Callable[..., tuple[float, np.ndarray]]:
-        """``g(z_numpy, data) -> (float, grad numpy)`` for a scalar ``f(z, data)``."""
-        if self.backend == "jax":
+        """``g(z_numpy, *args) -> (float, gradient numpy)`` for a scalar ``f(z, *args)``, differentiated in
+        its first argument (``args`` are passed through: backend arrays or plain data)."""
+        if self.name == "jax":
             vg = self.jax.jit(self.jax.value_and_grad(f))
 
-            def g(z, data):
-                v, gr = vg(self.xp.asarray(z, dtype=self.dtype), data)
+            def g(z, *args):
+                v, gr = vg(self.xp.asarray(z, dtype=self.dtype), *args)
                 return float(v), np.asarray(gr, dtype=np.float64)
 
             return g
         torch = self.torch
 
-        def g(z, data):
+        def g(z, *args):
             zt = torch.tensor(np.asarray(z), dtype=self.dtype, requires_grad=True)
-            v = f(zt, data)
+            v = f(zt, *args)
             (gr,) = torch.autograd.grad(v, zt)
             return float(v.detach()), gr.detach().cpu().numpy().astype(np.float64)
 
         return g
+
+    def jvp(self, f: Callable, primals: tuple, tangents: tuple):
+        """``(f(*primals), ∂f·tangents)`` in forward mode."""
+        if self.name == "jax":
+            return self.jax.jvp(f, tuple(primals), tuple(tangents))
+        return self.torch.func.jvp(f, tuple(primals), tuple(tangents))
+
+    def batched_jvp(self, f: Callable, primals: tuple, tangents: tuple):
+        """The forward derivatives of ``f`` at ``primals`` along a batch of directions: every array of
+        ``tangents`` has a leading axis ``m`` (one direction each) → outputs with that leading axis (a
+        tuple output gives a tuple). torch falls back to one ``jvp`` per direction where ``f`` cannot be
+        vmapped."""
+        primals = tuple(primals)
+
+        def one(*t):
+            return self.jvp(f, primals, t)[1]
+
+        if self.name == "jax":
+            return self.jax.vmap(one)(*tangents)
+        torch = self.torch
+        try:
+            return torch.func.vmap(one)(*tangents)
+        except Exception:  # noqa: BLE001 - an op without a batching rule: one direction at a time
+            outs = [one(*t) for t in zip(*tangents)]
+            if isinstance(outs[0], tuple):
+                return tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
+            return torch.stack(outs)
+
+    def jacobian(self, fn: Callable, x) -> np.ndarray:
+        """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector): numpy
+        array of shape ``fn(x).shape + (len(x),)``. torch: ``jacfwd``, else one ``jvp`` per column, else
+        reverse mode (for ops without forward rules)."""
+        xb = self.asarray(np.asarray(x, dtype=float))
+        if self.name == "jax":
+            return np.asarray(self.jax.jacfwd(fn)(xb), dtype=float)
+        torch = self.torch
+        try:
+            return self.numpy(torch.func.jacfwd(fn)(xb))
+        except Exception:  # noqa: BLE001 - vmap-incompatible op in the model: one jvp per column
+            pass
+        try:
+            cols = []
+            for k in range(len(x)):
+                e = torch.zeros_like(xb)
+                e[k] = 1
+                cols.append(self.numpy(torch.func.jvp(fn, (xb,), (e,))[1]))
+            return np.stack(cols, axis=-1)
+        except Exception:  # noqa: BLE001 - no forward-mode rule: reverse mode
+            return self.numpy(torch.autograd.functional.jacobian(fn, xb))
+
+    def jacobian_fn(self, f: Callable, n_out: int, *, batched: bool = True) -> Callable:
+        """``J(x, *rest) = ∂f(x, *rest)/∂x (n_out, n)`` as a backend function (used inside filters).
+
+        JAX: ``jax.jacfwd``. torch: reverse mode — ``batched``: one forward pass over ``n_out`` copies of
+        ``x`` and one backward pass (row ``i`` of the gradient of ``Σ_i f(X_i)_i``; ``f`` must accept a
+        leading batch axis), else one backward pass per output. (``torch.func.jacfwd`` gives the same
+        numbers, but its per-operation overhead makes a 5000-step filter about 20× slower on small
+        networks.)"""
+        if self.name == "jax":
+            return self.jax.jacfwd(f)
+        torch = self.torch
+
+        def jac(x, *rest):
+            with torch.enable_grad():
+                if batched:
+                    X = x.detach().unsqueeze(0).expand(n_out, x.shape[0]).clone().requires_grad_(True)
+                    Y = f(X, *rest)
+                    (g,) = torch.autograd.grad(torch.diagonal(Y).sum(), X)
+                    return g
+                xr = x.detach().clone().requires_grad_(True)
+                y = f(xr, *rest)
+                rows = [torch.autograd.grad(y[i], xr, retain_graph=i < n_out - 1)[0] for i in range(n_out)]
+                return torch.stack(rows)
+
+        return jac
+
+    def scan(self, body: Callable, carry, xs: tuple):
+        """``jax.lax.scan(body, carry, xs)``: ``body(carry, x_k) -> (carry, y_k)`` over the leading axis of
+        every array in ``xs``; returns ``(carry, ys)`` with the ``y_k`` stacked (a tuple of arrays for a
+        tuple ``y_k``). torch: a Python loop."""
+        if self.name == "jax":
+            return self.jax.lax.scan(body, carry, xs)
+        torch = self.torch
+        outs = []
+        for k in range(int(xs[0].shape[0])):
+            carry, y = body(carry, tuple(a[k] for a in xs))
+            outs.append(y)
+        if outs and isinstance(outs[0], tuple):
+            return carry, tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
+        return carry, torch.stack(outs)
+
+
+def backend_of(model) -> Backend:
+    """The adapter for a compiled model's backend and dtype."""
+    return Backend(model.backend, getattr(model, "dtype", "float64"))
