@@ -14,7 +14,7 @@ Each model is fitted by ``tnn_dsl.train`` with default options (output error; mu
 of 50 samples) and judged two ways on the held-out part:
 
 * **free run** (the simulation question): MAE of the simulation from the state at the split;
-* **one-step-ahead** (Bacher & Madsen's question): an extended Kalman filter (``tnn_dsl.estimation.ekf.ekf``)
+* **one-step-ahead** (Bacher & Madsen's question): an extended Kalman filter (``tnn_dsl.estimation.kalman.ekf``)
   with one process-noise level tuned on the training part by likelihood (``tune_process_noise``); the RMS
   of its innovations (one-step prediction errors) on the held-out part.
 
@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 import tnn_dsl  # noqa: E402
 from tnn_dsl.data.io import read_data, split_by_time  # noqa: E402
-from tnn_dsl.estimation.ekf import ekf, tune_process_noise  # noqa: E402
+from tnn_dsl.estimation.kalman import ekf, tune_process_noise  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "bacher_madsen_inputPRBS1.csv"
 MODELS = ["ti", "tite", "tith", "titeth"]

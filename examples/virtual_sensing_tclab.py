@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.estimation.ekf import ekf, open_loop, tune_process_noise  # noqa: E402
+from tnn_dsl.estimation.kalman import ekf, open_loop, tune_process_noise  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 TRAIN = DATA / "tclab_kuntz_rawlings_prbs_openloop.csv"

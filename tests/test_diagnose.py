@@ -121,7 +121,7 @@ def test_forced_score_matches_the_big_network(backend):
     """The score test's shortcut (each candidate as an extra heat flow through the current network's
     linearised dynamics, plus its direct output term) ranks like the exact Jacobian of the big extended
     network's simulation."""
-    from tnn_dsl.doctor import diagnose as D
+    import tnn_dsl.doctor.diagnosis as D
 
     net = tnn_dsl.load(TCLAB)
     pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.0, seed=3, n_train=240, n_val=10,
@@ -147,7 +147,7 @@ def test_forced_score_matches_the_big_network(backend):
 
 
 def test_indistinguishable_candidates_are_named():
-    from tnn_dsl.doctor import diagnose as D
+    import tnn_dsl.doctor.diagnosis as D
     from tnn_dsl.doctor.candidates import Candidate
 
     rng = np.random.default_rng(0)

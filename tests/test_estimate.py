@@ -1,4 +1,4 @@
-"""The extended Kalman filter (tnn_dsl.estimation.ekf) and ``tnnc estimate``.
+"""The extended Kalman filter (tnn_dsl.estimation.kalman) and ``tnnc estimate``.
 
 * analytic: on a one-node linear RC network with the exact (exponential) discretisation the EKF is the
   linear Kalman filter, written out here in numpy;
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl.estimation.ekf import ekf, open_loop, tune_process_noise
+from tnn_dsl.estimation.kalman import ekf, open_loop, tune_process_noise
 
 BACKENDS = ["jax", "torch"]
 

@@ -55,7 +55,7 @@ def _user_dir(tmp_path: Path, data: str) -> Path:
 @pytest.fixture
 def no_training(monkeypatch):
     """Any attempt to train fails the test: refusals must come before any work."""
-    import tnn_dsl.fit.train as T
+    import tnn_dsl.fit.trainer as T
 
     def boom(*a, **k):
         raise AssertionError("training started although the output should have been refused first")
@@ -193,7 +193,7 @@ def test_compile_refuses_an_included_file(tmp_path, capsys):
 
 
 def test_diagnose_refuses_to_overwrite_its_network_before_any_work(tmp_path, capsys, monkeypatch):
-    import tnn_dsl.doctor.diagnose as D
+    import tnn_dsl.doctor.diagnosis as D
 
     net, data = rc_net(tmp_path), rc_data(tmp_path)
     before = Path(net).read_bytes()

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl.analysis.sensitivity import fisher_analysis
+from tnn_dsl.analysis.sensitivities import fisher_analysis
 from tnn_dsl.core.errors import TnnError
 from tnn_dsl.ir.network import Num, Ref
 
@@ -71,7 +71,7 @@ def test_fisher_rejects_bad_sigma():
 compile_mod = pytest.importorskip("tnn_dsl.compiler.model", reason="the compiler is not there yet")
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.analysis.sensitivity import sensitivity  # noqa: E402
+from tnn_dsl.analysis.sensitivities import sensitivity  # noqa: E402
 from tnn_dsl.compiler.model import compile as _compile_net  # noqa: E402
 from tnn_dsl.studies.casestudy import network_path  # noqa: E402
 
@@ -208,7 +208,7 @@ def test_same_results_on_both_backends(m1_reports):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
-    from tnn_dsl.analysis.sensitivity import _trajectory_sensitivity
+    from tnn_dsl.analysis.sensitivities import _trajectory_sensitivity
     from tnn_dsl.compiler.backends.adapter import backend_of
     from tnn_dsl.data.io import Experiment
 

@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tnn_dsl.core.errors import TnnError
-from tnn_dsl.fit.simulate import error_metrics
-from tnn_dsl.fit.train import (
+from tnn_dsl.fit.simulation import error_metrics
+from tnn_dsl.fit.trainer import (
     MIN_WINDOW_SAMPLES,
     TrainConfig,
     _from_z,
@@ -218,7 +218,7 @@ def _prbs(rng, n, lo, hi, hold=(30, 150)):
 def _simulated(net, seed, n, dt=2.0, backend="jax"):
     """An Experiment simulated from ``net`` (its written values) with PRBS heater inputs."""
     from tnn_dsl.data.io import Experiment
-    from tnn_dsl.fit.simulate import simulate
+    from tnn_dsl.fit.simulation import simulate
 
     rng = np.random.default_rng(seed)
     U = np.stack([_prbs(rng, n, 0.0, 1.0), _prbs(rng, n, 0.0, 1.0)], axis=1)  # [%] in SI: 0..100 % = 0..1
@@ -396,7 +396,7 @@ def test_loss_and_gradient_agree_across_backends(case_short):
     import tnn_dsl
     from tnn_dsl.compiler.model import compile as compile_network
     from tnn_dsl.data.io import read_data
-    from tnn_dsl.fit.train import _Trainer
+    from tnn_dsl.fit.trainer import _Trainer
 
     net = tnn_dsl.load(NETS / "m2.thn")
     (exp,) = read_data(net, case_short["train"])
@@ -461,7 +461,7 @@ def test_tanh_coordinates_give_the_same_sigmoid_mlp(backend):
     """``_tanh_to_sigmoid`` maps the weights of a tanh MLP to those of the sigmoid MLP computing the same
     function (exactly, on backend arrays), and ``_sigmoid_to_tanh`` inverts it."""
     from tnn_dsl.compiler.backends.adapter import Backend as _Ops
-    from tnn_dsl.fit.train import _sigmoid_to_tanh, _tanh_to_sigmoid
+    from tnn_dsl.fit.trainer import _sigmoid_to_tanh, _tanh_to_sigmoid
 
     ops = _Ops(backend)
     rng = np.random.default_rng(4)
@@ -534,7 +534,7 @@ def test_polish_starts_from_adams_last_state(monkeypatch):
     """The L-BFGS polish starts from Adam's last iterate, not from an earlier best-validation state, and
     falls back to that state when it cannot beat its validation MAE."""
     import tnn_dsl
-    from tnn_dsl.fit import train as _train
+    import tnn_dsl.fit.trainer as _train
 
     calls = {"n": 0}
 

@@ -20,46 +20,44 @@ from .core.version import __version__
 from .ir.network import Network
 
 if TYPE_CHECKING:
-    from .analysis.sensitivity import excitation, sensitivity
-    from .compiler.model import Model, ParamSpec, TorchCompileWarning, compile
-    from .control.mpc import MPC, closed_loop
-    from .data.io import Experiment, read_data, split_by_time
-    from .doctor.diagnose import Diagnosis, diagnose
-    from .estimation.ekf import EKFResult, ekf, tune_process_noise
-    from .fit.model_files import TrainedModel, load_model
-    from .fit.train import TrainConfig, evaluate, train
-    from .lang.parser import load, loads
-    from .studies.casestudy import generate_case_study
-    from .studies.thesis import StudyConfig, run_study
+    from .analysis import excitation, sensitivity
+    from .compiler import Model, ParamSpec, TorchCompileWarning, compile
+    from .control import MPC, closed_loop
+    from .data import Experiment, read_data, split_by_time
+    from .doctor import Diagnosis, diagnose
+    from .estimation import EKFResult, ekf, tune_process_noise
+    from .fit import TrainConfig, TrainedModel, evaluate, load_model, train
+    from .lang import load, loads
+    from .studies import StudyConfig, generate_case_study, run_study
 
 _LAZY: dict[str, str] = {
-    # name -> module that defines it
-    "load": ".lang.parser",
-    "loads": ".lang.parser",
-    "compile": ".compiler.model",
-    "Model": ".compiler.model",
-    "ParamSpec": ".compiler.model",
-    "TorchCompileWarning": ".compiler.model",
-    "read_data": ".data.io",
-    "Experiment": ".data.io",
-    "split_by_time": ".data.io",
-    "train": ".fit.train",
-    "evaluate": ".fit.train",
-    "TrainConfig": ".fit.train",
-    "load_model": ".fit.model_files",
-    "TrainedModel": ".fit.model_files",
-    "sensitivity": ".analysis.sensitivity",
-    "excitation": ".analysis.sensitivity",
-    "diagnose": ".doctor.diagnose",
-    "Diagnosis": ".doctor.diagnose",
-    "ekf": ".estimation.ekf",
-    "EKFResult": ".estimation.ekf",
-    "tune_process_noise": ".estimation.ekf",
-    "MPC": ".control.mpc",
-    "closed_loop": ".control.mpc",
-    "generate_case_study": ".studies.casestudy",
-    "run_study": ".studies.thesis",
-    "StudyConfig": ".studies.thesis",
+    # name -> the stage subpackage that exports it
+    "load": ".lang",
+    "loads": ".lang",
+    "compile": ".compiler",
+    "Model": ".compiler",
+    "ParamSpec": ".compiler",
+    "TorchCompileWarning": ".compiler",
+    "read_data": ".data",
+    "Experiment": ".data",
+    "split_by_time": ".data",
+    "train": ".fit",
+    "evaluate": ".fit",
+    "TrainConfig": ".fit",
+    "load_model": ".fit",
+    "TrainedModel": ".fit",
+    "sensitivity": ".analysis",
+    "excitation": ".analysis",
+    "diagnose": ".doctor",
+    "Diagnosis": ".doctor",
+    "ekf": ".estimation",
+    "EKFResult": ".estimation",
+    "tune_process_noise": ".estimation",
+    "MPC": ".control",
+    "closed_loop": ".control",
+    "generate_case_study": ".studies",
+    "run_study": ".studies",
+    "StudyConfig": ".studies",
 }
 
 

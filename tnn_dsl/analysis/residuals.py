@@ -2,7 +2,7 @@
 
 A residual is ``e = y_measured − y_model`` (K), one series per sensor, sampled every ``dt`` seconds.
 Everything here takes plain numpy arrays and returns plain Python/numpy data (JSON-friendly via
-:func:`to_jsonable`).
+:func:`tnn_dsl.core.jsonable.to_jsonable`).
 
 * :func:`sensor_errors` — MAE, max |e|, bias, RMS per sensor.
 * :func:`whiteness` — autocorrelation with the Ljung–Box test and the cumulated periodogram with its
@@ -20,9 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from ..core import to_jsonable
+
 __all__ = [
     "sensor_errors", "acf", "whiteness", "noise_sigma", "effective_n", "binned_dependence",
-    "ResidualSummary", "summarise", "to_jsonable",
+    "ResidualSummary", "summarise",
 ]
 
 
@@ -213,19 +215,3 @@ def summarise(residuals: np.ndarray, names: list[str], variables: dict[str, np.n
     return ResidualSummary(errs, white, sig, dep)
 
 
-def to_jsonable(obj):
-    """numpy → plain Python for ``json.dump`` (NaN → None)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj

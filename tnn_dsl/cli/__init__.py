@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..core.errors import TnnError
+    from ..core import TnnError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv

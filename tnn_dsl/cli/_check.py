@@ -10,8 +10,8 @@ from __future__ import annotations
 import sys
 from math import comb
 
-from ..core.errors import TnnError
-from ..ir.network import LearnFunction, Network
+from ..core import TnnError
+from ..ir import LearnFunction, Network
 
 
 def learned_weight_count(fn: LearnFunction) -> int:
@@ -84,7 +84,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..lang.parser import load
+    from ..lang import load
 
     status = 0
     for path in args.files:

@@ -15,8 +15,7 @@ import shutil
 import subprocess
 import sys
 
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import IMAGE, JSON, TEXT, OutputKind, atomic_path, write_text_atomic
+from ..core import IMAGE, JSON, TEXT, Diagnostic, OutputKind, TnnError, atomic_path, write_text_atomic
 from ._outputs import add_force_flag, check_outputs
 
 EMITS = ("equations", "ir-json", "graph")
@@ -45,7 +44,7 @@ def register(subparsers) -> None:
 def load_network(path: str):
     """A ``.thn`` file through the parser, or an IR JSON file."""
     if path.endswith(".json"):
-        from ..ir.emit import network_from_json
+        from ..ir import network_from_json
 
         try:
             with open(path, "rb") as f:

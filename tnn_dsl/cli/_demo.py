@@ -37,7 +37,7 @@ def register(subparsers) -> None:
 
 def budgets(quick: bool):
     """(StudyConfig, diagnose budget s). Full: 4 h training data, 10 OOD sets per level, ~75 s per model."""
-    from ..studies.thesis import StudyConfig
+    from ..studies import StudyConfig
 
     if quick:
         return StudyConfig(epochs=60, time_limit=15.0, lbfgs_iters=20, n_ood=3,
@@ -46,8 +46,8 @@ def budgets(quick: bool):
 
 
 def run(args) -> int:
-    from ..core.files import check_output, write_text_atomic
-    from ..studies.thesis import STUDY_DIR, plot_study, ratios_table, results_table, run_study
+    from ..core import check_output, write_text_atomic
+    from ..studies import STUDY_DIR, plot_study, ratios_table, results_table, run_study
 
     t0 = time.monotonic()
 
@@ -61,10 +61,10 @@ def run(args) -> int:
     data_dir = out / ("data-quick" if args.quick else "data")
     diag_text = None
     if not args.no_diagnose:
-        from ..studies.casestudy import generate_case_study, network_path
+        from ..studies import generate_case_study, network_path
 
         try:
-            from ..doctor.diagnose import diagnose
+            from ..doctor import diagnose
         except ImportError:  # pragma: no cover - the doctor is optional for the demo
             diagnose = None
         if diagnose is not None:

@@ -47,9 +47,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..core.files import JSON, THN
-    from ..doctor.diagnose import diagnose
-    from ..doctor.report import REPORT_DIR
+    from ..core import JSON, THN
+    from ..doctor import REPORT_DIR, diagnose
 
     check_outputs(args, [(args.output, THN, "-o"), (args.report, REPORT_DIR, "--report"), (args.json, JSON, "--json")],
                   inputs=[args.net, *args.train, *(args.val or [])])
@@ -70,7 +69,7 @@ def run(args) -> int:
         write_json(args.json, json.dumps(d.to_dict(), indent=2))
         progress(f"JSON written to {args.json}")
     if args.report:
-        from ..doctor.report import write_report
+        from ..doctor import write_report
 
         path = write_report(d, args.report, force=args.force)
         progress(f"report written to {path}")

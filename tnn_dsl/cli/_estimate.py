@@ -26,12 +26,11 @@ import sys
 
 import numpy as np
 
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import CSV, IMAGE, save_figure
+from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
 from ._outputs import add_force_flag, check_outputs
 
 try:
-    from ..compiler.integrators import INTEGRATORS as _INTEGRATORS
+    from ..compiler import INTEGRATORS as _INTEGRATORS
 except Exception:  # noqa: BLE001 - the CLI must still build its parser
     _INTEGRATORS = ("euler", "rk4", "expeuler")
 
@@ -102,8 +101,8 @@ def _drops(spans, t: np.ndarray) -> np.ndarray:
 
 
 def run(args) -> int:
-    from ..data.io import from_kelvin, read_data, write_csv
-    from ..estimation.ekf import ekf, open_loop, tune_process_noise
+    from ..data import from_kelvin, read_data, write_csv
+    from ..estimation import ekf, open_loop, tune_process_noise
     from ._simulate import _load
 
     if args.substeps is not None and args.substeps < 1:
@@ -112,7 +111,7 @@ def run(args) -> int:
     net, model, params, label = _load(args.net, args.backend, args.seed)
     integrator = args.integrator
     if integrator is None and os.path.isdir(args.net):
-        from ..fit.model_files import load_model
+        from ..fit import load_model
 
         integrator = load_model(args.net).meta.get("config", {}).get("integrator")
     integrator = integrator or "rk4"
@@ -190,7 +189,7 @@ def plot_estimate(path: str, net, exp, res, y_open: np.ndarray, dropped: np.ndar
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..data.io import from_kelvin
+    from ..data import from_kelvin
 
     unit = net.temperature_unit
     ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]

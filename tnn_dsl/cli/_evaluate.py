@@ -42,10 +42,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..core.files import IMAGE, JSON
-    from ..data.io import read_data
-    from ..fit.model_files import _jsonable, load_model
-    from ..fit.simulate import error_metrics
+    from ..core import IMAGE, JSON, to_jsonable
+    from ..data import read_data
+    from ..fit import error_metrics, load_model
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.model, *args.data])
     tm = load_model(args.model)
@@ -66,7 +65,7 @@ def run(args) -> int:
         print(f"{'all':<28} {'all':<12} {_f(metrics['mae'])} {_f(metrics['max_error'])} {_f(metrics['bias'])} "
               f"{_f(metrics['rmse'])} {metrics['n']:>7}", file=out)
     if args.json:
-        write_json(args.json, json.dumps(_jsonable(metrics), indent=2))
+        write_json(args.json, json.dumps(to_jsonable(metrics), indent=2))
     if args.plot:
         plot_predictions(args.plot, tm.network, preds)
         print(f"wrote {args.plot}", file=out)
@@ -84,8 +83,8 @@ def plot_predictions(path: str, net, preds) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.files import save_figure
-    from ..data.io import from_kelvin
+    from ..core import save_figure
+    from ..data import from_kelvin
 
     unit = net.temperature_unit
     ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]

@@ -1,7 +1,7 @@
 """``tnnc excitation DATA...``: compare how well data files excite the system (thesis §4.2, §5.6.1).
 
 The singular values of the block-Hankel matrix of each file's inputs and its condition number (lower =
-richer excitation); files are ranked best first. See ``tnn_dsl.analysis.sensitivity.excitation`` for the exact
+richer excitation); files are ranked best first. See ``tnn_dsl.analysis.sensitivities.excitation`` for the exact
 definition (centring, common scaling, constant channels left out).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 
-from ..core.files import JSON
+from ..core import JSON
 from ._outputs import add_force_flag, check_outputs, write_json
 
 
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..analysis.sensitivity import excitation
+    from ..analysis import excitation
 
     check_outputs(args, [(None if args.json == "-" else args.json, JSON, "--json")], inputs=[*args.data, args.net])
     net = None

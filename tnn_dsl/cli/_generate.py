@@ -40,8 +40,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..core.errors import Diagnostic, TnnError
-    from ..studies.casestudy import generate_case_study
+    from ..core import Diagnostic, TnnError
+    from ..studies import generate_case_study
 
     bad = [w for w in args.widen if not (0 <= w <= 1000)]
     if bad:

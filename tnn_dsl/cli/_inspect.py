@@ -75,8 +75,8 @@ def learned_summary(tm) -> list[dict]:
 
 def learned_values(tm, fn, X: np.ndarray) -> np.ndarray:
     """Target values ``(M, n_targets)`` of learned function ``fn`` at inputs ``X (M, n_in)`` (SI)."""
-    from ..compiler.backends import get_xp
-    from ..compiler.learned import apply, target_value
+    from ..compiler import apply_learned as apply
+    from ..compiler import get_xp, target_value
 
     xp = get_xp("numpy")
     arrays = {k.split(".", 1)[1]: v for k, v in tm.params.items() if k.startswith(fn.name + ".")}
@@ -86,7 +86,7 @@ def learned_values(tm, fn, X: np.ndarray) -> np.ndarray:
     for i, t in enumerate(fn.targets):
         if t.kind == "param":
             p = next((q for q in tm.network.params if q.name == t.name), None)
-            from ..ir.network import POSITIVE_ROLES
+            from ..ir import POSITIVE_ROLES
 
             positive = p is not None and p.role in POSITIVE_ROLES
             nominal = float(p.value) if p is not None and p.value is not None else (1.0 if positive else 0.0)
@@ -103,8 +103,8 @@ def _fmt(v: float, role: str, unit: str) -> str:
 
 
 def run(args) -> int:
-    from ..core.files import JSON, PLOT_DIR
-    from ..fit.model_files import _jsonable, load_model
+    from ..core import JSON, PLOT_DIR, to_jsonable
+    from ..fit import load_model
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, PLOT_DIR, "--plot")], inputs=[args.model])
     tm = load_model(args.model)
@@ -148,7 +148,7 @@ def run(args) -> int:
     for w in meta.get("warnings", []) or []:
         print(f"warning: {w}", file=out)
     if args.json:
-        write_json(args.json, json.dumps(_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2))
+        write_json(args.json, json.dumps(to_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2))
     if args.plot:
         os.makedirs(args.plot, exist_ok=True)
         for s in summ:
@@ -166,7 +166,7 @@ def plot_function(path: str, tm, fn, s: dict, n: int = 101) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.files import save_figure
+    from ..core import save_figure
 
     n_in = max(len(s["inputs"]), 1)
     fig, axes = plt.subplots(1, n_in, figsize=(4.0 * n_in, 3.4), squeeze=False)

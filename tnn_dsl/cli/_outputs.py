@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from typing import Iterable
 
-from ..core.files import OutputKind, check_output, write_text_atomic
+from ..core import OutputKind, check_output, write_text_atomic
 
 FORCE_HELP = ("write even where an existing file or directory of another kind is in the way (a directory's "
               "other files are kept; a file is never deleted to make room for a directory)")

@@ -11,8 +11,7 @@ from __future__ import annotations
 import json
 import re
 
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import IMAGE, JSON
+from ..core import IMAGE, JSON, Diagnostic, TnnError
 from ._outputs import add_force_flag, check_outputs, write_json
 
 
@@ -53,7 +52,7 @@ _ASSIGN = re.compile(r"^\s*([A-Za-z_][\w.]*)\s*=\s*([-+0-9.eE]+)\s*$")
 def parse_inputs(net, items: list[str]) -> dict[str, float]:
     """``["I=1.5", "Ta=22"]`` → SI values: temperature inputs from the network's temperature unit to K, the
     others by their declared unit (``%`` → 0.01)."""
-    from ..data.io import to_kelvin, unit_factor
+    from ..data import to_kelvin, unit_factor
 
     by = {i.name: i for i in net.inputs}
     out: dict[str, float] = {}
@@ -82,7 +81,7 @@ def parse_inputs(net, items: list[str]) -> dict[str, float]:
 
 def run(args) -> int:
     from .. import load
-    from ..analysis.sensitivity import sensitivity
+    from ..analysis import sensitivity
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.net, *args.data])
     net = load(args.net)

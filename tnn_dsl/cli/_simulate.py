@@ -23,12 +23,11 @@ import sys
 
 import numpy as np
 
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import CSV, IMAGE, save_figure
+from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
 from ._outputs import add_force_flag, check_outputs
 
 try:  # the integrators the backends offer; the list is fixed by _integrators.INTEGRATORS
-    from ..compiler.integrators import INTEGRATORS as _INTEGRATORS
+    from ..compiler import INTEGRATORS as _INTEGRATORS
 except Exception:  # noqa: BLE001 - the CLI must still build its parser
     _INTEGRATORS = ("euler", "rk4", "expeuler")
 
@@ -68,13 +67,13 @@ def register(subparsers) -> None:
 def _load(net_arg: str, backend: str, seed: int):
     """→ (network, compiled model, backend params, label)."""
     if os.path.isdir(net_arg):
-        from ..fit.model_files import load_model
+        from ..fit import load_model
 
         tm = load_model(net_arg)
         model = tm.compiled(backend)
         return tm.network, model, tm.backend_params(backend), f"model {net_arg}"
-    from ..compiler.model import compile as compile_network
-    from ..lang.parser import load
+    from ..compiler import compile as compile_network
+    from ..lang import load
 
     net = load(net_arg)
     model = compile_network(net, backend=backend, dtype="float64")
@@ -82,8 +81,8 @@ def _load(net_arg: str, backend: str, seed: int):
 
 
 def run(args) -> int:
-    from ..data.io import read_data, write_csv
-    from ..fit.simulate import simulate_experiment
+    from ..data import read_data, write_csv
+    from ..fit import simulate_experiment
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
@@ -137,7 +136,7 @@ def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..data.io import _unit_scale, from_kelvin
+    from ..data import from_kelvin, unit_scale_offset
 
     unit = net.temperature_unit
     ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
@@ -162,7 +161,7 @@ def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
         if inp.is_temperature:
             v, u = from_kelvin(exp.inputs[:, k], unit), ushow
         else:  # back to the unit the network declares (% stays %)
-            scale, offset = _unit_scale(inp.unit)
+            scale, offset = unit_scale_offset(inp.unit)
             v, u = (exp.inputs[:, k] - offset) / scale, (inp.unit or "1")
         ax.step(tt, v, where="post", lw=0.9, label=f"{inp.name} [{u}]")
     ax.set_ylabel("inputs")

@@ -83,7 +83,7 @@ def register(subparsers) -> None:
 
 
 def _gamma(values):
-    from ..core.errors import Diagnostic, TnnError
+    from ..core import Diagnostic, TnnError
 
     if values is None:
         return None
@@ -161,11 +161,9 @@ def _dur(s: float) -> str:
 def run(args) -> int:
     import tnn_dsl
 
-    from ..core.errors import Diagnostic, TnnError
-    from ..core.files import JSON
-    from ..data.io import read_data
-    from ..fit.model_files import MODEL_DIR
-    from ..fit.train import load_config, train
+    from ..core import JSON, Diagnostic, TnnError
+    from ..data import read_data
+    from ..fit import MODEL_DIR, load_config, train
 
     overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
     overrides["prefit"] = args.opt_prefit
@@ -215,9 +213,9 @@ def run(args) -> int:
         doc = {"model": args.output, "backend": meta.get("backend"), "stopped": stopped,
                "metrics": meta.get("metrics"), "fitted": meta.get("fitted"), "warnings": meta.get("warnings"),
                "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
-        from ..fit.model_files import _jsonable
+        from ..core import to_jsonable
 
-        write_json(args.json, json.dumps(_jsonable(doc), indent=2))
+        write_json(args.json, json.dumps(to_jsonable(doc), indent=2))
     if stopped == "diverged":
         raise TnnError(Diagnostic(
             f"training diverged; the best model so far was saved to {args.output}. "

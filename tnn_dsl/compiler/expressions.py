@@ -20,7 +20,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..ir.network import Binary, Call, Num, Ref, Table, Temp, Unary
+from ..ir import Binary, Call, Num, Ref, Table, Temp, Unary
 from .backends import _interp_segments, interp_with
 
 Getter = Callable[[Any], Any]
@@ -29,7 +29,7 @@ Getter = Callable[[Any], Any]
 
 def dependencies(expr) -> tuple[set[str], set[str]]:
     """``(ref names, temperature nodes)`` an expression reads (``Ref`` names are params or inputs)."""
-    from ..ir.network import walk
+    from ..ir import walk
 
     nodes = list(walk(expr))
     return {e.name for e in nodes if isinstance(e, Ref)}, {e.node for e in nodes if isinstance(e, Temp)}

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import Diagnostic, TnnError
-from ..ir.network import POSITIVE_ROLES, Network
+from ..core import Diagnostic, TnnError
+from ..ir import POSITIVE_ROLES, Network
 from . import learned as _learned
 from . import physics as _physics
 from .backends import get_xp

@@ -13,7 +13,7 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..ir.network import Network
+from ..ir import Network
 
 __all__ = ["CompiledModel"]
 

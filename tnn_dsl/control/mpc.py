@@ -28,8 +28,8 @@ from typing import Mapping
 
 import numpy as np
 
-from ..compiler.backends.adapter import Backend, backend_of
-from ..core.errors import Diagnostic, TnnError
+from ..compiler import Backend, backend_of
+from ..core import Diagnostic, TnnError
 
 __all__ = ["MPC", "closed_loop", "ClosedLoopResult"]
 
@@ -77,7 +77,7 @@ class MPC:
         self.rho, self.wy = float(move_penalty), float(track_weight)
         self.max_iter = int(max_iter)
         self.integrator = integrator
-        from ..compiler.integrators import check_step
+        from ..compiler import check_step
 
         tau, where = model.fastest_time_constant()
         with warnings.catch_warnings():

@@ -1,1 +1,25 @@
-"""tnn_dsl.data."""
+"""Measured data: CSV/Parquet files to :class:`Experiment` objects in SI units, and CSV out.
+
+Owns: time columns, column units, missing values, splits, the shared ``as_experiments`` and ``write_csv``.
+May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.lang`` (units).
+"""
+
+from __future__ import annotations
+
+from .io import (
+    Experiment,
+    as_experiments,
+    from_kelvin,
+    read_data,
+    read_table,
+    split_by_time,
+    to_kelvin,
+    unit_factor,
+    unit_scale_offset,
+    write_csv,
+)
+
+__all__ = [
+    "Experiment", "as_experiments", "from_kelvin", "read_data", "read_table", "split_by_time", "to_kelvin",
+    "unit_factor", "unit_scale_offset", "write_csv"
+]

@@ -42,9 +42,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..core.errors import DataError, Diagnostic
-from ..core.files import atomic_path
-from ..ir.network import Network, Span
+from ..core import DataError, Diagnostic, atomic_path
+from ..ir import Network, Span
 
 __all__ = ["Experiment", "read_data", "split_by_time", "write_csv", "to_kelvin", "from_kelvin", "unit_factor"]
 
@@ -162,17 +161,17 @@ def from_kelvin(x, unit: str):
 def unit_factor(unit: str | None) -> float:
     """The factor that takes a value in ``unit`` to SI (``"%"`` → 0.01, ``"kW"`` → 1000, ``None`` → 1).
     Raises ``ValueError`` for a unit that is not known (or is an absolute temperature scale)."""
-    scale, offset = _unit_scale(unit)
+    scale, offset = unit_scale_offset(unit)
     if offset != 0.0:
         raise ValueError(f"the unit {unit!r} is an absolute temperature; declare the input `: temperature`")
     return scale
 
 
-def _unit_scale(unit: str | None) -> tuple[float, float]:
+def unit_scale_offset(unit: str | None) -> tuple[float, float]:
     """(scale, offset) with SI = scale·x + offset, from ``tnn_dsl.lang.units`` (pint underneath)."""
     if unit is None or unit.strip().strip("[]").strip() in ("", "1", "-"):
         return 1.0, 0.0
-    from ..lang.units import UnitError, unit_scale
+    from ..lang import UnitError, unit_scale
 
     try:
         return unit_scale(unit)
@@ -338,7 +337,7 @@ def _read_parquet(path: str) -> _Table:
     return _Table(path=path, columns=cols, cells=cells, lines=None, raw=None)
 
 
-def _read_table(path: str) -> _Table:
+def read_table(path: str) -> _Table:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise DataError(Diagnostic(f"data file {path!r} not found", hint="check the path"))
@@ -675,7 +674,7 @@ def read_data(
 
 
 def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs) -> Experiment:
-    tab = _read_table(path)
+    tab = read_table(path)
     notes: list[str] = []
     problems: list[Diagnostic] = []
     n = tab.n_rows
@@ -722,7 +721,7 @@ def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs)
             col = to_kelvin(col, tunit)
         else:
             try:
-                scale, offset = _unit_scale(inp.unit)
+                scale, offset = unit_scale_offset(inp.unit)
                 col = col * scale + offset
             except ValueError as err:
                 problems.append(Diagnostic(str(err), inp.span, hint="use a unit pint knows (%, W, kW, A, W/m^2 ...)"))

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..ir.network import (
+from ..ir import (
     Binary,
     LearnFunction,
     LearnInput,
@@ -639,7 +639,7 @@ def apply_structural(net: Network, cand: Candidate, value: float, lower: float |
 def _series(net: Network, expr, U: np.ndarray, params: dict, X: np.ndarray, state_names, depth: int = 0) -> np.ndarray:
     """An expression of the network evaluated over samples: ``U (N, ≥ n_in)`` SI inputs in ``net.inputs`` order,
     ``X (N, n_states)`` K, ``params`` the numpy constants (derived parameters are evaluated recursively)."""
-    from ..compiler.expressions import evaluate
+    from ..compiler import evaluate_expr as evaluate
 
     if depth > 64:
         raise ValueError("parameter expressions nest too deep (a cycle?)")
@@ -778,7 +778,7 @@ def mass_grid(net: Network, cand: Candidate, params: dict, dt: float, duration: 
 
 def _in_unit(value_si: float, unit: str | None, fallback: str) -> str:
     """``value_si`` written as a ``.thn`` quantity in ``unit`` (the unit the file wrote), else in ``fallback`` (SI)."""
-    from ..lang.units import unit_scale
+    from ..lang import unit_scale
 
     if unit:
         try:

@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..analysis.significance import held_out_test
+from ..analysis import held_out_test
 from .selection import MIN_GAIN, P_ACCEPT
 
 MARK = "# ---- added by `tnnc diagnose`"
@@ -62,8 +62,8 @@ def compare(text: str, filename: str, train, val, *, backend: str = "jax", time_
     clause to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max, K; trainable parameter
     count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"), ``reason``, ``text`` (the
     chosen variant's ``.thn`` text), ``n_clauses``."""
-    from ..fit.train import train as train_model
-    from ..lang.parser import loads
+    from ..fit import train as train_model
+    from ..lang import loads
 
     text_mlp, n = mlp_text(text)
     if n == 0:

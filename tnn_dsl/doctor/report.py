@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.files import OutputKind, check_output, write_text_atomic
+from ..core import OutputKind, check_output, write_text_atomic
 
 __all__ = ["write_report"]
 
@@ -132,7 +132,7 @@ REPORT_DIR = OutputKind("report directory", is_dir=True, ours=_is_report_dir, ex
 
 
 def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str:
-    """Write ``directory/index.html`` for a :class:`~tnn_dsl.doctor.diagnose.Diagnosis`; returns its path.
+    """Write ``directory/index.html`` for a :class:`~tnn_dsl.doctor.diagnosis.Diagnosis`; returns its path.
 
     ``directory`` must be absent, empty or an earlier report, unless ``force`` (then only its
     ``index.html`` is replaced)."""

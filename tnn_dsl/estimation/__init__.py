@@ -1,1 +1,12 @@
-"""tnn_dsl.estimation."""
+"""State estimation on a compiled model: the extended Kalman filter (virtual sensing, innovation likelihood).
+
+May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.compiler``.
+"""
+
+from __future__ import annotations
+
+from .kalman import EKFResult, ekf, open_loop, tune_process_noise
+
+__all__ = [
+    "EKFResult", "ekf", "open_loop", "tune_process_noise"
+]

@@ -30,11 +30,21 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from ..core.errors import Diagnostic, ModelFileError, TnnError
-from ..core.files import OutputKind, check_output, exchange_paths, fsync_dir, fsync_file, temp_sibling
-from ..core.version import __version__
-from ..ir.network import Network, Span
-from .simulate import as_experiments, error_metrics, simulate
+from ..core import (
+    Diagnostic,
+    ModelFileError,
+    OutputKind,
+    TnnError,
+    __version__,
+    check_output,
+    exchange_paths,
+    fsync_dir,
+    fsync_file,
+    temp_sibling,
+    to_jsonable,
+)
+from ..ir import Network, Span
+from .simulation import as_experiments, error_metrics, simulate
 
 FORMAT = "tnn_dsl-model"
 FORMAT_VERSION = 1
@@ -68,26 +78,6 @@ def versions(backend: str | None = None) -> dict[str, str]:
         except Exception:  # noqa: BLE001 - versions are informational only
             pass
     return out
-
-
-def _jsonable(obj: Any) -> Any:
-    """Make numpy scalars/arrays and paths JSON-serialisable; non-finite floats become ``None``."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
 
 
 def _err(message: str, path: str | os.PathLike | None = None, hint: str | None = None, line: int = 1, col: int = 1):
@@ -186,7 +176,7 @@ def save_model(
                      "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         full_meta.update(meta)
         full_meta["write_id"] = write_id
-        (tmp / "meta.json").write_text(json.dumps(_jsonable(full_meta), indent=2, allow_nan=False) + "\n",
+        (tmp / "meta.json").write_text(json.dumps(to_jsonable(full_meta), indent=2, allow_nan=False) + "\n",
                                        encoding="utf-8")
         for f in [*written, tmp / "network.json", tmp / "params.safetensors", tmp / "meta.json"]:
             fsync_file(f)
@@ -411,7 +401,7 @@ class TrainedModel:
 
     def compiled(self, backend: str | None = None, dtype: str = "float64"):
         """The compiled :class:`Model` for ``backend`` (default: the training backend); cached."""
-        from ..compiler.model import compile as compile_network
+        from ..compiler import compile as compile_network
 
         backend = backend or self.backend
         key = (backend, dtype)

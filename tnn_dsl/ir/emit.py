@@ -21,8 +21,7 @@ import math
 import shutil
 import subprocess
 
-from ..core.errors import TnnError
-from ..core.files import atomic_path, save_figure
+from ..core import TnnError, atomic_path, save_figure
 from .network import (
     POSITIVE_ROLES,
     Binary,
@@ -508,7 +507,7 @@ def network_from_json(text: str, filename: str = "<json>") -> Network:
     try:
         return Network.from_json(text)
     except pydantic.ValidationError as err:
-        from ..core.errors import Diagnostic
+        from ..core import Diagnostic
 
         diags = []
         for e in err.errors()[:10]:

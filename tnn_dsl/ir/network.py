@@ -23,7 +23,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..core.span import Span
+from ..core import Span
 
 # ---------------------------------------------------------------------------------------------
 # Source positions and dimensions

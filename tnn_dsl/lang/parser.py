@@ -27,8 +27,8 @@ from typing import Any
 from lark import Lark, Token, Transformer, v_args
 from lark.exceptions import UnexpectedCharacters, UnexpectedEOF, UnexpectedInput, UnexpectedToken, VisitError
 
-from ..core.errors import Diagnostic, TnnError
-from ..ir.network import (
+from ..core import Diagnostic, TnnError
+from ..ir import (
     CALL_FUNCTIONS,
     Binary,
     Boundary,
@@ -1729,7 +1729,7 @@ def _parse(text: str, filename: str, validate: bool) -> Network:
     net = b.network()
     diags = list(b.diags)
     if validate:
-        from .validate import validate as _validate
+        from .validation import validate as _validate
 
         try:
             net = _validate(net, prior=diags)

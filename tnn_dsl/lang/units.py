@@ -17,7 +17,7 @@ import math
 import re
 from functools import lru_cache
 
-from ..ir.network import Dim
+from ..ir import Dim
 
 BASE = ("kg", "m", "s", "K", "A", "mol", "cd")
 _PINT_DIM = {

@@ -35,9 +35,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..compiler.backends.adapter import backend_of
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import OutputKind, check_output, write_text_atomic
+from ..compiler import backend_of
+from ..core import Diagnostic, OutputKind, TnnError, check_output, write_text_atomic
 
 __all__ = [
     "generate_case_study", "step_sequence", "case_study_inputs", "truth_network_path", "network_path",
@@ -148,11 +147,11 @@ class _Truth:
     def __init__(self, backend: str = "jax", path: Path | None = None):
         import tnn_dsl
 
-        from ..data.io import to_kelvin
+        from ..data import to_kelvin
 
         self.path = Path(path) if path is not None else truth_network_path()
         self.net = tnn_dsl.load(str(self.path))
-        from ..compiler.model import compile as compile_network
+        from ..compiler import compile as compile_network
 
         self.model = compile_network(self.net, backend=backend, dtype="float64")
         self.params = self.model.init_params(seed=0)
@@ -218,7 +217,7 @@ def _sha256(path: Path) -> str:
 
 def _write_set(truth: _Truth, path: Path, sig: dict[str, np.ndarray], states: np.ndarray, outputs: np.ndarray,
                noise: np.ndarray) -> None:
-    from ..data.io import write_csv
+    from ..data import write_csv
 
     n = states.shape[0]
     t = np.arange(n, dtype=np.float64) * SAMPLE_DT

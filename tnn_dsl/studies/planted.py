@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.io import Experiment
-from ..doctor.candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
-from ..ir.network import Network
+from ..data import Experiment
+from ..doctor import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
+from ..ir import Network
 
 __all__ = ["Planted", "step_inputs", "plant", "find_candidate"]
 
@@ -66,8 +66,8 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     thermal mass, seconds for a heat capacity behind a source (``kind="source_mass"``, ``target`` the source: its
     time constant C_h·R_h, with C_h a quarter of the heated node's capacity). Returns training and validation :class:`Experiment` objects (different seeds).
     """
-    from ..compiler.model import compile as _compile
-    from ..doctor.diagnose import _stats_for
+    from ..compiler import compile as _compile
+    from ..doctor import normalisation_stats
 
     rng_tr = np.random.default_rng(1000 + seed)
     rng_va = np.random.default_rng(2000 + seed)
@@ -96,7 +96,7 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
         return np.asarray(model.xp.to_numpy(st)), np.asarray(model.xp.to_numpy(y))
 
     st, _ = run(p, u_tr)
-    p = _stats_for(model, p, ext.fn_vars, ext.network, u_tr, st, np.ones(n_train, bool), dt=dt)
+    p = normalisation_stats(model, p, ext.fn_vars, ext.network, u_tr, st, np.ones(n_train, bool), dt=dt)
     if kind is not None:
         cand = find_candidate(ext.candidates, kind, target, depends_on)
         col = cand.columns[0]

@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.files import OutputKind, check_output, save_figure, write_text_atomic
+from ..core import OutputKind, check_output, save_figure, write_text_atomic
 
 __all__ = ["StudyConfig", "run_study", "thesis_ratios", "THESIS", "results_table", "plot_study", "MODELS"]
 
@@ -80,7 +80,7 @@ def _networks_dir() -> Path:
 
 def _m5_network(m4_dir: Path):
     """m5.thn with its frozen Peltier function's ``init_from`` pointed at the M4 model just trained."""
-    from ..lang.parser import load
+    from ..lang import load
 
     net = load(str(_networks_dir() / "m5.thn"))
     learned = [fn.model_copy(update={"init_from": str(m4_dir)}) if fn.init_from else fn for fn in net.learned]
@@ -106,8 +106,8 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
          "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
     """
-    from ..fit.train import train
-    from ..lang.parser import load
+    from ..fit import train
+    from ..lang import load
     from .casestudy import generate_case_study
 
     cfg = config or StudyConfig()
@@ -278,7 +278,7 @@ def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
         plt.close(fig)
         written.append(str(p))
     # validation trajectories
-    from ..fit.model_files import load_model
+    from ..fit import load_model
 
     models_dir = Path(results.get("models_dir", out.parent / "models"))
     preds = {}

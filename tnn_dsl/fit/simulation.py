@@ -9,10 +9,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..compiler.backends.adapter import backend_of
-from ..core.errors import Diagnostic, TnnError
-from ..data.io import as_experiments
-from ..ir.network import Network
+from ..compiler import backend_of
+from ..core import Diagnostic, TnnError
+from ..data import as_experiments
+from ..ir import Network
 
 __all__ = ["simulate", "error_metrics", "as_experiments", "initial_state", "simulate_experiment"]
 

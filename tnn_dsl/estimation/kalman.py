@@ -34,8 +34,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..compiler.backends.adapter import backend_of
-from ..core.errors import Diagnostic, TnnError
+from ..compiler import backend_of
+from ..core import Diagnostic, TnnError
 
 __all__ = ["ekf", "EKFResult", "open_loop", "tune_process_noise", "DEFAULT_PROCESS_NOISE", "DEFAULT_MEAS_NOISE", "DEFAULT_INIT_STD"]
 
@@ -306,7 +306,7 @@ def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str
 
     Returns an :class:`EKFResult`.
     """
-    from ..compiler.integrators import INTEGRATORS, check_step
+    from ..compiler import INTEGRATORS, check_step
 
     if model.backend not in ("jax", "torch"):
         raise TnnError(Diagnostic(f"the filter needs automatic differentiation; backend {model.backend!r} has none",

@@ -57,9 +57,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..compiler.backends.adapter import Backend, backend_of
-from ..core.errors import DataError, Diagnostic, TnnError
-from ..ir.network import Network, Num
+from ..compiler import Backend, backend_of
+from ..core import DataError, Diagnostic, TnnError
+from ..ir import Network, Num
 
 __all__ = [
     "sensitivity", "excitation", "SensitivityReport", "ParameterSensitivity", "Identifiability",
@@ -283,7 +283,7 @@ def _read_table_inputs(path: str, columns: Sequence[str] | None) -> tuple[list[s
     if columns:
         missing = [c for c in columns if c not in df.columns]
         if missing:
-            from ..ir.network import Span
+            from ..ir import Span
             raise DataError(Diagnostic(
                 f"no column {', '.join(repr(c) for c in missing)} in the data file",
                 span=Span(file=path, line=1, col=1, end_line=1, end_col=1),
@@ -302,7 +302,7 @@ def _read_table_inputs(path: str, columns: Sequence[str] | None) -> tuple[list[s
     bad = ~np.isfinite(arr)
     if bad.any():
         row, col = np.argwhere(bad)[0]
-        from ..ir.network import Span
+        from ..ir import Span
         raise DataError(Diagnostic(f"missing or non-finite value in input column {names[col]!r}",
                                    span=Span(file=path, line=int(row) + 2, col=1, end_line=int(row) + 2, end_col=1),
                                    hint="fill or drop the gap before computing the excitation"))
@@ -327,7 +327,7 @@ def _excitation_sets(data, net, columns) -> list[tuple[str, str | None, list[str
         else:
             path = os.fspath(item)
             if net is not None:
-                from ..data.io import read_data
+                from ..data import read_data
 
                 net_obj = _as_network(net)
                 for e in read_data(net_obj, [path]):
@@ -882,7 +882,7 @@ class SensitivityReport:
             ax.legend(handles, labels, loc="lower right", fontsize=8)
         ax.grid(axis="x", alpha=0.3)
         fig.tight_layout()
-        from ..core.files import save_figure
+        from ..core import save_figure
 
         save_figure(fig, path, dpi=120)
         plt.close(fig)
@@ -894,7 +894,7 @@ def _as_network(net) -> Network:
         return net
     if hasattr(net, "network") and hasattr(net, "rhs"):
         return net.network
-    from ..lang.parser import load
+    from ..lang import load
 
     return load(os.fspath(net))
 
@@ -1041,14 +1041,14 @@ def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, ba
         model = net
         network = model.network
     else:
-        from ..compiler.model import compile as _compile
+        from ..compiler import compile as _compile
 
         network = _as_network(net)
         model = _compile(network, backend=backend, dtype=dtype)
     if not network.sensors:
         raise TnnError(Diagnostic(f"network {network.name} has no sensor: there is no output to be sensitive",
                                   hint="add `sensor NAME = NODE`"))
-    from ..data.io import as_experiments
+    from ..data import as_experiments
 
     experiments = as_experiments(network, data)
 

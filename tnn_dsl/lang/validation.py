@@ -20,21 +20,8 @@ from __future__ import annotations
 import difflib
 import re
 
-from ..core.errors import Diagnostic, TnnError
-from ..ir.network import (
-    Binary,
-    Call,
-    LearnFunction,
-    LearnInput,
-    Network,
-    Num,
-    Param,
-    Ref,
-    Span,
-    Table,
-    Temp,
-    Unary,
-)
+from ..core import Diagnostic, TnnError
+from ..ir import Binary, Call, LearnFunction, LearnInput, Network, Num, Param, Ref, Span, Table, Temp, Unary
 from .units import describe_dim, dim_div, dim_eq, dim_mul, dim_pow, format_dim, unit_dim
 
 _T_NUM = re.compile(r"^T(\d+)$")

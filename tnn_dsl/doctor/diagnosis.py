@@ -56,12 +56,11 @@ import numpy as np
 from scipy import stats
 from scipy.signal import lfilter
 
+from ..analysis import held_out_test as _held_out_test
 from ..analysis import residuals as R
-from ..analysis.significance import held_out_test as _held_out_test
-from ..compiler.backends.adapter import backend_of
-from ..core.errors import Diagnostic, TnnError
-from ..core.files import THN, check_output, write_text_atomic
-from ..ir.network import POSITIVE_ROLES, Input, Network, Param
+from ..compiler import backend_of
+from ..core import THN, Diagnostic, TnnError, check_output, to_jsonable, write_text_atomic
+from ..ir import POSITIVE_ROLES, Input, Network, Param
 from .candidates import (
     STRUCTURAL_KINDS,
     Candidate,
@@ -117,7 +116,7 @@ class Finding:
     round: int = 1
 
     def to_dict(self) -> dict:
-        return R.to_jsonable({
+        return to_jsonable({
             "rank": self.rank, "round": self.round, "kind": self.kind, "target": self.target,
             "depends_on": self.depends_on, "clause": self.clause, "words": self.words,
             "val_mae_after": self.val_mae_after, "val_max_after": self.val_max_after,
@@ -155,7 +154,7 @@ class Diagnosis:
                 "val_max_before": self.baseline["val_max"], "val_max_after": self.extended["val_max"]}
 
     def to_dict(self) -> dict:
-        return R.to_jsonable({
+        return to_jsonable({
             "network": self.network,
             "question": "free-run simulation (output error from the initial steady state)",
             "baseline": self.baseline,
@@ -237,7 +236,7 @@ class _Engine:
 
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
                  params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0):
-        from ..compiler.model import compile as _compile
+        from ..compiler import compile as _compile
 
         self.net = net
         self.backend = backend
@@ -558,7 +557,7 @@ def _with_forcing(net: Network) -> Network:
     """``net`` plus one heat source per node driven by a new input ``dxF_<node>`` (W). With those inputs at 0
     it is exactly ``net``; the score test differentiates the simulation w.r.t. them (the response to any
     candidate's extra heat flow through the same linearised dynamics)."""
-    from ..ir.network import Ref, Source
+    from ..ir import Ref, Source
 
     w = {"kg": 1.0, "m": 2.0, "s": -3.0}
     names = set(net.input_names) | set(net.param_names) | {s.name for s in net.sources}
@@ -584,7 +583,7 @@ def _paths_of(data) -> list:
 
 def _load(net_or_path) -> tuple[Network, str | None, str]:
     """Network, its file path (or None) and its source text."""
-    from ..lang.parser import load
+    from ..lang import load
 
     if isinstance(net_or_path, Network):
         path = net_or_path.source_files[0] if net_or_path.source_files else None
@@ -598,7 +597,7 @@ def _load(net_or_path) -> tuple[Network, str | None, str]:
 def _unused_columns(net: Network, experiments) -> list[tuple[str, str]]:
     """(input name, column) for numeric data columns present in every training file that the network does
     not read (not the time column, not an input, not a sensor)."""
-    from ..data.io import _read_table
+    from ..data import read_table
 
     used = {i.column for i in net.inputs} | {s.column for s in net.sensors}
     # a column that reads a modelled node's temperature (``T_hx1``, ``hx1``) is a state, not a driver
@@ -606,7 +605,7 @@ def _unused_columns(net: Network, experiments) -> list[tuple[str, str]]:
     common: list[str] | None = None
     for e in experiments:
         try:
-            tab = _read_table(e.path)
+            tab = read_table(e.path)
         except Exception:  # noqa: BLE001 - the file was read before; a re-read problem just skips this
             return []
         cols = []
@@ -654,7 +653,7 @@ def _split_masks(experiments, val_experiments, frac: float = 0.7):
     return exps, np.concatenate(tm), np.concatenate(vm)
 
 
-def _stats_for(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0, state_names=None):
+def normalisation_stats(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0, state_names=None):
     """Each learned function's input normalisation from the training rows of the nominal run, as the
     trainer sets it (``x_mean`` the mid-range, ``x_scale`` the half-range, floors 0.5 K for temperatures),
     and its output scale: ``|nominal|`` for a parameter, the node's typical heat throughput ``C·rms(dT/dt)``
@@ -753,7 +752,7 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     -------
     Diagnosis
     """
-    from ..data.io import Experiment, read_data
+    from ..data import Experiment, read_data
 
     t_start = _time.monotonic()
     deadline = None if budget_s is None else t_start + float(budget_s)
@@ -1010,7 +1009,7 @@ def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backen
     if (accepted and ext_text and mlp_check and any(" as linear(" in c for c in clauses)
             and not all(w.get("white") for w in res_fin.whiteness.values())
             and (deadline is None or _time.monotonic() + 2 * mlp_time < deadline)):
-        from ..data.io import split_by_time
+        from ..data import split_by_time
         from .mlp_check import compare
 
         t0 = _time.monotonic()
@@ -1215,7 +1214,7 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     """Compile ``ext_s`` and set up an engine whose columns are the nominal free scalars followed by the
     candidate columns of ``keys``; parameters from ``state``; learned-function statistics from the reference
     nominal run (the same for every network, so values carry over)."""
-    from ..compiler.model import compile as _compile
+    from ..compiler import compile as _compile
 
     n_force = 0 if with_candidates else len(ext_s.network.nodes)
     model = _compile(ext_s.network if with_candidates else _with_forcing(ext_s.network), backend=backend,
@@ -1246,7 +1245,7 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
         ref["states"] = st
         ref["names"] = list(model.state_names)
     rows = train_mask.any(1)
-    eng.params0 = _stats_for(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows,
+    eng.params0 = normalisation_stats(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows,
                              dt=float(exps[0].dt), state_names=ref.get("names"))
     eng.params = _params_from_state(eng, ext_s, state, keys)
     return eng, ext_s, list(range(len(free_cols))), cols_of
@@ -1743,7 +1742,7 @@ def _unit_of(net: Network, pname: str) -> str:
           "temperature": "K", "offset": "K"}
     if p.role in si:
         return si[p.role]
-    from ..lang.units import format_dim
+    from ..lang import format_dim
 
     try:
         return format_dim(p.dim) if p.dim else ""
@@ -2016,7 +2015,7 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
 
 def _check_text(text: str, filename: str) -> None:
     """Re-load the extension to make sure it is a valid ``.thn`` (a failure here is a bug: say so)."""
-    from ..lang.parser import loads
+    from ..lang import loads
 
     loads(text, filename=filename)
 

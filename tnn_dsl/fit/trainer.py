@@ -36,12 +36,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..compiler.backends.adapter import Backend
-from ..core.errors import Diagnostic, TnnError
-from ..data.io import as_experiments
-from ..ir.network import POSITIVE_ROLES, Network
+from ..compiler import Backend
+from ..core import Diagnostic, TnnError
+from ..data import as_experiments
+from ..ir import POSITIVE_ROLES, Network
 from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
-from .simulate import _measured_init_arrays, _measured_state, _resolve_init, simulate
+from .simulation import _measured_init_arrays, _measured_state, _resolve_init, simulate
 
 __all__ = ["TrainConfig", "train", "evaluate", "load_config"]
 
@@ -176,7 +176,7 @@ def load_config(path: str | os.PathLike | None = None, **overrides) -> TrainConf
             loaded = yaml.safe_load(text)
         except yaml.YAMLError as e:
             mark = getattr(e, "problem_mark", None)
-            from ..ir.network import Span
+            from ..ir import Span
 
             span = Span(file=str(p), line=mark.line + 1, col=mark.column + 1, end_line=mark.line + 1,
                         end_col=mark.column + 2) if mark is not None else None
@@ -379,7 +379,7 @@ class _Stop(Exception):
 def _net_of(network) -> Network:
     if isinstance(network, Network):
         return network
-    from ..lang.parser import load
+    from ..lang import load
 
     return load(network)
 
@@ -453,7 +453,7 @@ class _Trainer:
 
     def nominal_runs(self, params: dict[str, np.ndarray]):
         """Simulate the nominal (no learned functions) network on the training data."""
-        from ..compiler.model import compile as compile_network
+        from ..compiler import compile as compile_network
 
         nom_net = _nominal_network(self.net)
         nom = compile_network(nom_net, backend=self.cfg.backend, dtype=self.cfg.dtype,
@@ -1068,9 +1068,9 @@ def train(network, data, val=None, *, config: TrainConfig | dict | str | os.Path
     Returns a :class:`TrainedModel`; ``meta["metrics"]`` holds training and validation errors (K),
     ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
     (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
-    from ..compiler.model import compile as compile_network
-    from ..core.files import check_output
-    from ..data.io import split_by_time
+    from ..compiler import compile as compile_network
+    from ..core import check_output
+    from ..data import split_by_time
 
     if isinstance(config, TrainConfig):
         cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
