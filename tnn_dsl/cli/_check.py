@@ -12,6 +12,7 @@ from math import comb
 
 from ..core import TnnError
 from ..ir import LearnFunction, Network
+from ._common import add_command
 
 
 def learned_weight_count(fn: LearnFunction) -> int:
@@ -76,8 +77,8 @@ def summary(net: Network, path: str) -> str:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("check", help="validate .thn files and summarise them",
-                              description="Parse and validate each FILE; print a summary or the problems.")
+    p = add_command(subparsers, "check", "validate .thn files and summarise them",
+                    description="Parse and validate each FILE; print a summary or the problems.")
     p.add_argument("files", nargs="+", metavar="FILE", help=".thn network files")
     p.add_argument("-q", "--quiet", action="store_true", help="print problems only")
     p.set_defaults(func=run)

@@ -16,15 +16,14 @@ import subprocess
 import sys
 
 from ..core import IMAGE, JSON, TEXT, Diagnostic, OutputKind, TnnError, atomic_path, write_text_atomic
-from ._outputs import add_force_flag, check_outputs
+from ._common import add_command, add_force_flag, check_outputs
 
 EMITS = ("equations", "ir-json", "graph")
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "compile",
-        help="write a network out: its equations, its IR as JSON, or a picture",
+    p = add_command(
+        subparsers, "compile", "write a network out: its equations, its IR as JSON, or a picture",
         description="Write a network out: the ODE system per node (equations), the validated IR as JSON "
                     "(ir-json; round-trips exactly), or a picture (graph: DOT text, or PNG/SVG/PDF by the "
                     "-o suffix). FILE may also be an IR .json file.",

@@ -12,23 +12,21 @@ small budgets (about two minutes); the full study with larger budgets is ``examp
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
 from pathlib import Path
 
+from ._common import add_backend, add_command
+
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "demo",
-        help="the thesis case study end to end: generate, diagnose, train M1–M5, report (≤ 10 min)",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(
+        subparsers, "demo",
+        "the thesis case study end to end: generate, diagnose, train M1–M5, report (≤ 10 min)", __doc__)
     p.add_argument("--out", default="tnnc-demo", metavar="DIR", help="output directory (default ./tnnc-demo)")
     p.add_argument("--quick", action="store_true", help="short data and small budgets (about 2 minutes)")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
+    add_backend(p)
     p.add_argument("--no-diagnose", action="store_true", help="skip the model-doctor step")
     p.add_argument("--force", action="store_true",
                    help="write into an existing --out directory that holds other files (they are kept)")

@@ -4,41 +4,37 @@ the model doctor.
 Fits the network's free parameters on TRAIN, shows what the free-run simulation gets wrong on held-out
 data (--val, else the last 30 % of each training file), ranks candidate causes taken from the network
 itself (a parameter depending on an input or a temperature, an unmodelled heat load, a missing link, a
-missing radiation path, a sensor offset or lag, an unused data column, a wrong constant) by a score test, fits
-the best few, keeps one only if it pays on the held-out data (Diebold–Mariano test on the held-out
-squared errors with a charge for the extra parameters, p < 0.01, and at least 10 % lower MAE), and repeats (forward selection). Writes the extended network
-(-o), a JSON document (--json) and a self-contained HTML report (--report).
+missing radiation path, a sensor offset or lag, a heat capacity behind a link or a source, an unused data
+column, a wrong constant) by a score test, fits the best few, keeps one only if it pays on the held-out data
+(Diebold–Mariano test on the held-out squared errors with a charge for the extra parameters, p < 0.05, and at
+least 10 % lower MAE), and repeats (forward selection). Writes the extended network (-o), a JSON document
+(--json) and a self-contained HTML report (--report).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import add_backend, add_command, add_force_flag, add_network_and_data, check_outputs, write_json
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "diagnose",
-        help="find what a network gets wrong on measured data, name the cause, extend the model",
-        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("net", metavar="NET", help="the network (.thn)")
-    p.add_argument("train", nargs="+", metavar="TRAIN", help="training data files (CSV or Parquet)")
-    p.add_argument("--val", nargs="+", default=None, metavar="VAL", help="held-out data files")
+    p = add_command(
+        subparsers, "diagnose",
+        "find what a network gets wrong on measured data, name the cause, extend the model", __doc__)
+    add_network_and_data(p, "train", val_help="held-out data files")
     p.add_argument("-o", "--output", default=None, metavar="EXTENDED.thn", help="write the extended network here")
     p.add_argument("--report", default=None, metavar="DIR", help="write an HTML report (DIR/index.html)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the findings as JSON")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="wall-clock budget in seconds")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
+    add_backend(p)
     p.add_argument("--top", type=int, default=5, help="distinct candidates fitted properly per round (default 5)")
     p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
     p.add_argument("--no-mlp-check", action="store_true",
-                   help="do not train the extension with MLP clauses to compare (done when a structured residual is left)")
+                   help="do not train the extension with MLP clauses to compare (done when a structured residual "
+                        "is left)")
     p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
                    help="training time for each of the linear and MLP extensions in that comparison (default 60)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

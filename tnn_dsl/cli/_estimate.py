@@ -20,37 +20,26 @@ for every sensor the file measures, the estimate and the open-loop prediction wi
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
 import numpy as np
 
 from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
-from ._outputs import add_force_flag, check_outputs
-
-try:
-    from ..compiler import INTEGRATORS as _INTEGRATORS
-except Exception:  # noqa: BLE001 - the CLI must still build its parser
-    _INTEGRATORS = ("euler", "rk4", "expeuler")
+from ._common import add_backend, add_command, add_force_flag, add_integration, add_time_columns, check_outputs
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "estimate",
-        help="estimate all node temperatures from some sensors (extended Kalman filter, virtual sensing)",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(
+        subparsers, "estimate",
+        "estimate all node temperatures from some sensors (extended Kalman filter, virtual sensing)", __doc__)
     p.add_argument("net", metavar="MODEL_OR_NET", help="a model directory from `tnnc train`, or a .thn network file")
     p.add_argument("data", metavar="DATA", help="data file (CSV or Parquet) with the inputs and the used sensors")
     p.add_argument("--use", nargs="+", required=True, metavar="SENSOR", help="the sensors the filter reads")
     p.add_argument("-o", "--output", required=True, metavar="STATES.csv", help="where to write the estimates")
     p.add_argument("--plot", default=None, metavar="PNG", help="plot estimate, open loop and measurement per sensor")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
-    p.add_argument("--integrator", choices=tuple(_INTEGRATORS), default=None,
-                   help="integrator (default: the model's training integrator, else rk4)")
-    p.add_argument("--substeps", type=int, default=None, metavar="K", help="integrator sub-steps per sample")
+    add_backend(p)
+    add_integration(p, default=None, default_help="the model's training integrator, else rk4")
     p.add_argument("--process-noise", nargs="+", default=None, metavar="Q|STATE=Q",
                    help="process-noise intensity in K/√s (default 0.01), one value or per state")
     p.add_argument("--meas-noise", nargs="+", default=None, metavar="S|SENSOR=S",
@@ -61,8 +50,7 @@ def register(subparsers) -> None:
                    help="constant parameters estimated jointly (random walk), e.g. an unlogged ambient")
     p.add_argument("--drop", nargs="+", default=(), metavar="START:END",
                    help="blank the used sensors between START and END seconds (a simulated dropout)")
-    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
-    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
+    add_time_columns(p)
     p.add_argument("--seed", type=int, default=0, help="seed for learned functions of a .thn (default 0)")
     add_force_flag(p)
     p.set_defaults(func=run)
@@ -93,7 +81,8 @@ def _drops(spans, t: np.ndarray) -> np.ndarray:
         try:
             lo, hi = float(a), float(b)
         except ValueError:
-            raise TnnError(Diagnostic(f"--drop: {s!r} is not START:END in seconds", hint="e.g. --drop 2000:3000")) from None
+            raise TnnError(Diagnostic(f"--drop: {s!r} is not START:END in seconds",
+                                      hint="e.g. --drop 2000:3000")) from None
         if not sep or hi <= lo:
             raise TnnError(Diagnostic(f"--drop: {s!r} needs START < END", hint="e.g. --drop 2000:3000"))
         mask |= (t >= lo) & (t < hi)
@@ -118,8 +107,10 @@ def run(args) -> int:
     sensors = [s.name for s in net.sensors]
     for s in args.use:
         if s not in sensors:
-            raise TnnError(Diagnostic(f"--use: unknown sensor {s!r}", hint=f"the network's sensors are: {', '.join(sensors)}"))
-    (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, require_outputs=False)
+            raise TnnError(Diagnostic(f"--use: unknown sensor {s!r}",
+                                      hint=f"the network's sensors are: {', '.join(sensors)}"))
+    (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, time_unit=args.time_unit,
+                       require_outputs=False)
     for n in exp.notes:
         print(f"note: {n}", file=sys.stderr)
     Y = np.array(exp.outputs, dtype=float)

@@ -8,35 +8,28 @@ the RMSE, all in K. ``--plot`` draws measured vs predicted per sensor with the e
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 
 import numpy as np
 
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import add_backend, add_command, add_force_flag, add_time_columns, check_outputs, write_json
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "evaluate",
-        help="MAE / max error per sensor of a trained model on data files (thesis eq. 4.9)",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(
+        subparsers, "evaluate",
+        "MAE / max error per sensor of a trained model on data files (thesis eq. 4.9)", __doc__)
     p.add_argument("model", metavar="MODEL", help="a model directory written by `tnnc train`")
     p.add_argument("data", nargs="+", metavar="DATA", help="data files (CSV or Parquet)")
-    p.add_argument("--backend", choices=("jax", "torch"), default=None, help="compute backend (default: the model's)")
+    add_backend(p, default=None)
     p.add_argument("--init", choices=("auto", "steady", "measured"), default="auto",
                    help="initial state: steady state of the first inputs, or sensor nodes from the first "
                         "measurement (default auto: measured for data starting mid-file)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the metrics as JSON ('-' for stdout)")
     p.add_argument("--plot", default=None, metavar="PNG", help="plot measured vs predicted, with the error below")
-    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
-    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
-    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
-                   help="unit of a numeric time column")
+    add_time_columns(p)
     add_force_flag(p)
     p.set_defaults(func=run)
 

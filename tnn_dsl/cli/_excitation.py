@@ -10,13 +10,12 @@ from __future__ import annotations
 import json
 
 from ..core import JSON
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import add_command, add_force_flag, check_outputs, write_json
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "excitation",
-        help="compare the input excitation of data files (Hankel singular values)",
+    p = add_command(
+        subparsers, "excitation", "compare the input excitation of data files (Hankel singular values)",
         description="Rank data files by the condition number of their input block-Hankel matrix (thesis §4.2): "
                     "pseudo-random steps excite more than a single step, which excites more than steady-state "
                     "data. The same window is used for every file.")

@@ -9,17 +9,13 @@ directory holding anything else is refused unless ``--force`` (its other files a
 
 from __future__ import annotations
 
-import argparse
 import sys
+
+from ._common import add_backend, add_command
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "generate",
-        help="generate synthetic data sets (the thesis case study)",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(subparsers, "generate", "generate synthetic data sets (the thesis case study)", __doc__)
     p.add_argument("what", choices=("case-study",), help="which data to generate")
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="output directory")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
@@ -32,7 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed-val", type=int, default=2, metavar="S", help="seed of the validation set (default 2)")
     p.add_argument("--seed-ood", type=int, default=100, metavar="S",
                    help="seed of the first out-of-distribution set per level (default 100)")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="backend that integrates the truth")
+    add_backend(p, what="backend that integrates the truth")
     p.add_argument("--force", action="store_true",
                    help="regenerate even if the directory is up to date; write into an existing directory that "
                         "holds other files (they are kept)")

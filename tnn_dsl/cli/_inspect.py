@@ -10,7 +10,6 @@ correction in W, or the flow itself for ``replace``).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -18,19 +17,16 @@ import sys
 
 import numpy as np
 
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import add_command, add_force_flag, check_outputs, write_json
 
 _ROLE_UNIT = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "time_constant": "s",
               "heat_flow": "W", "offset": "K", "temperature": "K"}
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "inspect",
-        help="fitted vs nominal parameters and the learned functions of a trained model",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(
+        subparsers, "inspect",
+        "fitted vs nominal parameters and the learned functions of a trained model", __doc__)
     p.add_argument("model", metavar="MODEL", help="a model directory written by `tnnc train`")
     p.add_argument("--plot", default=None, metavar="DIR", help="write one plot per learned function into DIR")
     p.add_argument("--json", default=None, metavar="FILE", help="write the parameter table as JSON ('-' for stdout)")

@@ -12,13 +12,12 @@ import json
 import re
 
 from ..core import IMAGE, JSON, Diagnostic, TnnError
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import INTEGRATORS, add_backend, add_command, add_force_flag, check_outputs, write_json
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "sensitivity",
-        help="steady-state and dynamic parameter sensitivity, identifiability, what to learn",
+    p = add_command(
+        subparsers, "sensitivity", "steady-state and dynamic parameter sensitivity, identifiability, what to learn",
         description="Rank every parameter and component heat flow by the steady-state sensitivity of the sensors "
                     "(thesis §4.3: each scaled by α in [1-δ, 1+δ], slope of a line through the steady outputs), "
                     "with the exact derivative (eq. 3.4) beside it. With DATA: the sensitivity along the data "
@@ -36,9 +35,10 @@ def register(subparsers) -> None:
                    help="largest relative standard error still called identifiable (default 0.1 = 10 %%)")
     p.add_argument("--params", nargs="+", metavar="NAME", default=None,
                    help="parameters of the identifiability analysis (default: every constant)")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax")
+    add_backend(p)
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
-    p.add_argument("--integrator", default="rk4", help="integrator for the data rollout (default rk4)")
+    p.add_argument("--integrator", choices=INTEGRATORS, default="rk4",
+                   help="integrator for the data rollout (default rk4)")
     p.add_argument("--top", type=int, default=None, help="show only the first N rows of the table")
     p.add_argument("--json", metavar="OUT", default=None, help="write the full report as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PNG", default=None, help="write the ranked bar chart (thesis Figure 5.3)")
@@ -59,7 +59,8 @@ def parse_inputs(net, items: list[str]) -> dict[str, float]:
     for item in items:
         m = _ASSIGN.match(item)
         if not m:
-            raise TnnError(Diagnostic(f"cannot read --inputs {item!r}", hint="write NAME=VALUE, e.g. --inputs I=1.5 Ta=22"))
+            raise TnnError(Diagnostic(f"cannot read --inputs {item!r}",
+                                      hint="write NAME=VALUE, e.g. --inputs I=1.5 Ta=22"))
         name, text = m.group(1), m.group(2)
         if name not in by:
             raise TnnError(Diagnostic(f"--inputs: the network has no input {name!r}",

@@ -17,41 +17,25 @@ measured against simulated for each sensor that the data file measures, and the 
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
 import numpy as np
 
 from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
-from ._outputs import add_force_flag, check_outputs
-
-try:  # the integrators the backends offer; the list is fixed by _integrators.INTEGRATORS
-    from ..compiler import INTEGRATORS as _INTEGRATORS
-except Exception:  # noqa: BLE001 - the CLI must still build its parser
-    _INTEGRATORS = ("euler", "rk4", "expeuler")
+from ._common import add_backend, add_command, add_force_flag, add_integration, add_time_columns, check_outputs
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "simulate",
-        help="simulate a network (or a trained model) on a data file's inputs",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(subparsers, "simulate", "simulate a network (or a trained model) on a data file's inputs", __doc__)
     p.add_argument("net", metavar="NET", help="a .thn network file, or a model directory from `tnnc train`")
     p.add_argument("--data", required=True, metavar="CSV", help="data file with the input columns (CSV or Parquet)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="where to write the simulated sensors")
-    p.add_argument("--backend", choices=("jax", "torch"), default="jax", help="compute backend (default jax)")
+    add_backend(p)
     p.add_argument("--torch-compile", action="store_true",
                    help="torch backend: compile each integration step with torch.compile (pays off on long runs)")
-    p.add_argument("--integrator", choices=tuple(_INTEGRATORS), default="rk4", help="integrator (default rk4)")
-    p.add_argument("--substeps", type=int, default=None, metavar="K",
-                   help="integrator sub-steps per data step (default: chosen from the fastest time constant)")
-    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
-    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: t, time, time_s ...)")
-    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
-                   help="unit of a numeric time column (default: from its name, else s)")
+    add_integration(p)
+    add_time_columns(p)
     p.add_argument("--init", choices=("steady", "measured"), default="steady",
                    help="initial state: steady state of the first inputs (default), or moved to the first measurements")
     p.add_argument("--states", action="store_true", help="also write every state (node temperatures)")

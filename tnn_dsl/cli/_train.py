@@ -12,13 +12,20 @@ with ``_`` or ``-``); flags given on the command line win over the file.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 import time
 
-from ._outputs import add_force_flag, check_outputs, write_json
+from ._common import (
+    add_backend,
+    add_command,
+    add_force_flag,
+    add_network_and_data,
+    add_time_columns,
+    check_outputs,
+    write_json,
+)
 
 # (flag, config field, type, help). `None` type: a store_true/false flag handled below.
 _OPTIONS = [
@@ -36,7 +43,8 @@ _OPTIONS = [
     ("--weight-decay", "weight_decay", float, "L2 weight on learned-function weights (default 0)"),
     ("--continuity", "continuity", float, "multiple-shooting continuity weight (default 10)"),
     ("--lbfgs-iters", "lbfgs_iters", int, "L-BFGS polish iterations, 0 to skip (default 1000)"),
-    ("--patience", "patience", int, "early stopping after N epochs without a better validation MAE, from half of --epochs on (default 80)"),
+    ("--patience", "patience", int,
+     "early stopping after N epochs without a better validation MAE, from half of --epochs on (default 80)"),
     ("--val-every", "val_every", int, "validate every N epochs, 0 = automatic (default 0)"),
     ("--val-fraction", "val_fraction", float, "without --val: hold out this last fraction of each file"),
     ("--init", "init", str, "initial state of free runs: auto | steady | measured (default auto)"),
@@ -47,17 +55,12 @@ _OPTIONS = [
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "train",
-        help="fit a network's free parameters and learned functions to data; write a model directory",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("net", metavar="NET", help="the network (.thn)")
-    p.add_argument("data", nargs="+", metavar="DATA", help="training data files (CSV or Parquet)")
-    p.add_argument("--val", nargs="+", default=None, metavar="VAL", help="validation data files")
+    p = add_command(
+        subparsers, "train",
+        "fit a network's free parameters and learned functions to data; write a model directory", __doc__)
+    add_network_and_data(p)
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model directory to write")
-    p.add_argument("--backend", choices=("jax", "torch"), default=None, help="compute backend (default jax)")
+    add_backend(p, default=None, shown="jax")
     p.add_argument("--torch-compile", dest="opt_torch_compile", action="store_true", default=None,
                    help="torch backend: compile each integration step with torch.compile (faster after ~30 s)")
     p.add_argument("--seed", type=int, default=None, help="seed (initial weights, minibatches; default 0)")
@@ -73,10 +76,7 @@ def register(subparsers) -> None:
                    help="do not pre-fit replace-mode flow functions to the nominal physics")
     p.add_argument("--no-centre-sigmoid", dest="opt_centre_sigmoid", action="store_false", default=None,
                    help="optimise sigmoid MLPs in their own weights instead of tanh coordinates")
-    p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")
-    p.add_argument("--dt", type=float, default=None, metavar="S", help="model step in s (default: the file's step)")
-    p.add_argument("--time-unit", default=None, choices=("s", "ms", "min", "h", "d"),
-                   help="unit of a numeric time column (default: from its name, else s)")
+    add_time_columns(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     add_force_flag(p)
     p.set_defaults(func=run)
@@ -91,7 +91,8 @@ def _gamma(values):
         try:
             return float(values[0])
         except ValueError:
-            raise TnnError(Diagnostic(f"--gamma: {values[0]!r} is not a number", hint="--gamma 0.1 or --gamma C_h1=0.1"))
+            raise TnnError(Diagnostic(f"--gamma: {values[0]!r} is not a number",
+                                      hint="--gamma 0.1 or --gamma C_h1=0.1"))
     out = {}
     for v in values:
         name, _, num = v.partition("=")
