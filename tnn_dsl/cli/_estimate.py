@@ -25,6 +25,7 @@ import sys
 
 import numpy as np
 
+from .. import plots
 from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
 from ._common import add_backend, add_command, add_force_flag, add_integration, add_time_columns, check_outputs
 
@@ -168,56 +169,6 @@ def run(args) -> int:
         print(f"  {s:<12} {role:<10} {e1:8.3f}K {e0:8.3f}K")
     print(f"wrote {args.output}")
     if args.plot:
-        plot_estimate(args.plot, net, exp, res, y_open, dropped, label)
+        save_figure(plots.filter_estimate(net, exp, res, y_open, dropped, label), args.plot, dpi=110)
         print(f"wrote {args.plot}")
     return 0
-
-
-def plot_estimate(path: str, net, exp, res, y_open: np.ndarray, dropped: np.ndarray, label: str) -> None:
-    """Per sensor: measured, EKF estimate (±2σ of the node) and open loop; used sensors marked; dropouts shaded."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..data import from_kelvin
-
-    unit = net.temperature_unit
-    ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
-    sensors = [s.name for s in net.sensors]
-    n = len(sensors)
-    fig, axes = plt.subplots(n, 1, figsize=(10, 2.8 * n + 0.4), sharex=True, squeeze=False)
-    scale, tl = (3600.0, "h") if exp.duration > 3 * 3600 else ((60.0, "min") if exp.duration > 600 else (1.0, "s"))
-    tt = exp.t / scale
-    for k, s in enumerate(sensors):
-        ax = axes[k, 0]
-        meas = exp.outputs[:, k]
-        ok = np.isfinite(meas)
-        if ok.any():
-            ax.plot(tt, from_kelvin(meas, unit), color="0.25", lw=0.9, label="measured")
-        ax.plot(tt, from_kelvin(y_open[:, k], unit), color="C1", lw=1.0, ls="--", label="open loop")
-        ax.plot(tt, from_kelvin(res.outputs[:, k], unit), color="C0", lw=1.1, label="EKF estimate")
-        node = net.sensors[k].node
-        if node in res.state_names:
-            i = res.state_names.index(node)
-            f = 1.8 if unit == "degF" else 1.0
-            mid = from_kelvin(res.outputs[:, k], unit)
-            ax.fill_between(tt, mid - 2 * f * res.std[:, i], mid + 2 * f * res.std[:, i], color="C0", alpha=0.15,
-                            lw=0, label="±2σ")
-        if dropped.any() and s in res.used:
-            ax.fill_between(tt, 0, 1, where=dropped, transform=ax.get_xaxis_transform(), color="red", alpha=0.08,
-                            lw=0, label="dropout")
-        role = "used by the filter" if s in res.used else "not used: virtual sensor"
-        if ok.any():
-            e1 = np.mean(np.abs(res.outputs[ok, k] - meas[ok]))
-            e0 = np.mean(np.abs(y_open[ok, k] - meas[ok]))
-            role += f"   MAE: EKF {e1:.3f} K, open loop {e0:.3f} K"
-        ax.set_title(f"{s} ({role})", fontsize=9, loc="left")
-        ax.set_ylabel(f"{s} [{ushow}]")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best", ncol=3)
-    axes[-1, 0].set_xlabel(f"time [{tl}]")
-    fig.suptitle(f"extended Kalman filter: {label} on {os.path.basename(exp.path)}", fontsize=10)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)

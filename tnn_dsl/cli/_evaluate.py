@@ -12,8 +12,6 @@ import json
 import math
 import sys
 
-import numpy as np
-
 from ._common import add_backend, add_command, add_force_flag, add_time_columns, check_outputs, write_json
 
 
@@ -35,7 +33,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..core import IMAGE, JSON, to_jsonable
+    from .. import plots
+    from ..core import IMAGE, JSON, save_figure, to_jsonable
     from ..data import read_data
     from ..fit import error_metrics, load_model
 
@@ -60,50 +59,10 @@ def run(args) -> int:
     if args.json:
         write_json(args.json, json.dumps(to_jsonable(metrics), indent=2))
     if args.plot:
-        plot_predictions(args.plot, tm.network, preds)
+        save_figure(plots.predictions(tm.network, preds), args.plot, dpi=110)
         print(f"wrote {args.plot}", file=out)
     return 0
 
 
 def _f(x) -> str:
     return f"{'—':>9}" if x is None or not math.isfinite(x) else f"{x:>9.4f}"
-
-
-def plot_predictions(path: str, net, preds) -> None:
-    """One pair of axes per (experiment, sensor): measured and predicted (network's unit), error (K) below."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..core import save_figure
-    from ..data import from_kelvin
-
-    unit = net.temperature_unit
-    ulabel = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
-    pairs = [(p, j) for p in preds for j in range(len(p["sensors"]))]
-    pairs = pairs[:12]
-    fig, axes = plt.subplots(2 * len(pairs), 1, figsize=(10, 3.2 * len(pairs)), squeeze=False,
-                             gridspec_kw={"height_ratios": [2, 1] * len(pairs)})
-    for i, (p, j) in enumerate(pairs):
-        t = np.asarray(p["t"], dtype=float)
-        scale, tu = (3600.0, "h") if t[-1] - t[0] > 3 * 3600 else ((60.0, "min") if t[-1] - t[0] > 600 else (1.0, "s"))
-        tt = t / scale
-        meas = np.asarray(p["measured"])[:, j]
-        pred = np.asarray(p["y"])[:, j]
-        ax, ax_e = axes[2 * i, 0], axes[2 * i + 1, 0]
-        ax.plot(tt, from_kelvin(meas, unit), color="0.3", lw=1.0, label="measured")
-        ax.plot(tt, from_kelvin(pred, unit), color="C0", lw=1.2, label="predicted")
-        err = pred - meas
-        ok = np.isfinite(err)
-        mae = float(np.mean(np.abs(err[ok]))) if ok.any() else math.nan
-        ax.set_title(f"{p['name']}: {p['sensors'][j]}  (MAE {mae:.3g} K)")
-        ax.set_ylabel(ulabel)
-        ax.legend(loc="best", fontsize=8)
-        ax_e.plot(tt, err, color="C3", lw=0.8)
-        ax_e.axhline(0.0, color="0.5", lw=0.6)
-        ax_e.set_ylabel("error K")
-        ax_e.set_xlabel(f"time ({tu})")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)

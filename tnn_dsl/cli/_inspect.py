@@ -99,7 +99,8 @@ def _fmt(v: float, role: str, unit: str) -> str:
 
 
 def run(args) -> int:
-    from ..core import JSON, PLOT_DIR, to_jsonable
+    from .. import plots
+    from ..core import JSON, PLOT_DIR, save_figure, to_jsonable
     from ..fit import load_model
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, PLOT_DIR, "--plot")], inputs=[args.model])
@@ -150,47 +151,6 @@ def run(args) -> int:
         for s in summ:
             fn = next(f for f in tm.network.learned if f.name == s["name"])
             path = os.path.join(args.plot, f"{s['name']}.png")
-            plot_function(path, tm, fn, s)
+            save_figure(plots.learned_function(s, lambda X, fn=fn: learned_values(tm, fn, X)), path, dpi=100)
             print(f"wrote {path}", file=out)
     return 0
-
-
-def plot_function(path: str, tm, fn, s: dict, n: int = 101) -> None:
-    """Each target against each input over its training range, the other inputs at mid-range."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..core import save_figure
-
-    n_in = max(len(s["inputs"]), 1)
-    fig, axes = plt.subplots(1, n_in, figsize=(4.0 * n_in, 3.4), squeeze=False)
-    lo, hi = np.asarray(s["x_min"], dtype=float), np.asarray(s["x_max"], dtype=float)
-    mid = (lo + hi) / 2
-    for i in range(n_in):
-        ax = axes[0, i]
-        if not s["inputs"]:
-            vals = learned_values(tm, fn, np.zeros((1, 0)))
-            ax.bar(s["targets"], vals[0])
-            continue
-        X = np.tile(mid, (n, 1))
-        span = hi[i] - lo[i]
-        grid = np.linspace(lo[i], hi[i], n) if span > 0 else np.linspace(lo[i] - 0.5, hi[i] + 0.5, n)
-        X[:, i] = grid
-        vals = learned_values(tm, fn, X)
-        xlab = s["inputs"][i]
-        gx = grid
-        if s["input_kinds"][i] == "node":
-            gx = grid - 273.15
-            xlab = f"T({xlab}) °C"
-        for j, t in enumerate(s["targets"]):
-            ax.plot(gx, vals[:, j], label=t)
-        ax.set_xlabel(xlab)
-        ax.grid(alpha=0.3)
-        if i == 0:
-            ax.legend(fontsize=8)
-    fig.suptitle(f"{s['name']}: {', '.join(s['targets'])} as {s['kind']} (others at mid-range)")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=100)
-    plt.close(fig)

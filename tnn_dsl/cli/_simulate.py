@@ -22,6 +22,7 @@ import sys
 
 import numpy as np
 
+from .. import plots
 from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
 from ._common import add_backend, add_command, add_force_flag, add_integration, add_time_columns, check_outputs
 
@@ -109,50 +110,6 @@ def run(args) -> int:
                   f"(vs column {exp.output_columns[k]!r})")
     print(f"wrote {args.output} (temperatures in {unit})")
     if args.plot:
-        _plot(args.plot, net, exp, y, label)
+        save_figure(plots.simulation(net, exp, y, label), args.plot, dpi=110)
         print(f"wrote {args.plot}")
     return 0
-
-
-def _plot(path: str, net, exp, y: np.ndarray, label: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..data import from_kelvin, unit_scale_offset
-
-    unit = net.temperature_unit
-    ushow = {"degC": "°C", "K": "K", "degF": "°F"}[unit]
-    n_s = len(net.sensors)
-    fig, axes = plt.subplots(n_s + 1, 1, figsize=(10, 2.6 * (n_s + 1)), sharex=True, squeeze=False)
-    axes = axes[:, 0]
-    scale, tl = (3600.0, "h") if exp.duration > 3 * 3600 else ((60.0, "min") if exp.duration > 600 else (1.0, "s"))
-    tt = exp.t / scale
-    for k, s in enumerate(net.sensors):
-        ax = axes[k]
-        meas = exp.outputs[:, k]
-        if np.isfinite(meas).any():
-            ax.plot(tt, from_kelvin(meas, unit), color="0.3", lw=1.0, label=f"measured ({exp.output_columns[k]})")
-            mae = np.nanmean(np.abs(y[:, k] - meas))
-            ax.set_title(f"{s.name}: MAE {mae:.3f} K", fontsize=9, loc="left")
-        ax.plot(tt, from_kelvin(y[:, k], unit), color="C0", lw=1.2, label="simulated")
-        ax.set_ylabel(f"{s.name} [{ushow}]")
-        ax.legend(fontsize=8, loc="best")
-        ax.grid(alpha=0.3)
-    ax = axes[-1]
-    for k, inp in enumerate(net.inputs):
-        if inp.is_temperature:
-            v, u = from_kelvin(exp.inputs[:, k], unit), ushow
-        else:  # back to the unit the network declares (% stays %)
-            scale, offset = unit_scale_offset(inp.unit)
-            v, u = (exp.inputs[:, k] - offset) / scale, (inp.unit or "1")
-        ax.step(tt, v, where="post", lw=0.9, label=f"{inp.name} [{u}]")
-    ax.set_ylabel("inputs")
-    ax.set_xlabel(f"time [{tl}]")
-    ax.legend(fontsize=8, loc="best", ncol=min(5, max(1, len(net.inputs))))
-    ax.grid(alpha=0.3)
-    fig.suptitle(f"{label} on {os.path.basename(exp.path)}", fontsize=10)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)

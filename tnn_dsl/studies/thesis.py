@@ -245,44 +245,22 @@ def ratios_table(results: dict) -> str:
 
 
 def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
-    """``ood.png`` (validation MAE and MAE per widening, the thesis's Figure 5.6) and ``validation.png``
-    (T_out error through the validation run per model). Returns the paths written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Write ``ood.png`` (validation MAE and MAE per widening, the thesis's Figure 5.6) and ``validation.png``
+    (T_out error through the validation run per model; from the model directories of the study). Returns the
+    paths written."""
+    from .. import plots
+    from ..fit import load_model
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    m = results["models"]
-    widen = results["data"].get("widen", [])
-    if widen and any("ood" in r for r in m.values()):
-        fig, ax = plt.subplots(figsize=(6.5, 4.2))
-        xs = [0] + [round(float(w) * 100) for w in widen]
-        for name, r in m.items():
-            if "ood" not in r:
-                continue
-            ys = [r["validation"]["mae"] * 1e3] + [r["ood"][f"{x}"] * 1e3 for x in xs[1:]]
-            ax.plot(xs, ys, "o-", label=f"{name}: {r['what']}")
-        ax.set_yscale("log")
-        ax.set_xlabel("input bounds widened by [%] (0 = validation set)")
-        ax.set_ylabel("T_out MAE [mK] (mean over data sets)")
-        ax.set_title(f"out-of-distribution error (cf. thesis Fig. 5.6), {results['data'].get('n_ood')} sets per level",
-                     fontsize=9)
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        p = out / "ood.png"
-        save_figure(fig, p, dpi=110)
-        plt.close(fig)
-        written.append(str(p))
-    # validation trajectories
-    from ..fit import load_model
-
+    fig = plots.ood_growth(results)
+    if fig is not None:
+        save_figure(fig, out / "ood.png", dpi=110)
+        written.append(str(out / "ood.png"))
     models_dir = Path(results.get("models_dir", out.parent / "models"))
     preds = {}
-    for name in m:
+    for name in results["models"]:
         d = models_dir / name.lower()
         if d.is_dir():
             try:
@@ -291,23 +269,6 @@ def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
             except Exception:  # noqa: BLE001 - a plot must not break the study
                 continue
     if preds:
-        fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
-        first = next(iter(preds.values()))
-        t = first["t"] / 3600
-        ax[0].plot(t, first["measured"][:, 0] - 273.15, color="k", lw=1.0, label="truth (validation)")
-        for name, p in preds.items():
-            ax[0].plot(t, p["y"][:, 0] - 273.15, lw=0.9, label=name)
-            ax[1].plot(t, (p["y"][:, 0] - p["measured"][:, 0]) * 1e3, lw=0.9, label=name)
-        ax[0].set_ylabel("T_out [°C]")
-        ax[1].set_ylabel("error [mK]")
-        ax[1].set_xlabel("time [h]")
-        for a in ax:
-            a.grid(alpha=0.3)
-            a.legend(fontsize=7, ncol=3)
-        ax[0].set_title("validation run: free-run prediction per model (cf. thesis Fig. 5.4)", fontsize=9)
-        fig.tight_layout()
-        p = out / "validation.png"
-        save_figure(fig, p, dpi=110)
-        plt.close(fig)
-        written.append(str(p))
+        save_figure(plots.validation_runs(preds), out / "validation.png", dpi=110)
+        written.append(str(out / "validation.png"))
     return written
