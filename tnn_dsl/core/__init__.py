@@ -19,6 +19,7 @@ from .files import (
     atomic_path,
     check_output,
     exchange_paths,
+    file_sha256,
     fsync_dir,
     fsync_file,
     save_figure,
@@ -32,5 +33,5 @@ from .version import __version__
 __all__ = [
     "DataError", "Diagnostic", "ModelFileError", "TnnError", "CSV", "IMAGE", "JSON", "PLOT_DIR", "TEXT", "THN",
     "OutputKind", "atomic_path", "check_output", "exchange_paths", "fsync_dir", "fsync_file", "save_figure",
-    "temp_sibling", "write_text_atomic", "to_jsonable", "Span", "__version__"
+    "temp_sibling", "write_text_atomic", "file_sha256", "to_jsonable", "Span", "__version__"
 ]

@@ -196,6 +196,17 @@ def save_figure(fig, path: str | os.PathLike, **savefig_kw) -> None:
         fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or None, **savefig_kw)
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (hex), read in 1 MiB chunks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write UTF-8 text (``\\n`` line ends) through :func:`atomic_path`; :class:`TnnError` if the place is
     not writable."""
@@ -261,4 +272,5 @@ def exchange_paths(a: str | os.PathLike, b: str | os.PathLike) -> bool:
 
 
 __all__ = ["OutputKind", "CSV", "JSON", "IMAGE", "THN", "TEXT", "PLOT_DIR", "check_output", "atomic_path",
-           "write_text_atomic", "save_figure", "fsync_dir", "fsync_file", "temp_sibling", "exchange_paths"]
+           "write_text_atomic", "file_sha256", "save_figure", "fsync_dir", "fsync_file", "temp_sibling",
+           "exchange_paths"]

@@ -26,7 +26,6 @@ hashes). A directory whose manifest has the same settings and intact files is no
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from importlib import resources
@@ -36,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from ..compiler import backend_of
-from ..core import Diagnostic, OutputKind, TnnError, check_output, write_text_atomic
+from ..core import Diagnostic, OutputKind, TnnError, __version__, check_output, file_sha256, write_text_atomic
 
 __all__ = [
     "generate_case_study", "step_sequence", "case_study_inputs", "truth_network_path", "network_path",
@@ -182,7 +181,8 @@ class _Truth:
         resid = np.abs(B.numpy(m.rhs(self.params, T0, u0))).max()
         if not np.isfinite(resid) or resid > 1e-8:
             raise TnnError(Diagnostic(
-                f"the steady state of {self.path} for the first inputs did not converge (max |dT/dt| = {resid:.3g} K/s)",
+                f"the steady state of {self.path} for the first inputs did not converge "
+                f"(max |dT/dt| = {resid:.3g} K/s)",
                 hint="check the truth network's derived parameters for values outside their physical range"))
         substeps = int(round(SAMPLE_DT / TRUTH_DT))
         states, outputs = m.rollout(self.params, T0, Ub, SAMPLE_DT, integrator="rk4", substeps=substeps)
@@ -205,14 +205,6 @@ def _truth(backend: str, path: Path) -> _Truth:
 # ---------------------------------------------------------------------------------------------
 # Writing the data sets
 # ---------------------------------------------------------------------------------------------
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _write_set(truth: _Truth, path: Path, sig: dict[str, np.ndarray], states: np.ndarray, outputs: np.ndarray,
@@ -254,7 +246,7 @@ def _settings(noise, widen, n_ood, seed_train, seed_val, seed_ood, truth_path: P
         "sample_dt_s": SAMPLE_DT,
         "truth_dt_s": TRUTH_DT,
         "hold_s": list(HOLD_S),
-        "truth_sha256": _sha256(truth_path),
+        "truth_sha256": file_sha256(truth_path),
     }
 
 
@@ -313,28 +305,12 @@ def generate_case_study(
     called with one-line status.
     """
     out = Path(out_dir)
-    widen = [float(w) for w in widen]
-    for w in widen:
-        if not (0.0 <= w <= 10.0):
-            raise TnnError(Diagnostic(f"widening {w!r} out of range", hint="widen is a fraction: 0.1 for 10 %"))
-    if noise < 0 or not np.isfinite(noise):
-        raise TnnError(Diagnostic(f"noise σ must be ≥ 0 K, got {noise!r}"))
-    if n_ood < 0:
-        raise TnnError(Diagnostic(f"n_ood must be ≥ 0, got {n_ood!r}"))
+    widen = _checked_arguments(noise, widen, n_ood)
     tpath = Path(truth_path) if truth_path is not None else truth_network_path()
     settings = _settings(noise, widen, n_ood, seed_train, seed_val, seed_ood, tpath)
     if durations is not None:
         settings.update(train_s=float(durations[0]), val_s=float(durations[1]), ood_s=float(durations[2]))
-    files = {"train": "train.csv", "val": "val.csv"}
-    ood_files = {f"{round(p * 100):d}": [_ood_name(p, k) for k in range(n_ood)] for p in widen}
-    summary = {
-        "dir": str(out),
-        "train": str(out / files["train"]),
-        "val": str(out / files["val"]),
-        "ood": {p: [str(out / f) for f in fs] for p, fs in ood_files.items()},
-        "manifest": str(out / "manifest.json"),
-        "settings": settings,
-    }
+    summary = _summary(out, settings, widen, n_ood)
     say = progress or (lambda msg: None)
 
     check_output(out, DATA_DIR, force=force)
@@ -343,54 +319,77 @@ def generate_case_study(
         return {**summary, "cached": True}
 
     out.mkdir(parents=True, exist_ok=True)
-    manifest_path = out / "manifest.json"
     # a half-regenerated directory must never look valid, but stays recognisable as ours
     write_text_atomic(out / _INCOMPLETE, _WHAT + "\n")
-    if manifest_path.exists():
-        manifest_path.unlink()
+    if (out / "manifest.json").exists():
+        (out / "manifest.json").unlink()
     truth = _truth(backend, tpath)
     written: dict[str, str] = {}
-
-    def run(jobs: list[tuple[str, int, float, float]]):
-        # jobs of equal length run as one batched rollout
-        sigs = [case_study_inputs(seed, dur, w) for (_, seed, dur, w) in jobs]
-        U = np.stack([truth.input_matrix(s) for s in sigs])
-        states, outputs = truth.simulate(U)
-        for b, (fname, seed, _dur, w) in enumerate(jobs):
-            _check_physical(truth, fname, seed, w, states[b])
-        for b, (fname, seed, _dur, _w) in enumerate(jobs):
-            _write_set(truth, out / fname, sigs[b], states[b], outputs[b], _noise(seed, states.shape[1], noise))
-            written[fname] = _sha256(out / fname)
-
     say(f"simulating the true system: training set ({settings['train_s'] / 3600:g} h, seed {seed_train})")
-    run([(files["train"], seed_train, settings["train_s"], 0.0)])
-    jobs = [(files["val"], seed_val, settings["val_s"], 0.0)]
-    same_len = settings["val_s"] == settings["ood_s"]
+    _simulate_sets(truth, out, [("train.csv", seed_train, settings["train_s"], 0.0)], noise, written)
+    jobs = [("val.csv", seed_val, settings["val_s"], 0.0)]
     ood_jobs = [(_ood_name(p, k), seed_ood + k, settings["ood_s"], p) for p in widen for k in range(n_ood)]
     say(f"simulating validation (seed {seed_val}) and {len(ood_jobs)} out-of-distribution sets")
-    if same_len:
-        run(jobs + ood_jobs)
+    if settings["val_s"] == settings["ood_s"]:  # sets of equal length run as one batched rollout
+        _simulate_sets(truth, out, jobs + ood_jobs, noise, written)
     else:
-        run(jobs)
+        _simulate_sets(truth, out, jobs, noise, written)
         if ood_jobs:
-            run(ood_jobs)
+            _simulate_sets(truth, out, ood_jobs, noise, written)
+    _write_manifest(out, settings, backend, tpath, written)
+    say(f"wrote {len(written)} files to {out}")
+    return {**summary, "cached": False}
 
-    import tnn_dsl
 
+def _checked_arguments(noise: float, widen: Sequence[float], n_ood: int) -> list[float]:
+    """The widenings as floats; :class:`TnnError` for a widening, noise or count out of range."""
+    widen = [float(w) for w in widen]
+    for w in widen:
+        if not (0.0 <= w <= 10.0):
+            raise TnnError(Diagnostic(f"widening {w!r} out of range", hint="widen is a fraction: 0.1 for 10 %"))
+    if noise < 0 or not np.isfinite(noise):
+        raise TnnError(Diagnostic(f"noise σ must be ≥ 0 K, got {noise!r}"))
+    if n_ood < 0:
+        raise TnnError(Diagnostic(f"n_ood must be ≥ 0, got {n_ood!r}"))
+    return widen
+
+
+def _summary(out: Path, settings: dict, widen: list[float], n_ood: int) -> dict:
+    """What :func:`generate_case_study` returns (without ``cached``): the directory and every file's path."""
+    ood_files = {f"{round(p * 100):d}": [_ood_name(p, k) for k in range(n_ood)] for p in widen}
+    return {"dir": str(out), "train": str(out / "train.csv"), "val": str(out / "val.csv"),
+            "ood": {p: [str(out / f) for f in fs] for p, fs in ood_files.items()},
+            "manifest": str(out / "manifest.json"), "settings": settings}
+
+
+def _simulate_sets(truth: _Truth, out: Path, jobs: list[tuple[str, int, float, float]], noise: float,
+                   written: dict[str, str]) -> None:
+    """Simulate the data sets ``jobs`` (file name, seed, duration s, widening) as one batched rollout, check
+    that the truth stayed physical, write them and record their SHA-256 in ``written``."""
+    sigs = [case_study_inputs(seed, dur, w) for (_, seed, dur, w) in jobs]
+    states, outputs = truth.simulate(np.stack([truth.input_matrix(s) for s in sigs]))
+    for b, (fname, seed, _dur, w) in enumerate(jobs):
+        _check_physical(truth, fname, seed, w, states[b])
+    for b, (fname, seed, _dur, _w) in enumerate(jobs):
+        _write_set(truth, out / fname, sigs[b], states[b], outputs[b], _noise(seed, states.shape[1], noise))
+        written[fname] = file_sha256(out / fname)
+
+
+def _write_manifest(out: Path, settings: dict, backend: str, truth_path: Path, written: dict[str, str]) -> None:
+    """``manifest.json`` (the settings and every file's hash: what makes the directory a valid cache); then
+    the directory is complete."""
     manifest = {
         "what": _WHAT,
         "settings": settings,
         "backend": backend,
-        "tnn_dsl_version": getattr(tnn_dsl, "__version__", "?"),
-        "truth_network": str(tpath),
+        "tnn_dsl_version": __version__,
+        "truth_network": str(truth_path),
         "files": written,
         "columns": "time_s (s); inputs in the network's units (I A, u1 1, Ta Tf1 Tf2 °C); T_out (°C, with noise "
                    "if noise_K > 0); T_<node> true node temperatures (°C, noise-free)",
     }
-    write_text_atomic(manifest_path, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     (out / _INCOMPLETE).unlink()
-    say(f"wrote {len(written)} files to {out}")
-    return {**summary, "cached": False}
 
 
 PHYSICAL_RANGE_K = (173.15, 473.15)
@@ -431,6 +430,6 @@ def _cache_valid(out: Path, settings: dict) -> bool:
         return False
     for name, digest in files.items():
         p = out / name
-        if not p.is_file() or _sha256(p) != digest:
+        if not p.is_file() or file_sha256(p) != digest:
             return False
     return True

@@ -106,8 +106,6 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
          "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
     """
-    from ..fit import train
-    from ..lang import load
     from .casestudy import generate_case_study
 
     cfg = config or StudyConfig()
@@ -127,61 +125,69 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
                      "data": {"dir": str(data_dir), "train": data["train"], "val": data["val"],
                               "n_ood": cfg.n_ood, "widen": list(cfg.widen), "cached": data["cached"]},
                      "models": {}}
-    nets = _networks_dir()
     say(f"[2/3] training {', '.join(order)} ({cfg.backend}, ≤ {cfg.epochs} epochs"
         + (f", ≤ {cfg.time_limit:g} s each" if cfg.time_limit else "") + ")")
     trained = {}
     for i, name in enumerate(order):
-        fname, what = MODELS[name]
-        net = _m5_network(out / "models" / "m4") if name == "M5" else load(str(nets / fname))
-        t0 = time.perf_counter()
-        last = [t0]
-
-        def cb(info, name=name):
-            now = time.perf_counter()
-            if now - last[0] >= 10.0:
-                last[0] = now
-                v = info.get("val_mae")
-                vs = f", validation MAE {v * 1e3:.1f} mK" if v is not None and math.isfinite(v) else ""
-                say(f"      {name}: epoch {info.get('epoch')}/{info.get('epochs')} ({info.get('phase')}){vs}, "
-                    f"{now - t0:.0f} s")
-
-        opts = dict(backend=cfg.backend, epochs=cfg.epochs, time_limit=cfg.time_limit, lbfgs_iters=cfg.lbfgs_iters,
-                    seed=cfg.seed, **cfg.train_options)
-        say(f"      {name} ({what}) [{i + 1}/{len(order)}]")
-        tm = train(net, data["train"], val=data["val"], out=out / "models" / name.lower(), callback=cb, **opts)
-        trained[name] = tm
-        val = tm.meta["metrics"].get("validation", {})
-        results["models"][name] = {
-            "network": fname, "what": what,
-            "validation": {"mae": float(val.get("mae", math.nan)), "max_error": float(val.get("max_error", math.nan))},
-            "train": {"mae": float(tm.meta["metrics"]["train"].get("mae", math.nan))},
-            "train_seconds": float(tm.meta.get("train_seconds", time.perf_counter() - t0)),
-            "stopped": tm.meta.get("stopped"), "epochs": len(tm.meta.get("curve", [])),
-            "n_trainable": int(sum(int(np.prod(np.shape(tm.params[k]))) for k, s in
-                                   tm.compiled(cfg.backend).param_specs.items() if s.trainable)),
-        }
-        say(f"      {name}: validation MAE {results['models'][name]['validation']['mae'] * 1e3:.1f} mK, max "
-            f"{results['models'][name]['validation']['max_error'] * 1e3:.0f} mK "
-            f"({results['models'][name]['train_seconds']:.0f} s, {tm.meta.get('stopped')})")
-
+        say(f"      {name} ({MODELS[name][1]}) [{i + 1}/{len(order)}]")
+        trained[name], results["models"][name] = _train_model(name, cfg, data, out, say)
     if cfg.n_ood > 0 and cfg.widen:
         say(f"[3/3] out of distribution: {len(cfg.widen)} widenings × {cfg.n_ood} sets × {len(order)} models")
         for name in order:
-            tm = trained[name]
-            ood, ood_max = {}, {}
-            for p, paths in data["ood"].items():
-                ev = tm.evaluate(paths, backend=cfg.backend)
-                maes = [e["mae"] for e in ev["experiments"]]
-                ood[p] = float(np.mean(maes))
-                ood_max[p] = float(np.mean([e["max_error"] for e in ev["experiments"]]))
-            results["models"][name]["ood"] = ood
-            results["models"][name]["ood_max"] = ood_max
+            results["models"][name].update(_out_of_distribution(trained[name], data["ood"], cfg.backend))
+            ood = results["models"][name]["ood"]
             say(f"      {name}: " + ", ".join(f"+{p} %: {v * 1e3:.0f} mK" for p, v in ood.items()))
     results["ratios"] = thesis_ratios(results)
     results["seconds"] = time.perf_counter() - t_start
     write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
     return results
+
+
+def _train_model(name: str, cfg: StudyConfig, data: dict, out: Path, say: Callable[[str], None]):
+    """Train one model variant on the study's data → ``(TrainedModel, its results entry)``; progress every 10 s."""
+    from ..fit import train
+    from ..lang import load
+
+    fname, what = MODELS[name]
+    net = _m5_network(out / "models" / "m4") if name == "M5" else load(str(_networks_dir() / fname))
+    t0 = time.perf_counter()
+    last = [t0]
+
+    def cb(info):
+        now = time.perf_counter()
+        if now - last[0] >= 10.0:
+            last[0] = now
+            v = info.get("val_mae")
+            vs = f", validation MAE {v * 1e3:.1f} mK" if v is not None and math.isfinite(v) else ""
+            say(f"      {name}: epoch {info.get('epoch')}/{info.get('epochs')} ({info.get('phase')}){vs}, "
+                f"{now - t0:.0f} s")
+
+    tm = train(net, data["train"], val=data["val"], out=out / "models" / name.lower(), callback=cb,
+               backend=cfg.backend, epochs=cfg.epochs, time_limit=cfg.time_limit, lbfgs_iters=cfg.lbfgs_iters,
+               seed=cfg.seed, **cfg.train_options)
+    val = tm.meta["metrics"].get("validation", {})
+    entry = {
+        "network": fname, "what": what,
+        "validation": {"mae": float(val.get("mae", math.nan)), "max_error": float(val.get("max_error", math.nan))},
+        "train": {"mae": float(tm.meta["metrics"]["train"].get("mae", math.nan))},
+        "train_seconds": float(tm.meta.get("train_seconds", time.perf_counter() - t0)),
+        "stopped": tm.meta.get("stopped"), "epochs": len(tm.meta.get("curve", [])),
+        "n_trainable": int(sum(int(np.prod(np.shape(tm.params[k]))) for k, s in
+                               tm.compiled(cfg.backend).param_specs.items() if s.trainable)),
+    }
+    say(f"      {name}: validation MAE {entry['validation']['mae'] * 1e3:.1f} mK, max "
+        f"{entry['validation']['max_error'] * 1e3:.0f} mK ({entry['train_seconds']:.0f} s, {tm.meta.get('stopped')})")
+    return tm, entry
+
+
+def _out_of_distribution(tm, ood_files: dict[str, list[str]], backend: str) -> dict:
+    """Mean MAE and mean max error over the data sets of each widening: ``{"ood": {...}, "ood_max": {...}}`` (K)."""
+    ood, ood_max = {}, {}
+    for p, paths in ood_files.items():
+        ev = tm.evaluate(paths, backend=backend)
+        ood[p] = float(np.mean([e["mae"] for e in ev["experiments"]]))
+        ood_max[p] = float(np.mean([e["max_error"] for e in ev["experiments"]]))
+    return {"ood": ood, "ood_max": ood_max}
 
 
 def thesis_ratios(results: dict) -> dict[str, dict[str, float]]:
