@@ -51,3 +51,23 @@ def test_installed_wheel_parses_a_file_outside_the_checkout(wheel, tmp_path):
     res = subprocess.run([sys.executable, "-c", code], cwd=work, env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert res.stdout.split() == ["1", "2.0"]
+
+
+def test_wheel_is_typed_and_the_version_comes_from_the_metadata(wheel):
+    from importlib import metadata
+
+    import tnn_dsl
+
+    assert "tnn_dsl/py.typed" in set(zipfile.ZipFile(wheel).namelist())
+    assert tnn_dsl.__version__ == metadata.version("tnn_dsl")
+    assert wheel.name.startswith(f"tnn_dsl-{tnn_dsl.__version__}-")
+
+
+def test_public_names_are_visible_and_lazy():
+    code = ("import sys, tnn_dsl\n"
+            "assert 'jax' not in sys.modules and 'torch' not in sys.modules\n"
+            "missing = [n for n in tnn_dsl.__all__ if getattr(tnn_dsl, n, None) is None]\n"
+            "assert not missing, missing\n"
+            "assert sorted(dir(tnn_dsl)) == sorted(tnn_dsl.__all__)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
