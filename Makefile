@@ -6,7 +6,7 @@ TNNC   := $(VENV)/bin/tnnc
 STAMP  := $(VENV)/.installed
 JOBS   ?= 2
 
-.PHONY: venv demo test test-all bench check clean
+.PHONY: venv demo test test-all lint bench check clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,9 +23,14 @@ demo: $(STAMP)
 check: $(STAMP)
 	$(TNNC) check networks/*/*.thn
 
-# The fast suite (CI runs this); slow training/diagnosis tests have fast variants that run here.
-test: $(STAMP)
+# The fast suite (CI runs this): lint (ruff), the layering of the packages (import-linter: see pyproject.toml),
+# then the tests; slow training/diagnosis tests have fast variants that run here.
+test: $(STAMP) lint
 	$(PY) -m pytest -q -n $(JOBS) -m "not slow" --durations=25 tests
+
+lint: $(STAMP)
+	$(PY) -m ruff check tnn_dsl tests benchmarks examples
+	$(VENV)/bin/lint-imports
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -n $(JOBS) tests

@@ -121,20 +121,21 @@ def test_forced_score_matches_the_big_network(backend):
     """The score test's shortcut (each candidate as an extra heat flow through the current network's
     linearised dynamics, plus its direct output term) ranks like the exact Jacobian of the big extended
     network's simulation."""
-    import tnn_dsl.doctor.diagnosis as D
+    import tnn_dsl.doctor.engine as E
+    import tnn_dsl.doctor.scoring as S
 
     net = tnn_dsl.load(TCLAB)
     pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.0, seed=3, n_train=240, n_val=10,
                backend=backend, hold=(20, 60))
-    exps, tm, vm = D._split_masks(pl.train, pl.val)
+    exps, tm, vm = E._split_masks(pl.train, pl.val)
     kinds = ("wrong_constant", "radiation", "sensor_offset")  # a small "big" network: fast to compile
     ext = build_extended(net, ["Q1", "Q2"], kinds=kinds)
-    state, ref = D._State(), {}
-    cur = D._make_engine(build_extended(net, ["Q1", "Q2"], kinds=kinds, only=set()), net, exps, tm, vm, backend, state, ref, [])[0]
-    big, _, free, cols = D._make_engine(ext, net, exps, tm, vm, backend, state, ref,
+    state, ref = E._State(), {}
+    cur = E._make_engine(build_extended(net, ["Q1", "Q2"], kinds=kinds, only=set()), net, exps, tm, vm, backend, state, ref, [])[0]
+    big, _, free, cols = E._make_engine(ext, net, exps, tm, vm, backend, state, ref,
                                         [c.key for c in ext.candidates], with_candidates=True)
-    fast = D._score_forced(cur, big, ext.candidates, cols, [])
-    exact = D._score(big, ext.candidates, list(free), cols, 0.0)
+    fast = S._score_forced(cur, big, ext.candidates, cols, [])
+    exact = S._score(big, ext.candidates, list(free), cols, 0.0)
     r2_fast = {d["cand"].key: d["r2"] for d in fast}
     r2_exact = {d["cand"].key: d["r2"] for d in exact}
     assert set(r2_fast) == set(r2_exact)
@@ -147,7 +148,7 @@ def test_forced_score_matches_the_big_network(backend):
 
 
 def test_indistinguishable_candidates_are_named():
-    import tnn_dsl.doctor.diagnosis as D
+    import tnn_dsl.doctor.scoring as S
     from tnn_dsl.doctor.candidates import Candidate
 
     rng = np.random.default_rng(0)
@@ -157,7 +158,7 @@ def test_indistinguishable_candidates_are_named():
     chosen = mk("R_hp1", base)
     twin = mk("R_hp2", base + 0.05 * rng.normal(size=500))
     other = mk("C_hp", rng.normal(size=500))
-    out = D._indistinguishable(chosen, [chosen, twin, other])
+    out = S._indistinguishable(chosen, [chosen, twin, other])
     assert [d["key"] for d in out] == ["param_dependence:R_hp2:u1"] and out[0]["cos"] > 0.95
 
 

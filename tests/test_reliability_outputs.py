@@ -193,7 +193,8 @@ def test_compile_refuses_an_included_file(tmp_path, capsys):
 
 
 def test_diagnose_refuses_to_overwrite_its_network_before_any_work(tmp_path, capsys, monkeypatch):
-    import tnn_dsl.doctor.diagnosis as D
+    import tnn_dsl.doctor.session as D
+    from tnn_dsl.doctor import diagnose
 
     net, data = rc_net(tmp_path), rc_data(tmp_path)
     before = Path(net).read_bytes()
@@ -201,7 +202,7 @@ def test_diagnose_refuses_to_overwrite_its_network_before_any_work(tmp_path, cap
     assert main(["diagnose", net, data, "-o", net, "--quiet"]) == 1
     assert "also an input" in capsys.readouterr().err
     with pytest.raises(TnnError, match="also an input"):
-        D.diagnose(net, [data], output=net)
+        diagnose(net, [data], output=net)
     assert Path(net).read_bytes() == before
 
 

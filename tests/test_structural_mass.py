@@ -142,7 +142,7 @@ _CASES = {
 
 
 def _engine(net, u, dt, backend):
-    from tnn_dsl.doctor.diagnosis import _make_engine, _split_masks, _State
+    from tnn_dsl.doctor.engine import _make_engine, _split_masks, _State
 
     n = u.shape[0]
     y = _sim(net, u, dt)
@@ -240,7 +240,7 @@ def test_extension_text_round_trips_through_the_parser(backend, path, key, cap, 
 
 
 def test_extend_text_comments_the_split_link_out():
-    from tnn_dsl.doctor.diagnosis import _extend_text, _merged_clauses
+    from tnn_dsl.doctor.extension import _extend_text, _merged_clauses
 
     net = tnn_dsl.load(TCLAB)
     cand = _cand(net, "thermal_mass:h1--amb:")

@@ -6,7 +6,8 @@ May import: every stage below it (``core`` … ``analysis``); not ``control``, `
 from __future__ import annotations
 
 from .candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
-from .diagnosis import Diagnosis, Finding, diagnose, normalisation_stats
+from .diagnosis import Diagnosis, Finding, diagnose
+from .engine import normalisation_stats
 from .report import REPORT_DIR, write_report
 
 __all__ = [

@@ -1,0 +1,579 @@
+"""The model doctor's fitting engine: one compiled network with the candidates' parameters as columns,
+simulation, residuals and Jacobians (forward mode, batched) through the backend adapter, and Levenberg–Marquardt."""
+
+from __future__ import annotations
+
+import math
+import re
+import time as _time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..compiler import backend_of
+from ..ir import POSITIVE_ROLES, Input, Network, Param
+from .candidates import (
+    Candidate,
+    Extended,
+)
+
+FIT_ITER = 80  # Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
+
+
+FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
+
+
+FIT_CONTINUE = 3
+
+
+@dataclass
+class _Col:
+    key: str
+    index: int
+    log: bool  # value = base·exp(θ) (positive parameter) else base + θ
+    lower: float | None = None
+    upper: float | None = None
+
+
+class _Engine:
+    """A compiled model over a set of experiments with train/val row masks.
+
+    ``cols`` is the fixed list of scalar parameters the engine may move (free + candidate columns);
+    ``params`` the current numpy parameter dict. Jacobians are taken w.r.t. θ at 0 where the column's
+    value is ``base·exp(θ)`` (log) or ``base + θ``."""
+
+    def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
+                 params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0):
+        from ..compiler import compile as _compile
+
+        self.net = net
+        self.backend = backend
+        self.model = model if model is not None else _compile(net, backend=backend, dtype="float64")
+        self.exps = experiments
+        self.n_force = n_force  # trailing forcing inputs (W, one per node; zero in every simulation)
+        # the experiments holding training rows come first: the score test simulates only those
+        has_train = [bool(m.any()) for m in np.split(train_mask, np.cumsum([e.n_steps for e in experiments])[:-1])]
+        self.n_score_exps = max(i + 1 for i, h in enumerate(has_train) if h) if any(has_train) else len(experiments)
+        self.cols = cols
+        self.col_index = {(c.key, c.index): i for i, c in enumerate(cols)}
+        self.params = params if params is not None else {
+            k: np.array(v, dtype=float) for k, v in self.model.to_numpy(self.model.init_params(seed=0)).items()}
+        self.y = np.concatenate([e.outputs for e in experiments], axis=0)  # (N, n_out)
+        ok = np.isfinite(self.y)
+        self.train_mask = train_mask & ok
+        self.val_mask = val_mask & ok
+        self.train_idx = np.flatnonzero(self.train_mask.ravel())
+        self.val_idx = np.flatnonzero(self.val_mask.ravel())
+        # scatter matrices: for each key, (size, n_cols) for log and lin columns
+        self.keys = sorted({c.key for c in cols})
+        self._build_scatter()
+        self._setup_backend()
+
+    # -- parameter plumbing ---------------------------------------------------------------------
+
+    def _build_scatter(self):
+        n = len(self.cols)
+        self.m_lin, self.m_log = {}, {}
+        for k in self.keys:
+            size = int(np.asarray(self.params[k]).size)
+            a, b = np.zeros((size, n)), np.zeros((size, n))
+            for j, c in enumerate(self.cols):
+                if c.key == k:
+                    (b if c.log else a)[c.index, j] = 1.0
+            self.m_lin[k], self.m_log[k] = a, b
+
+    def _setup_backend(self):
+        model = self.model
+        keys = self.keys
+        exps = self.exps
+        # The pure pieces, written once against the model's array namespace; only the autodiff
+        # transforms (jvp, vmap, jit) below are per backend.
+        xp = model.xp
+        nf = self.n_force
+        u_list = [xp.asarray(_pad(e.inputs, nf)) for e in exps]
+        dts = [float(e.dt) for e in exps]
+        m_lin = {k: xp.asarray(v) for k, v in self.m_lin.items()}
+        m_log = {k: xp.asarray(v) for k, v in self.m_log.items()}
+        n_sc = self.n_score_exps
+        lens = [e.n_steps for e in exps[:n_sc]]
+
+        def with_theta(base, theta):
+            p = dict(base)
+            for k in keys:
+                b = base[k]
+                flat = b.reshape(-1) * xp.exp(m_log[k] @ theta) + m_lin[k] @ theta
+                p[k] = flat.reshape(b.shape)
+            return p
+
+        def simulate(p):
+            ys, xs = [], []
+            for u, dt in zip(u_list, dts):
+                st, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                ys.append(y)
+                xs.append(st)
+            return xp.concat(ys, 0), xp.concat(xs, 0)
+
+        def out_flat(base, theta, idx):
+            """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
+            p = with_theta(base, theta)
+            ys = []
+            for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
+                _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+                ys.append(y)
+            return xp.concat(ys, 0).reshape(-1)[idx]
+
+        def out_forced(base, theta, F, idx):
+            """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
+            p = with_theta(base, theta)
+            ys, s0 = [], 0
+            for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
+                uu = xp.concat([u[:, : u.shape[1] - nf], F[s0: s0 + n]], axis=1)
+                s0 += n
+                _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
+                ys.append(y)
+            return xp.concat(ys, 0).reshape(-1)[idx]
+
+        B = backend_of(model)
+        zeros = lambda n: B.zeros(n)  # noqa: E731
+
+        def jac_chunk(base, tangents, idx):
+            """∂outputs[idx]/∂θ along each row of ``tangents`` (m, n_θ) → (m, len(idx))."""
+            return B.batched_jvp(lambda th: out_flat(base, th, idx), (zeros(tangents.shape[1]),), (tangents,))
+
+        def jac_forced(base, tan_theta, tan_F, idx):
+            F0 = B.xp.zeros(tuple(tan_F.shape[1:]), dtype=B.dtype)
+            return B.batched_jvp(lambda th, F: out_forced(base, th, F, idx), (zeros(tan_theta.shape[1]), F0),
+                                 (tan_theta, tan_F))
+
+        def point(base, tangents, X, U):
+            """∂rhs/∂θ and ∂outputs/∂θ at given states/inputs (no time loop): (m, N, ns), (m, N, n_out)."""
+            def f(th):
+                p = with_theta(base, th)
+                return model.rhs(p, X, U), model.outputs(p, X, U)
+
+            return B.batched_jvp(f, (zeros(tangents.shape[1]),), (tangents,))
+
+        def inv_cap(base, X, U):
+            """∂rhs/∂(forcing) with every forcing input at 1 W: 1/C per node state (N, ns)."""
+            dU = xp.concat([B.xp.zeros(tuple(U.shape[:-1]) + (U.shape[-1] - nf,), dtype=B.dtype),
+                            B.xp.ones(tuple(U.shape[:-1]) + (nf,), dtype=B.dtype)], -1)
+            return B.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
+
+        jac_j, jac_forced_j = B.jit(jac_chunk), B.jit(jac_forced)
+        self._sim = B.jit(B.no_grad(simulate))
+        self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
+        self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
+        self._point = B.jit(point)
+        self._inv_cap = B.jit(inv_cap)
+        self._to = B.tree
+        self._np = B.numpy
+
+    # -- evaluation -----------------------------------------------------------------------------
+
+    def simulate(self, params=None):
+        """Outputs (N, n_out) K and states (N, n_states) K for ``params`` (default: current)."""
+        y, x = self._sim(self._to(self.params if params is None else params))
+        return np.asarray(self._np(y)), np.asarray(self._np(x))
+
+    def residual(self, params=None):
+        ym, _ = self.simulate(params)
+        return self.y - ym  # (N, n_out), NaN where unmeasured
+
+    def jacobian(self, active: list[int], chunk: int = 16) -> np.ndarray:
+        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in batches of
+        ``chunk`` forward-mode tangents (one compiled shape: 8 for small sets, else ``chunk``)."""
+        base = self._to(self.params)
+        n = len(self.cols)
+        out = []
+        size = 8 if len(active) <= 8 else chunk
+        for s in range(0, len(active), size):
+            part = active[s: s + size]
+            tan = np.zeros((size, n))
+            for r, j in enumerate(part):
+                tan[r, j] = 1.0
+            tan_b = self._to({"t": tan})["t"]
+            jc = np.asarray(self._np(self._jac(base, tan_b, self.train_idx)))
+            out.append(jc[: len(part)].T)
+        return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    @property
+    def n_score_rows(self) -> int:
+        """Rows of the experiments the score test simulates (those holding training rows)."""
+        return int(sum(e.n_steps for e in self.exps[: self.n_score_exps]))
+
+    def forced_jacobian(self, active: list[int], forcing: np.ndarray | None = None, chunk: int = 32) -> np.ndarray:
+        """∂ y_model[train rows] w.r.t. the columns ``active`` (first block) and w.r.t. the forcing heat-flow
+        time series ``forcing (m, N_score, n_force)`` W (second block): shape (n_train, len(active) + m).
+        One compiled shape: ``chunk`` tangents per call."""
+        base = self._to(self.params)
+        n = len(self.cols)
+        nsr, nf = self.n_score_rows, self.n_force
+        m = 0 if forcing is None else forcing.shape[0]
+        total = len(active) + m
+        out = []
+        for s0 in range(0, total, chunk):
+            ta = np.zeros((chunk, n))
+            tf_ = np.zeros((chunk, nsr, nf))
+            for r in range(chunk):
+                j = s0 + r
+                if j >= total:
+                    break
+                if j < len(active):
+                    ta[r, active[j]] = 1.0
+                else:
+                    tf_[r] = forcing[j - len(active)]
+            t = self._to({"a": ta, "f": tf_})
+            jc = np.asarray(self._np(self._jac_forced(base, t["a"], t["f"], self.train_idx)))
+            out.append(jc[: min(chunk, total - s0)].T)
+        return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    def point_derivs(self, active: list[int], X: np.ndarray, U: np.ndarray, chunk: int = 32):
+        """(∂rhs/∂θ (m, N, ns), ∂outputs/∂θ (m, N, n_out)) for the columns ``active`` at states ``X (N, ns)`` K
+        and inputs ``U (N, n_in)`` SI (vectorised over time, no simulation)."""
+        base = self._to(self.params)
+        n = len(self.cols)
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        d_rhs, d_out = [], []
+        for s0 in range(0, len(active), chunk):
+            ta = np.zeros((chunk, n))
+            part = active[s0: s0 + chunk]
+            for r, j in enumerate(part):
+                ta[r, j] = 1.0
+            a, b = self._point(base, self._to({"a": ta})["a"], t["X"], t["U"])
+            d_rhs.append(np.asarray(self._np(a))[: len(part)])
+            d_out.append(np.asarray(self._np(b))[: len(part)])
+        ns, no = X.shape[1], len(self.model.output_names)
+        return (np.concatenate(d_rhs) if d_rhs else np.zeros((0, X.shape[0], ns)),
+                np.concatenate(d_out) if d_out else np.zeros((0, X.shape[0], no)))
+
+    def rates(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """``dT/dt (N, ns)`` K/s at states ``X`` and inputs ``U`` (current parameters, forcing 0)."""
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        return np.asarray(self._np(self.model.rhs(self._to(self.params), t["X"], t["U"])))
+
+    def inv_capacity(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """``∂(dT/dt)/∂Q`` for a heat flow into each node's own forcing input: ``1/C`` (N, ns) 1/(J/K); 0 for
+        lag states."""
+        t = self._to({"X": X, "U": _pad(U, self.n_force)})
+        return np.asarray(self._np(self._inv_cap(self._to(self.params), t["X"], t["U"])))
+
+    def apply(self, params, active: list[int], delta: np.ndarray, trust: bool = True) -> dict[str, np.ndarray]:
+        """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped; with ``trust``,
+        log-parameters move by at most e^±2 and learned weights by at most ±1 per step)."""
+        p = {k: np.array(v, dtype=float, copy=True) for k, v in params.items()}
+        for j, d in zip(active, delta):
+            c = self.cols[j]
+            flat = p[c.key].reshape(-1)
+            if c.log:
+                v = flat[c.index] * math.exp(float(np.clip(d, -2, 2) if trust else np.clip(d, -30, 30)))
+            else:  # learned weights act on normalised inputs: at most ±1 per step (a trust region)
+                v = flat[c.index] + (float(np.clip(d, -1, 1)) if trust and c.key.rsplit(".", 1)[-1][:1] in "Wbc"
+                                     and "." in c.key else d)
+            if c.lower is not None:
+                v = max(v, c.lower)
+            if c.upper is not None:
+                v = min(v, c.upper)
+            flat[c.index] = v
+            p[c.key] = flat.reshape(p[c.key].shape)
+        return p
+
+    def sse(self, params=None, which="train") -> float:
+        e = self.residual(params).ravel()
+        idx = self.train_idx if which == "train" else self.val_idx
+        v = e[idx]
+        if not np.all(np.isfinite(v)):
+            return math.inf
+        with np.errstate(over="ignore"):  # a trial step far along a valley may blow a simulation up: inf
+            return float(np.dot(v, v))
+
+    def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
+            deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True) -> dict:
+        """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``)."""
+        params = self.params
+        if init_delta is not None and np.any(init_delta):
+            # the score test's Gauss–Newton step, whole (it is exact for a candidate linear in its
+            # parameters), else inside the trust region; kept only if it helps
+            best = self.sse(params)
+            for trust in (False, True):
+                trial = self.apply(params, active, init_delta, trust=trust)
+                sse_t = self.sse(trial)
+                if sse_t < best:
+                    params, best = trial, sse_t
+                    break
+        cur = self.sse(params)
+        lam = 1e-3
+        it = 0
+        if not active:
+            self.params = params
+            return {"sse": cur, "iterations": 0}
+        for it in range(1, max_iter + 1):
+            self.params = params
+            r = self.residual(params).ravel()[self.train_idx]
+            J = self.jacobian(active)
+            A = J.T @ J
+            g = J.T @ r
+            d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+            improved = False
+            for _ in range(12):
+                M = A + lam * np.diag(np.diag(A)) + 1e-12 * np.trace(A) / max(len(active), 1) * np.eye(len(active))
+                try:
+                    delta = np.linalg.solve(M, g)
+                except np.linalg.LinAlgError:
+                    delta = np.linalg.lstsq(M, g, rcond=None)[0]
+                trial = self.apply(params, active, delta)
+                new = self.sse(trial)
+                if new < cur:
+                    rel = (cur - new) / max(cur, 1e-300)
+                    # flat valleys (free constants that are not identifiable as written, a conductance
+                    # drifting towards 0 in log space): the damped step is right in direction but short, so
+                    # go on along it (2δ, 4δ, ...) while the SSE keeps dropping; one simulation per try
+                    mult = 1.0
+                    while extrapolate and mult < 64:
+                        t2 = self.apply(params, active, 2 * mult * delta)
+                        n2 = self.sse(t2)
+                        if not n2 < new:
+                            break
+                        trial, new, mult = t2, n2, 2 * mult
+                    rel = (cur - new) / max(cur, 1e-300)
+                    params, cur = trial, new
+                    lam = max(lam / 4, 1e-9)
+                    improved = True
+                    break
+                lam *= 6
+            del d
+            if not improved or rel < tol or (deadline is not None and _time.monotonic() > deadline):
+                break
+        self.params = params
+        return {"sse": cur, "iterations": it}
+
+
+def _pad(u: np.ndarray, n: int) -> np.ndarray:
+    """Inputs ``(N, n_in)`` with ``n`` zero columns appended (the forcing inputs)."""
+    u = np.asarray(u, dtype=float)
+    return np.concatenate([u, np.zeros(u.shape[:-1] + (n,))], axis=-1) if n else u
+
+
+FORCE_PREFIX = "dxF_"
+
+
+def _with_forcing(net: Network) -> Network:
+    """``net`` plus one heat source per node driven by a new input ``dxF_<node>`` (W). With those inputs at 0
+    it is exactly ``net``; the score test differentiates the simulation w.r.t. them (the response to any
+    candidate's extra heat flow through the same linearised dynamics)."""
+    from ..ir import Ref, Source
+
+    w = {"kg": 1.0, "m": 2.0, "s": -3.0}
+    names = set(net.input_names) | set(net.param_names) | {s.name for s in net.sources}
+    inputs, params, sources = list(net.inputs), list(net.params), list(net.sources)
+    for n in net.node_names:
+        base = FORCE_PREFIX + re.sub(r"[^A-Za-z0-9_]", "_", n)
+        name = base
+        while name in names:
+            name += "_"
+        names.add(name)
+        inputs.append(Input(name=name, column=name, dim=w, unit="W"))
+        params.append(Param(name=name + ".q", expr=Ref(name=name, kind="input"), dim=w, unit="W", role="heat_flow",
+                            owner=f"source {name}"))
+        sources.append(Source(name=name, node=n, value=name + ".q"))
+    return net.model_copy(update={"inputs": inputs, "params": params, "sources": sources}, deep=True)
+
+
+def _split_masks(experiments, val_experiments, frac: float = 0.7):
+    """Experiments to simulate and (train, val) row masks (N, n_out) over their concatenation."""
+    exps = list(experiments) + list(val_experiments)
+    n_out = exps[0].outputs.shape[1]
+    tm, vm = [], []
+    for i, e in enumerate(exps):
+        n = e.n_steps
+        t = np.zeros((n, n_out), bool)
+        v = np.zeros((n, n_out), bool)
+        if val_experiments:
+            (t if i < len(experiments) else v)[:] = True
+        else:
+            cut = int(round(frac * n))
+            t[:cut] = True
+            v[cut:] = True
+        tm.append(t)
+        vm.append(v)
+    return exps, np.concatenate(tm), np.concatenate(vm)
+
+
+def normalisation_stats(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0, state_names=None):
+    """Each learned function's input normalisation from the training rows of the nominal run, as the
+    trainer sets it (``x_mean`` the mid-range, ``x_scale`` the half-range, floors 0.5 K for temperatures),
+    and its output scale: ``|nominal|`` for a parameter, the node's typical heat throughput ``C·rms(dT/dt)``
+    for a heat load (``dt`` the sample interval, s, so dT/dt is per second). Returns the updated numpy
+    params."""
+    p = dict(params)
+    in_idx = {n: i for i, n in enumerate(net.input_names)}
+    st_idx = {n: i for i, n in enumerate(state_names or model.state_names)}  # columns of ``states``
+    caps = {n.name: n.capacitance for n in net.nodes}
+    for fn in net.learned:
+        if f"{fn.name}.x_mean" not in p:
+            continue
+        vars_ = [(li.kind, li.name) for li in fn.inputs]
+        if vars_:
+            xs = []
+            for kind, name in vars_:
+                if kind == "input" and name in in_idx:
+                    xs.append(inputs[rows, in_idx[name]])
+                elif name in st_idx:
+                    xs.append(states[rows, st_idx[name]])
+                else:
+                    xs.append(np.zeros(1))
+            mean = np.array([(x.max() + x.min()) / 2 for x in xs])
+            half = np.array([(x.max() - x.min()) / 2 for x in xs])
+            floor = np.maximum(1e-3 * np.abs(mean), 1e-9)
+            for i, (kind, _) in enumerate(vars_):
+                if kind == "node":
+                    floor[i] = max(floor[i], 0.5)
+            p[f"{fn.name}.x_mean"] = mean.reshape(np.shape(p[f"{fn.name}.x_mean"]))
+            p[f"{fn.name}.x_scale"] = np.maximum(half, floor).reshape(np.shape(p[f"{fn.name}.x_scale"]))
+        ysc = []
+        for t in fn.targets:
+            if t.kind == "param":
+                try:
+                    v = net.param(t.name).value
+                except KeyError:
+                    v = None
+                ysc.append(abs(v) if v else 1.0)
+            elif t.kind == "heat_load" and t.name in st_idx and t.name in caps:
+                try:
+                    C = net.param(caps[t.name]).value
+                except KeyError:
+                    C = None
+                x = states[rows, st_idx[t.name]]
+                spacing = float(np.median(np.diff(np.flatnonzero(rows)))) if rows.sum() > 1 else 1.0
+                d = np.diff(x) / max(spacing * float(dt), 1e-12)
+                ysc.append(max(float(C * np.sqrt(np.mean(d ** 2))), 1e-3) if C and d.size else 1.0)
+            else:
+                ysc.append(1.0)
+        k = f"{fn.name}.y_scale"
+        if k in p and np.size(p[k]) == len(ysc):
+            p[k] = np.asarray(ysc, dtype=float).reshape(np.shape(p[k]))
+    return p
+
+
+class _State:
+    """Fitted values carried between the engines of different (small, big) networks: free scalars by
+    ``(key, index)`` and each candidate's column values by candidate key."""
+
+    def __init__(self):
+        self.free: dict[tuple[str, int], float] = {}
+        self.cand: dict[str, list[float]] = {}
+
+    def harvest(self, eng: "_Engine", ext: Extended, keys: list[str]) -> None:
+        for c in eng.cols[: eng.n_free]:
+            self.free[(c.key, c.index)] = float(np.asarray(eng.params[c.key]).reshape(-1)[c.index])
+        for cand in ext.candidates:
+            if cand.key in keys:
+                self.cand[cand.key] = [float(np.asarray(eng.params[col.key]).reshape(-1)[col.index])
+                                       for col in cand.columns]
+
+
+def _cand_in(ext: Extended, key: str) -> Candidate | None:
+    return next((c for c in ext.candidates if c.key == key), None)
+
+
+def _alias(key: str, params) -> str | None:
+    """A learned constant ``f.c`` is the linear ``f.b`` of its replacement (and back)."""
+    if key in params:
+        return key
+    for a, b in ((".c", ".b"), (".b", ".c")):
+        if key.endswith(a) and key[: -len(a)] + b in params:
+            return key[: -len(a)] + b
+    return None
+
+
+def _params_from_state(eng: "_Engine", ext: Extended, state: _State, keys: list[str]) -> dict:
+    p = {k: np.array(v, dtype=float, copy=True) for k, v in eng.params0.items()}
+    for (k, i), v in state.free.items():
+        kk = _alias(k, p)
+        if kk is not None and i < p[kk].size:
+            flat = p[kk].reshape(-1)
+            flat[i] = v
+            p[kk] = flat.reshape(p[kk].shape)
+    for cand in ext.candidates:
+        vals = state.cand.get(cand.key)
+        if vals is None or cand.key not in keys:
+            continue
+        for col, v in zip(cand.columns, vals):
+            flat = p[col.key].reshape(-1)
+            flat[col.index] = v
+            p[col.key] = flat.reshape(p[col.key].shape)
+    return p
+
+
+def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, backend, state: _State, ref: dict,
+                 keys: list[str], with_candidates: bool = False):
+    """Compile ``ext_s`` and set up an engine whose columns are the nominal free scalars followed by the
+    candidate columns of ``keys``; parameters from ``state``; learned-function statistics from the reference
+    nominal run (the same for every network, so values carry over)."""
+    from ..compiler import compile as _compile
+
+    n_force = 0 if with_candidates else len(ext_s.network.nodes)
+    model = _compile(ext_s.network if with_candidates else _with_forcing(ext_s.network), backend=backend,
+                     dtype="float64")
+    specs = model.param_specs
+    params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
+    free_cols = _free_columns(net_x, ext_s, specs, params0)
+    cand_cols: list[_Col] = []
+    seen: dict[tuple[str, int], int] = {(c.key, c.index): i for i, c in enumerate(free_cols)}
+    cols_of: dict[str, list[int]] = {}
+    for cand in ext_s.candidates:
+        if cand.key not in keys:
+            continue
+        idx = []
+        for col in cand.columns:
+            if (col.key, col.index) not in seen:
+                lower = 0.0 if cand.kind in ("missing_link", "radiation") else None
+                seen[(col.key, col.index)] = len(free_cols) + len(cand_cols)
+                cand_cols.append(_Col(col.key, col.index, False, lower, None))
+            idx.append(seen[(col.key, col.index)])
+        cols_of[cand.key] = idx
+    eng = _Engine(model.network, exps, train_mask, val_mask, backend, free_cols + cand_cols, params0, model=model,
+                  n_force=n_force)
+    eng.n_free = len(free_cols)
+    all_u = np.concatenate([e.inputs for e in exps], 0)
+    if "states" not in ref:
+        _, st = eng.simulate()
+        ref["states"] = st
+        ref["names"] = list(model.state_names)
+    rows = train_mask.any(1)
+    eng.params0 = normalisation_stats(model, params0, ext_s.fn_vars, ext_s.network, all_u, ref["states"], rows,
+                             dt=float(exps[0].dt), state_names=ref.get("names"))
+    eng.params = _params_from_state(eng, ext_s, state, keys)
+    return eng, ext_s, list(range(len(free_cols))), cols_of
+
+
+def _free_columns(net: Network, ext: Extended, specs, params0) -> list[_Col]:
+    """The nominal model's trainable scalars: its ``free`` constants (from the IR: in the extended network
+    they may be targets of a candidate function, which keeps their value as the nominal) and the weights of
+    its own non-frozen learned functions. Positive ones move in log space."""
+    cols: list[_Col] = []
+    learned = net.learned_targets()
+    for p in net.params:
+        if p.free and p.is_constant and p.name not in learned and p.name in specs:
+            v = float(np.asarray(params0[p.name]))
+            cols.append(_Col(p.name, 0, p.role in POSITIVE_ROLES and v > 0, p.lower, p.upper))
+    own = {fn.name for fn in net.learned}
+    for name, sp in specs.items():
+        fn = name.split(".", 1)[0]
+        if sp.kind != "weights" or not sp.trainable or fn not in own or name in ext.candidate_keys:
+            continue
+        for i in range(int(np.asarray(params0[name]).size)):
+            cols.append(_Col(name, i, False))
+    return cols
+
+
+def _free_values(eng: _Engine, free_cols: list[_Col], net: Network) -> dict:
+    out = {}
+    for c in free_cols:
+        if "." in c.key and c.key.split(".")[0] in {f.name for f in net.learned}:
+            continue
+        out[c.key] = float(np.asarray(eng.params[c.key]).reshape(-1)[c.index])
+    return out
+
+
+def _same_columns(a: Candidate, b: Candidate) -> bool:
+    return {(c.key, c.index) for c in a.columns} <= {(c.key, c.index) for c in b.columns}

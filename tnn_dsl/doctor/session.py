@@ -1,0 +1,470 @@
+"""One run of the model doctor as named stages (:class:`_Session`): read the data, fit the nominal model,
+analyse its residual, rounds of forward selection (score test, shortlist, proper fits, successive halving,
+the held-out decision), the extension, linear or MLP, the result. :func:`tnn_dsl.doctor.diagnose` runs them
+in order; the state they share lives on the session."""
+
+from __future__ import annotations
+
+import difflib
+import os
+import re
+import time as _time
+from typing import Callable
+
+import numpy as np
+
+from ..analysis import residuals as R
+from ..core import THN, Diagnostic, TnnError, check_output, write_text_atomic
+from ..ir import Input, Network
+from .candidates import STRUCTURAL_KINDS, Candidate, Extended, build_extended, structural_candidates
+from .engine import (
+    FIT_CONTINUE,
+    FIT_ITER,
+    FIT_ITER_FIRST,
+    _cand_in,
+    _Engine,
+    _make_engine,
+    _params_from_state,
+    _split_masks,
+    _State,
+)
+from .extension import _check_text, _clause, _extend_text, _merged_clauses
+from .fitting import _fit_result, _fit_structural, _train_lr_test
+from .results import Diagnosis, Finding
+from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
+from .selection import MIN_GAIN, _choose
+from .words import _what_is_left, _words
+
+__all__ = ["_Session"]
+
+
+def _paths_of(data) -> list:
+    """The file paths among data arguments (paths or :class:`Experiment` objects)."""
+    items = data if isinstance(data, (list, tuple)) else [data]
+    return [x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items if x is not None]
+
+
+def _load(net_or_path) -> tuple[Network, str | None, str]:
+    """Network, its file path (or None) and its source text."""
+    from ..lang import load
+
+    if isinstance(net_or_path, Network):
+        path = net_or_path.source_files[0] if net_or_path.source_files else None
+        text = open(path, encoding="utf-8").read() if path and os.path.isfile(path) else ""
+        return net_or_path, path, text
+    path = os.fspath(net_or_path)
+    net = load(path)
+    return net, path, open(path, encoding="utf-8").read()
+
+
+def _unused_columns(net: Network, experiments) -> list[tuple[str, str]]:
+    """(input name, column) for numeric data columns present in every training file that the network does
+    not read (not the time column, not an input, not a sensor)."""
+    from ..data import read_table
+
+    used = {i.column for i in net.inputs} | {s.column for s in net.sensors}
+    # a column that reads a modelled node's temperature (``T_hx1``, ``hx1``) is a state, not a driver
+    node_cols = {n.lower() for n in net.node_names} | {f"t_{n}".lower() for n in net.node_names}
+    common: list[str] | None = None
+    for e in experiments:
+        try:
+            tab = read_table(e.path)
+        except Exception:  # noqa: BLE001 - the file was read before; a re-read problem just skips this
+            return []
+        cols = []
+        for j, c in enumerate(tab.columns):
+            if not c or c in used or c == e.time_column or c.lower() in node_cols:
+                continue
+            vals = tab.cells.get(j)
+            try:
+                arr = np.asarray(vals, dtype=float)
+            except (TypeError, ValueError):
+                continue
+            if arr.size and np.all(np.isfinite(arr)) and np.ptp(arr) > 0:
+                cols.append(c)
+        common = cols if common is None else [c for c in common if c in cols]
+    taken = set(net.input_names) | set(net.node_names) | set(net.param_names) | set(net.boundary_names)
+    out = []
+    for c in common or []:
+        name = re.sub(r"[^A-Za-z0-9_]", "_", c)
+        if not re.match(r"[A-Za-z_]", name):
+            name = "c_" + name
+        while name in taken:
+            name += "_"
+        taken.add(name)
+        out.append((name, c))
+    return out
+
+
+class _Session:
+    """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
+
+    def __init__(self, net_or_path, train, val, budget_s: float | None, backend: str,
+                 progress: Callable[[str], None] | None, *, top: int, max_rounds: int, output: str | None,
+                 kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool):
+        self.t_start = _time.monotonic()
+        self.deadline = None if budget_s is None else self.t_start + float(budget_s)
+        self.say = progress or (lambda s: None)
+        self.timings: dict[str, float] = {}
+        self.top, self.max_rounds, self.output, self.kinds = top, max_rounds, output, kinds
+        self.mlp_check, self.mlp_time, self.backend = mlp_check, mlp_time, backend
+        self.net, self.path, self.text = _load(net_or_path)
+        if output:
+            check_output(output, THN, inputs=[self.path, *self.net.source_files, *_paths_of(train),
+                                              *_paths_of(val)], force=force)
+        if backend not in ("jax", "torch"):
+            raise TnnError(Diagnostic(f"unknown backend {backend!r}", hint="use --backend jax or --backend torch"))
+        self.train_arg, self.val_arg = train, val
+
+    def lap(self, name: str, t0: float) -> None:
+        self.timings[name] = round(_time.monotonic() - t0, 3)
+
+    def spent(self) -> bool:
+        return self.deadline is not None and _time.monotonic() > self.deadline
+
+    # -- stage 0: data -----------------------------------------------------------------------------
+
+    def read_data(self) -> None:
+        """The experiments, the unused data columns (inputs of the extended network), the row masks."""
+        from ..data import Experiment, read_data
+
+        net = self.net
+
+        def read(x, n):
+            if x is None:
+                return []
+            if isinstance(x, Experiment):
+                return [x]
+            if isinstance(x, (list, tuple)) and x and all(isinstance(e, Experiment) for e in x):
+                return list(x)
+            return read_data(n, x)
+
+        train_exps, val_exps = read(self.train_arg, net), read(self.val_arg, net)
+        if not train_exps:
+            raise TnnError(Diagnostic("no training data given", hint="pass at least one CSV file"))
+        train_paths = [e.path for e in train_exps]
+        val_paths = [e.path for e in val_exps]
+        kinds = self.kinds
+        unused = _unused_columns(net, train_exps + val_exps) if (kinds is None or "unused_column" in kinds) else []
+        net_x = net
+        if unused:
+            net_x = net.model_copy(update={"inputs": list(net.inputs) + [
+                Input(name=n, column=c, dim={}, unit=None) for n, c in unused]}, deep=True)
+            train_exps = read_data(net_x, train_paths) if train_paths and os.path.isfile(train_paths[0]) else train_exps
+            val_exps = read_data(net_x, val_paths) if val_paths and os.path.isfile(val_paths[0]) else val_exps
+            if train_exps[0].inputs.shape[1] != len(net_x.inputs):  # Experiments given directly: cannot add
+                unused, net_x = [], net
+        self.train_exps, self.val_exps, self.unused, self.net_x = train_exps, val_exps, unused, net_x
+        self.exps, self.train_mask, self.val_mask = _split_masks(train_exps, val_exps)
+        self.all_u = np.concatenate([e.inputs for e in self.exps], 0)
+        self.train_rows = self.train_mask.any(1)
+        self.varying = [n for j, n in enumerate(net.input_names) if np.ptp(self.all_u[self.train_rows, j]) > 0]
+        self.extra = [n for n, _ in unused]
+
+    def small(self, keys: list[str]) -> tuple[_Engine, Extended, list[int], dict[str, list[int]]]:
+        """An engine over the original network plus just the candidates ``keys`` (values from the state):
+        (engine, its Extended, free column indices, candidate key → its column indices)."""
+        ext_s = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds, only=set(keys))
+        return _make_engine(ext_s, self.net_x, self.exps, self.train_mask, self.val_mask, self.backend, self.state,
+                            self.ref, keys)
+
+    # -- stage 1: the nominal model and its fit -------------------------------------------------------
+
+    def fit_baseline(self) -> None:
+        t0 = _time.monotonic()
+        self.say("building candidates from the network ...")
+        self.ext: Extended = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds)
+        self.state = _State()
+        self.ref: dict = {}
+        eng, ext0, free_idx, _ = self.small([])
+        self.lap("compile", t0)
+        t0 = _time.monotonic()
+        self.say(f"fitting the nominal model ({len(free_idx)} free parameters) on {int(self.train_rows.sum())} "
+                 "samples ...")
+        eng.fit(free_idx, max_iter=30, deadline=self.deadline, tol=1e-6)
+        self.state.harvest(eng, ext0, [])
+        self.lap("nominal_fit", t0)
+        self.eng, self.ext0 = eng, ext0
+
+    # -- stage 2: residual analysis -------------------------------------------------------------------
+
+    def analyse_residuals(self) -> None:
+        t0 = _time.monotonic()
+        eng, net = self.eng, self.net
+        self.y_nom, x_nom = eng.simulate()
+        self.e_nom = eng.y - self.y_nom
+        model = eng.model
+        self.out_names = list(model.output_names)
+        e_val = np.where(eng.val_mask, self.e_nom, np.nan)
+        self.vrows = vrows = eng.val_mask.any(1)
+        self.t_all = np.concatenate([e.t for e in self.exps])
+        variables = {n: self.all_u[vrows, j] for j, n in enumerate(self.net_x.input_names)
+                     if np.ptp(self.all_u[vrows, j]) > 0}
+        for j, n in enumerate(model.state_names):
+            variables[f"T({n})" if n in net.node_names else n] = x_nom[vrows, j]
+        variables["time"] = self.t_all[vrows]
+        self.variables = variables
+        self.res = res = R.summarise(e_val[vrows], self.out_names, variables)
+        e_tr = np.where(eng.train_mask, self.e_nom, np.nan)
+        self.base = {
+            "val_mae": res.mae, "val_max": res.max,
+            "train_mae": float(np.nanmean(np.abs(e_tr))), "train_max": float(np.nanmax(np.abs(e_tr))),
+            "per_sensor": res.errors,
+            "free_params": {f"{k}" + (f"[{i}]" if i else ""): v for (k, i), v in self.state.free.items()},
+        }
+        self.sigma = float(np.mean(list(res.sigma.values()))) if res.sigma else 0.0
+        self.lap("residuals", t0)
+        self.say(f"baseline held-out MAE {res.mae:.4g} K, max {res.max:.4g} K; residual "
+                 + ("white" if all(w.get("white") for w in res.whiteness.values()) else "not white"))
+        # the forward selection starts from here
+        self.findings: list[Finding] = []
+        self.scores_out: list[dict] = []
+        self.accepted: list[Candidate] = []
+        self.current_val = (res.mae, res.max, eng.sse(which="val"))
+        self.final_eng, self.final_ext = eng, self.ext0
+        self.with_struct = self.kinds is None or any(k in STRUCTURAL_KINDS for k in self.kinds)
+        self.dt_min = min(float(e.dt) for e in self.exps)
+        self.remaining = self.candidates_now()
+        self.big = None
+
+    # -- stages 3–5: forward selection ----------------------------------------------------------------
+
+    def candidates_now(self) -> list[Candidate]:
+        done = {a.key for a in self.accepted}
+        struct = structural_candidates(self.net_x, self.kinds if self.kinds else None) if self.with_struct else []
+        return [c for c in list(self.ext.candidates) + struct if c.key not in done]
+
+    def selection_round(self, rnd: int) -> bool:
+        """One round: score test, proper fits of the shortlist, the held-out decision. ``False``: stop."""
+        if self.spent():
+            self.say("budget spent; stopping the forward selection")
+            return False
+        scored = self.score(rnd)
+        if not scored:
+            return False
+        t0 = _time.monotonic()
+        fits = self.fit_shortlist(scored)
+        self.lap(f"fit_round{rnd}", t0)
+        if not fits:
+            return False
+        e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
+        for f in fits:
+            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
+                                                        f["cand"].k, len(scored))
+        chosen = _choose(fits, self.current_val, self.e_base_val)
+        self.record(fits, scored, chosen, rnd)
+        if chosen is None:
+            self.say(f"round {rnd}: no candidate pays on held-out data")
+            return False
+        self.accept(chosen, rnd)
+        return True
+
+    def score(self, rnd: int) -> list[dict]:
+        """The score test of every remaining candidate at the current fit (the big extended network)."""
+        t0 = _time.monotonic()
+        acc_keys = self.acc_keys()
+        if self.big is None:
+            self.say(f"compiling the extended network ({len(self.ext.candidates)} candidates at their null value) ...")
+            self.big = _make_engine(self.ext, self.net_x, self.exps, self.train_mask, self.val_mask, self.backend,
+                                    self.state, self.ref, [c.key for c in self.ext.candidates], with_candidates=True)
+        else:
+            self.big[0].params = _params_from_state(self.big[0], self.big[1], self.state, acc_keys)
+        b_eng, b_ext, b_free, b_cols = self.big
+        self.say(f"round {rnd}: score test over {len(self.remaining)} candidates ...")
+        scored = _score_forced(self.final_eng, b_eng, self.remaining, b_cols, [_cand_in(b_ext, k) for k in acc_keys])
+        if scored is None:
+            self.remaining = [r for r in self.remaining if r.kind not in STRUCTURAL_KINDS]
+            active_base = list(b_free) + [j for k in acc_keys for j in b_cols.get(k, [])]
+            scored = _score(b_eng, self.remaining, active_base, b_cols, self.sigma)
+        self.lap(f"score_round{rnd}", t0)
+        if rnd == 1:
+            self.scores_out = [dict(s["public"]) for s in scored]
+        return scored
+
+    def acc_keys(self) -> list[str]:
+        """Keys of the accepted candidates held by the extended network (structural ones live in ``net_x``)."""
+        return [c.key for c in self.accepted if c.kind not in STRUCTURAL_KINDS]
+
+    def fit_shortlist(self, scored: list[dict]) -> list[dict]:
+        """Proper fits of the best distinct candidates: ``FIT_ITER_FIRST`` iterations each on ONE small network
+        holding all of them (each exactly null at zero, fitted with only its own columns moving, so the
+        compiled simulation and Jacobian are shared), then successive halving."""
+        self.e_base_val = e_base_val = self.final_eng.residual().ravel()[self.final_eng.val_idx]
+        short = []
+        for s_ in _shortlist(scored, self.top):
+            if s_["r2"] < MIN_R2 and short:
+                continue  # the linearised fit explains too little of the residual to pay
+            short.append(s_)
+        acc_keys = self.acc_keys()
+        sh_keys = [s_["cand"].key for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
+        t_c = _time.monotonic()
+        e_s, x_s, f_s, c_s = self.small(acc_keys + sh_keys)
+        t_c = _time.monotonic() - t_c
+        start_params = {k: np.array(v, copy=True) for k, v in e_s.params.items()}
+        fits: list[dict] = []
+        for s_ in short:
+            c: Candidate = s_["cand"]
+            if self.spent() and fits:
+                break
+            if s_["r2"] < MIN_R2:
+                self.say(f"  {c.describe()}: the score test explains only {100 * s_['r2']:.2g} % of the residual;"
+                         " not fitted")
+                break
+            self.say(f"  fitting {c.describe()} (k={c.k}) ...")
+            if c.kind in STRUCTURAL_KINDS:
+                f = _fit_structural(c, s_, self.net_x, self.varying, self.extra, self.kinds, acc_keys, self.exps,
+                                    self.train_mask, self.val_mask, self.backend, self.state, self.ref, self.dt_min,
+                                    self.deadline, e_base_val, self.say)
+                if f is not None:
+                    fits.append(f)
+                continue
+            e_s.params = {k: np.array(v, copy=True) for k, v in start_params.items()}
+            act = list(f_s) + [j for k in acc_keys + [c.key] for j in c_s.get(k, [])]
+            init = np.zeros(len(act))  # the Gauss–Newton step of the score test (kept only if it helps)
+            for d, j in zip(s_["delta"], c_s.get(c.key, [])):
+                init[act.index(j)] = d
+            t_f = _time.monotonic()
+            info = e_s.fit(act, max_iter=FIT_ITER_FIRST, init_delta=init, deadline=self.deadline, tol=1e-4)
+            self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations"
+                     + (f", network compiled in {t_c:.1f} s" if len(fits) == 0 else "") + ")")
+            f = _fit_result(c, s_, e_s, x_s, e_base_val)
+            f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= FIT_ITER_FIRST)
+            fits.append(f)
+        self.continue_fits(fits, e_s, x_s)
+        return fits
+
+    def continue_fits(self, fits: list[dict], e_s: _Engine, x_s: Extended) -> None:
+        """Successive halving: the fits still moving after ``FIT_ITER_FIRST`` iterations, best training SSE
+        first, go on to convergence (the held-out rows never decide who continues)."""
+        going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
+        for f in going:
+            if self.spent():
+                break
+            c = f["cand"]
+            self.say(f"  continuing {c.describe()} ...")
+            e_s.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
+            t_f = _time.monotonic()
+            info = e_s.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
+            self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
+            f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
+
+    def record(self, fits: list[dict], scored: list[dict], chosen: dict | None, rnd: int) -> None:
+        """A :class:`Finding` per fitted candidate, best held-out SSE first, with the evidence."""
+        current_val = self.current_val
+        twins = _indistinguishable(chosen["score"], scored) if chosen is not None else []
+        for rank, f in enumerate(sorted(fits, key=lambda f: f["val_sse"]), start=1):
+            c = f["cand"]
+            cf = _cand_in(f["ext"], c.key) or c
+            prm = f["params"]
+            self.findings.append(Finding(
+                rank=rank, kind=c.kind, target=c.target, depends_on=list(c.depends_on),
+                clause=_clause(cf, prm, f["ext"], f["eng"]),
+                val_mae_after=f["val_mae"], val_max_after=f["val_max"], accepted=f is chosen,
+                words=_words(cf, prm, f["ext"], f["eng"], f["eng"].model), round=rnd,
+                evidence={"score": f["score"]["public"]["score"], "score_p": f["score"]["public"]["p"],
+                          "r2_linearised": f["score"]["public"]["r2"], "k": c.k,
+                          "val_mae_before": current_val[0], "val_sse_before": current_val[2],
+                          "val_sse_after": f["val_sse"], "dm_stat": f["F"], "p_value": f["p"], "n_eff": f["n_eff"],
+                          "lr_train": f.get("S_train"), "p_train": f.get("p_train"),
+                          "test": ("likelihood ratio on the training rows (effective N, Bonferroni over the "
+                                   "candidates scored) and Diebold–Mariano on held-out squared errors (HAC "
+                                   "variance, AIC charge for k)"),
+                          "mae_gain": 1 - f["val_mae"] / current_val[0] if current_val[0] else 0.0,
+                          "reason": f.get("reason", ""),
+                          "indistinguishable_from": twins if f is chosen else []}))
+
+    def accept(self, chosen: dict, rnd: int) -> None:
+        c = chosen["cand"]
+        self.say(f"round {rnd}: accepted {c.describe()} (held-out MAE {self.current_val[0]:.4g} → "
+                 f"{chosen['val_mae']:.4g} K)")
+        self.accepted.append(c)
+        chosen["eng"].params = chosen["params"]
+        self.state.harvest(chosen["eng"], chosen["ext"], [k.key for k in self.accepted])
+        self.final_eng, self.final_ext = chosen["eng"], chosen["ext"]
+        self.current_val = (chosen["val_mae"], chosen["val_max"], chosen["val_sse"])
+        if chosen["net"] is not None:  # a structural edit becomes part of the base network (its parameter free)
+            self.net_x = chosen["net"]
+            self.ext = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds)
+            self.big = None
+        self.remaining = self.candidates_now()
+
+    # -- the extension ---------------------------------------------------------------------------------
+
+    def build_extension(self) -> None:
+        """The accepted findings as clauses and the extended text; the extended model's held-out residual."""
+        t0 = _time.monotonic()
+        self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
+        params = self.final_eng.params
+        self.clauses = _merged_clauses(self.acc_small, params, self.final_ext, self.final_eng)
+        self.ext_text, self.diff = _extend_text(self.text, self.clauses, self.acc_small, self.net, params,
+                                                self.final_ext, self.unused)
+        self.lap("extend", t0)
+        self.y_fin, _ = self.final_eng.simulate()
+        e_fin = np.where(self.final_eng.val_mask, self.final_eng.y - self.y_fin, np.nan)
+        self.res_fin = R.summarise(e_fin[self.vrows], self.out_names)
+        self.form = None
+
+    def compare_with_mlp(self) -> None:
+        """Linear or MLP, as the evidence says: only where a structured residual is left and time allows."""
+        res_fin = self.res_fin
+        if not (self.accepted and self.ext_text and self.mlp_check and any(" as linear(" in c for c in self.clauses)
+                and not all(w.get("white") for w in res_fin.whiteness.values())
+                and (self.deadline is None or _time.monotonic() + 2 * self.mlp_time < self.deadline)):
+            return
+        from ..data import split_by_time
+        from .mlp_check import compare
+
+        t0 = _time.monotonic()
+        self.say("the residual is not white: is an MLP better than the linear law? (training both)")
+        tr_e, va_e = self.train_exps, self.val_exps
+        if not va_e:
+            parts = [split_by_time(e, 0.7) for e in self.train_exps]
+            tr_e, va_e = [a for a, _ in parts], [b for _, b in parts]
+        try:
+            form = compare(self.ext_text, self.output or (self.path or "extended.thn"), tr_e, va_e,
+                           backend=self.backend, time_limit=self.mlp_time, say=self.say)
+        except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
+            form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
+        if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:
+            form.update(choice="linear", text=self.ext_text,
+                        reason=(f"the trained MLP ({form['mlp']['val_mae']:.4g} K held out) beats the trained "
+                                f"linear law but not the doctor's own linear fit ({res_fin.mae:.4g} K) by "
+                                f"{100 * MIN_GAIN:.0f} %"))
+        if form is not None:
+            self.say(f"  {form['reason']}")
+            if form["choice"] == "mlp":
+                self.ext_text = form["text"]
+                self.diff = "".join(difflib.unified_diff(self.text.splitlines(True), self.ext_text.splitlines(True),
+                                                         "original", "extended"))
+                self.clauses = [ln for ln in self.ext_text.splitlines()
+                                if ln.startswith("learn ") and ln not in self.text]
+            form = {k: v for k, v in form.items() if k != "text"}
+        self.form = form
+        self.lap("mlp_check", t0)
+
+    def result(self) -> Diagnosis:
+        """Write the extension (checked by parsing it) where asked, and assemble the :class:`Diagnosis`."""
+        ext_file = None
+        if self.accepted and self.ext_text:
+            _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
+            if self.output:
+                write_text_atomic(self.output, self.ext_text)
+                ext_file = self.output
+        res_fin, form = self.res_fin, self.form
+        extended = {"val_mae": res_fin.mae, "val_max": res_fin.max, "clauses": self.clauses,
+                    "per_sensor": res_fin.errors, "form": "linear"}
+        if form is not None:
+            extended["mlp_check"] = form
+            if form.get("choice") == "mlp":  # the held-out numbers of the trained MLP extension
+                extended.update(form="mlp", val_mae=form["mlp"]["val_mae"], val_max=form["mlp"]["val_max"])
+        verdict = ("; ".join(f.words for f in self.findings if f.accepted) if self.accepted
+                   else "no significant deficiency found")
+        self.timings["total"] = round(_time.monotonic() - self.t_start, 3)
+        eng = self.eng
+        plots = {"t": self.t_all, "y": eng.y, "y_nominal": self.y_nom, "y_extended": self.y_fin,
+                 "val_mask": eng.val_mask, "train_mask": eng.train_mask, "residual_nominal": self.e_nom,
+                 "variables": self.variables, "output_names": self.out_names, "dependence": self.res.dependence}
+        return Diagnosis(network=self.net.name, baseline=self.base, residuals=self.res, scores=self.scores_out,
+                         findings=self.findings, extended_text=self.ext_text if self.accepted else self.text,
+                         extended_file=ext_file, extended=extended, diff=self.diff, verdict=verdict,
+                         left=_what_is_left(res_fin), timings=self.timings, plots=plots)

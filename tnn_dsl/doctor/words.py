@@ -1,0 +1,194 @@
+"""Naming a cause in physical units: fitted coefficients read back as laws ("R_hp1 ≈ 0.96·(1 + 0.9·(u1 − 0.48)) K/W"),
+the element a candidate edits, and what is left in the residual."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..analysis import residuals as R
+from ..ir import Network
+from .candidates import (
+    Candidate,
+    Extended,
+    var_label,
+)
+from .engine import _Engine
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    if x == 0 or not math.isfinite(x):
+        return "0" if x == 0 else str(x)
+    return f"{x:.{digits}g}"
+
+
+def _linear_coeffs(c: Candidate, params, ext: Extended):
+    """For a linear learned-function candidate: (offset z0, [(var label, slope per unit, mean, scale)])
+    with the raw output ``z = z0 + Σ slope·(x − mean)`` for the candidate's target (output ``j``)."""
+    fn = c.fn
+    vars_ = ext.fn_vars.get(fn, [])
+    j = int(c.element.get("output", 0))
+    n = max(len(vars_), 1)
+    W = np.asarray(params.get(f"{fn}.W", np.zeros((n, j + 1))))
+    W = W.reshape(n, -1) if W.size else np.zeros((n, j + 1))
+    b = np.asarray(params.get(f"{fn}.b", params.get(f"{fn}.c", np.zeros(j + 1)))).reshape(-1)
+    mean = np.asarray(params.get(f"{fn}.x_mean", np.zeros(len(vars_)))).reshape(-1)
+    scale = np.asarray(params.get(f"{fn}.x_scale", np.ones(len(vars_)))).reshape(-1)
+    terms = []
+    for i, (k, v) in enumerate(vars_):
+        w = float(W[i, j])
+        if w != 0.0:
+            terms.append((var_label(k, v), w / scale[i], float(mean[i]), float(scale[i])))
+    return (float(b[j]) if b.size > j else 0.0), terms
+
+
+def _out_scale(params, c: Candidate) -> float:
+    """The output scale of the candidate's own output ``j`` of its learned function (W, or the parameter's
+    unit)."""
+    ys = np.asarray(params.get(f"{c.fn}.y_scale", np.ones(1))).reshape(-1)
+    j = int(c.element.get("output", 0))
+    return float(ys[j] if j < ys.size else ys[0])
+
+
+def _pos1_slope() -> float:
+    sp4 = math.log1p(math.exp(4.0))
+    return 4.0 / (1.0 + math.exp(-4.0)) / sp4
+
+
+def _unit_of(net: Network, pname: str) -> str:
+    try:
+        p = net.param(pname)
+    except KeyError:
+        return ""
+    # values are shown in SI: the SI unit of the role (a file's own unit, e.g. K/kW, would mislabel them)
+    si = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "heat_flow": "W", "time_constant": "s",
+          "temperature": "K", "offset": "K"}
+    if p.role in si:
+        return si[p.role]
+    from ..lang import format_dim
+
+    try:
+        return format_dim(p.dim) if p.dim else ""
+    except Exception:  # noqa: BLE001 - display only
+        return ""
+
+
+def _var_unit(net: Network, label: str) -> tuple[str, float, float]:
+    """(unit text, display offset, display scale) for a variable's value: temperatures shown in the
+    file's unit (a centred value is the same in K and degC)."""
+    if label.startswith("T("):
+        return ("K", 0.0, 1.0)
+    for i in net.inputs:
+        if i.name == label:
+            if i.is_temperature:
+                return ("K", 0.0, 1.0)
+            return (i.unit or "", 0.0, 1.0)
+    return ("", 0.0, 1.0)
+
+
+def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
+    net = ext.network
+    if c.kind in ("param_dependence", "wrong_constant"):
+        p = net.param(c.target)
+        nominal = p.value
+        z0, terms = _linear_coeffs(c, params, ext)
+        positive = p.role in ("resistance", "conductance", "capacitance", "time_constant")
+        where = f" ({p.owner.split(' ', 1)[1] if p.owner and ' ' in p.owner else p.owner})" if p.owner else ""
+        where = _element_where(net, c.target) or where
+        unit = _unit_of(net, c.target)
+        if positive and nominal is not None:
+            k = _pos1_slope()
+            rel = [(lab, k * s, m) for lab, s, m, _ in terms]
+            base_v = nominal * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
+            if not rel:
+                return f"{c.target}{where} is wrong: ≈ {_fmt(base_v)} {unit} (was {_fmt(nominal)})"
+            strengths = _strengths(terms, eng, c)
+            dep = " and ".join(f"{lab} ({st})" for (lab, _, _), st in zip(rel, strengths))
+            inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r) / (1 + k * z0) if 1 + k * z0 else abs(r))}·({lab} − {_fmt(m if not lab.startswith('T(') else m - 273.15, 3)}{' °C' if lab.startswith('T(') else ''})"
+                             for lab, r, m in rel)
+            return (f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}")
+        y_scale = _out_scale(params, c)
+        off = y_scale * z0
+        if not terms:
+            return f"{c.target}{where} is wrong by {_fmt(off)} {unit}"
+        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})" for lab, s, m, _ in terms)
+        return f"{c.target}{where} depends on {', '.join(t[0] for t in terms)}: Δ{c.target} ≈ {_fmt(off)} {inner} {unit}"
+    if c.kind in ("heat_load", "unused_column"):
+        z0, terms = _linear_coeffs(c, params, ext)
+        y_scale = _out_scale(params, c)
+        node = c.target[2:-1]
+        if not terms:
+            return f"unmodelled constant heat load at {node}: Q ≈ {_fmt(y_scale * z0)} W"
+        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})" for lab, s, m, _ in terms)
+        what = "data column" if c.kind == "unused_column" else ""
+        return (f"unmodelled heat load at {node} depending on {what + ' ' if what else ''}{', '.join(t[0] for t in terms)}:"
+                f" Q[{node}] ≈ {_fmt(y_scale * z0)} {inner} W")
+    if c.kind == "missing_link":
+        g = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"missing conduction path {c.element['a']}–{c.element['b']}: G ≈ {_fmt(g)} W/K (R ≈ {_fmt(1 / g) if g > 0 else '∞'} K/W)"
+    if c.kind == "radiation":
+        a = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"missing radiation {c.element['a']}–{c.element['b']}: ε·A ≈ {_fmt(a)} m²"
+    if c.kind == "sensor_offset":
+        o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"sensor {c.target} reads {_fmt(o)} K {'high' if o > 0 else 'low'} (offset)"
+    if c.kind == "sensor_lag":
+        tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        return f"sensor {c.target} lags its node {c.element['node']}: first-order lag τ ≈ {_fmt(tau)} s"
+    if c.kind == "thermal_mass":
+        from .candidates import mass_values
+
+        el = c.element
+        v = mass_values(net, c, params)
+        return (f"missing thermal mass between {el['a']} and {el['b']}: a node {el['node']} of C ≈ {_fmt(v['C'])} J/K"
+                f" splitting link {el['link']} ({el['a']}–{el['b']}, R ≈ {_fmt(v['R'])} K/W in total),"
+                f" {100 * v['f']:.0f} % of it on the {el['a']} side; its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
+    if c.kind == "source_mass":
+        from .candidates import source_mass_values
+
+        el = c.element
+        v = source_mass_values(net, c, params)
+        return (f"missing heat capacity behind source {el['source']}: it heats a node {el['node']} of C ≈ {_fmt(v['C'])}"
+                f" J/K joined to {el['at']} by R ≈ {_fmt(v['R'])} K/W (time constant C·R ≈ {_fmt(v['tau'])} s), not"
+                f" {el['at']} directly")
+    return c.describe()
+
+
+def _element_where(net: Network, pname: str) -> str:
+    for l in net.links:
+        if l.value == pname:
+            return f" ({l.a}–{l.b})"
+    for n in net.nodes:
+        if n.capacitance == pname:
+            return f" (capacity of {n.name})"
+    return ""
+
+
+def _strengths(terms, eng: _Engine, c: Candidate) -> list[str]:
+    """'strongly' / 'weakly' by each term's share of the variation it causes (slope × spread)."""
+    eff = [abs(s) * sc for _, s, _, sc in terms]
+    top = max(eff) if eff else 0.0
+    return ["strongly" if e >= 0.5 * top else "weakly" for e in eff]
+
+
+def _var_text(net: Network, kind: str, name: str) -> str:
+    if kind == "node":
+        return f"T{name}" if name.isdigit() else name
+    return name
+
+
+def _what_is_left(res: R.ResidualSummary) -> str:
+    parts = []
+    for s, w in res.whiteness.items():
+        sig = res.sigma[s]
+        if w.get("white"):
+            parts.append(f"{s}: white noise of σ ≈ {sig:.3g} K")
+        else:
+            dep = res.dependence.get(s, {})
+            worst = max(dep.items(), key=lambda kv: abs(kv[1].get("corr", 0)), default=None)
+            extra = (f"; largest correlation with {worst[0]} (r = {worst[1]['corr']:.2f})"
+                     if worst and abs(worst[1].get("corr", 0)) > 0.2 else "")
+            parts.append(f"{s}: structure it cannot explain (residual not white, Ljung–Box p = "
+                         f"{w.get('ljung_box_p', 0):.2g}, MAE {res.errors[s]['mae']:.3g} K, noise σ ≈ {sig:.3g} K{extra})")
+    return "; ".join(parts)
