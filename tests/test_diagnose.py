@@ -149,7 +149,7 @@ def test_forced_score_matches_the_big_network(backend):
 
 def test_indistinguishable_candidates_are_named():
     import tnn_dsl.doctor.scoring as S
-    from tnn_dsl.doctor.candidates import Candidate
+    from tnn_dsl.doctor.base import Candidate
 
     rng = np.random.default_rng(0)
     base = rng.normal(size=500)

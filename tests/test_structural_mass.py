@@ -24,15 +24,10 @@ import pytest
 import tnn_dsl
 from tnn_dsl.compiler.model import compile as _compile
 from tnn_dsl.data.io import Experiment
-from tnn_dsl.doctor.candidates import (
-    MASS_FRACTION_BOUNDS,
-    apply_structural,
-    build_extended,
-    mass_forcing,
-    mass_grid,
-    mass_lines,
-    structural_candidates,
-)
+from tnn_dsl.doctor.base import MASS_FRACTION_BOUNDS
+from tnn_dsl.doctor.candidates import build_extended
+from tnn_dsl.doctor.forcing import mass_forcing, mass_grid
+from tnn_dsl.doctor.structural import apply_structural, mass_lines, structural_candidates
 from tnn_dsl.studies.planted import step_inputs
 
 HERE = os.path.dirname(os.path.abspath(__file__))

@@ -19,13 +19,12 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.compiler.model import compile as _compile
-from tnn_dsl.doctor.candidates import (
+from tnn_dsl.doctor.forcing import source_lag_forcing, source_tau_grid
+from tnn_dsl.doctor.structural import (
     apply_structural,
-    source_lag_forcing,
     source_line_moved,
     source_mass_lines,
     source_mass_values,
-    source_tau_grid,
     structural_candidates,
 )
 from tnn_dsl.studies.planted import step_inputs

@@ -5,10 +5,12 @@ May import: every stage below it (``core`` … ``analysis``); not ``control``, `
 
 from __future__ import annotations
 
-from .candidates import STRUCTURAL_KINDS, Candidate, apply_structural, build_extended, structural_candidates
+from .base import STRUCTURAL_KINDS, Candidate
+from .candidates import build_extended
 from .diagnosis import Diagnosis, Finding, diagnose
 from .engine import normalisation_stats
 from .report import REPORT_DIR, write_report
+from .structural import apply_structural, structural_candidates
 
 __all__ = [
     "STRUCTURAL_KINDS", "Candidate", "apply_structural", "build_extended", "structural_candidates", "Diagnosis",

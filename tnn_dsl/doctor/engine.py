@@ -12,10 +12,7 @@ import numpy as np
 
 from ..compiler import backend_of
 from ..ir import POSITIVE_ROLES, Input, Network, Param
-from .candidates import (
-    Candidate,
-    Extended,
-)
+from .base import Candidate, Extended
 
 FIT_ITER = 80  # Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 

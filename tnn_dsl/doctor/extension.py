@@ -8,10 +8,7 @@ import re
 import numpy as np
 
 from ..ir import Network
-from .candidates import (
-    Candidate,
-    Extended,
-)
+from .base import Candidate, Extended
 from .engine import _Engine
 from .words import _var_text
 
@@ -42,11 +39,11 @@ def _clause(c: Candidate, params, ext: Extended, eng: _Engine) -> str:
         tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"lag {tau:.4g} s free"
     if c.kind == "thermal_mass":  # the new node and the two links (the .thn extension has the parameters too)
-        from .candidates import mass_lines
+        from .structural import mass_lines
 
         return "; ".join(mass_lines(net, c, params)[2:])
     if c.kind == "source_mass":  # the new node and its link (the source's line moves to the new node)
-        from .candidates import source_mass_lines
+        from .structural import source_mass_lines
 
         return "; ".join(source_mass_lines(net, c, params))
     return ""
@@ -87,12 +84,12 @@ def _merged_clauses(accepted: list[Candidate], params, ext: Extended, eng: _Engi
             out.append(_clause(c, params, ext, eng))
     for c in accepted:
         if c.kind == "thermal_mass":  # the split link's value, the share f, the new node, the two new links
-            from .candidates import mass_lines
+            from .structural import mass_lines
 
             out += mass_lines(net, c, params)
     for c in accepted:
         if c.kind == "source_mass":  # the new node and its link; the source's own line is moved in the text
-            from .candidates import source_mass_lines
+            from .structural import source_mass_lines
 
             out += source_mass_lines(net, c, params)
     return out
@@ -132,7 +129,7 @@ def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: 
     for c in accepted:
         if c.kind != "source_mass":
             continue
-        from .candidates import source_line_moved
+        from .structural import source_line_moved
 
         src = next((sr for sr in net.sources if sr.name == c.element["source"]), None)
         if src is None or src.span is None or not 1 <= src.span.line <= len(lines):

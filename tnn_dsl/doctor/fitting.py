@@ -12,13 +12,10 @@ from scipy import stats
 from ..analysis import held_out_test as _held_out_test
 from ..analysis import residuals as R
 from ..ir import Network
-from .candidates import (
-    Candidate,
-    Extended,
-    apply_structural,
-    build_extended,
-)
+from .base import Candidate, Extended
+from .candidates import build_extended
 from .engine import _Engine, _make_engine
+from .structural import apply_structural
 
 
 def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kinds, acc_keys, exps, train_mask, val_mask,

@@ -10,10 +10,7 @@ from scipy import stats
 from scipy.signal import lfilter
 
 from ..analysis import residuals as R
-from .candidates import (
-    STRUCTURAL_KINDS,
-    Candidate,
-)
+from .base import STRUCTURAL_KINDS, Candidate
 from .engine import _Engine
 from .selection import _place
 
@@ -78,7 +75,7 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         # capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its
         # lag at a grid of capacities (``mass_grid``: T_m lagged behind its quasi-static value on the current
         # trajectory, the flows divided by C); the column explaining most of the residual is the candidate's.
-        from .candidates import mass_forcing, mass_grid, source_lag_forcing, source_tau_grid
+        from .forcing import mass_forcing, mass_grid, source_lag_forcing, source_tau_grid
 
         lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
         dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]

@@ -7,9 +7,7 @@ from __future__ import annotations
 import math
 
 from ..analysis import held_out_test as _held_out_test
-from .candidates import (
-    Candidate,
-)
+from .base import Candidate
 
 __all__ = ["P_ACCEPT", "MIN_GAIN", "CLOSE_RATIO"]
 

@@ -16,7 +16,8 @@ import numpy as np
 from ..analysis import residuals as R
 from ..core import THN, Diagnostic, TnnError, check_output, write_text_atomic
 from ..ir import Input, Network
-from .candidates import STRUCTURAL_KINDS, Candidate, Extended, build_extended, structural_candidates
+from .base import STRUCTURAL_KINDS, Candidate, Extended
+from .candidates import build_extended
 from .engine import (
     FIT_CONTINUE,
     FIT_ITER,
@@ -33,6 +34,7 @@ from .fitting import _fit_result, _fit_structural, _train_lr_test
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
 from .selection import MIN_GAIN, _choose
+from .structural import structural_candidates
 from .words import _what_is_left, _words
 
 __all__ = ["_Session"]

@@ -9,11 +9,7 @@ import numpy as np
 
 from ..analysis import residuals as R
 from ..ir import Network
-from .candidates import (
-    Candidate,
-    Extended,
-    var_label,
-)
+from .base import Candidate, Extended, var_label
 from .engine import _Engine
 
 
@@ -137,7 +133,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
         return f"sensor {c.target} lags its node {c.element['node']}: first-order lag τ ≈ {_fmt(tau)} s"
     if c.kind == "thermal_mass":
-        from .candidates import mass_values
+        from .structural import mass_values
 
         el = c.element
         v = mass_values(net, c, params)
@@ -145,7 +141,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
                 f" splitting link {el['link']} ({el['a']}–{el['b']}, R ≈ {_fmt(v['R'])} K/W in total),"
                 f" {100 * v['f']:.0f} % of it on the {el['a']} side; its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
     if c.kind == "source_mass":
-        from .candidates import source_mass_values
+        from .structural import source_mass_values
 
         el = c.element
         v = source_mass_values(net, c, params)
