@@ -514,7 +514,7 @@ def bench_jax_prototypes(case, args, rows, results, jax_model):
     import jax
     import jax.numpy as jnp
 
-    from tnn_dsl.compiler.model import _Core
+    from tnn_dsl.compiler.core import _Core
 
     p = jax_model.from_numpy(case.params)
     integ, dt, sub = case.integrator, case.dt, case.substeps

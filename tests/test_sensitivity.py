@@ -72,7 +72,7 @@ compile_mod = pytest.importorskip("tnn_dsl.compiler.model", reason="the compiler
 
 import tnn_dsl  # noqa: E402
 from tnn_dsl.analysis.sensitivities import sensitivity  # noqa: E402
-from tnn_dsl.compiler.model import compile as _compile_net  # noqa: E402
+from tnn_dsl.compiler.model import compile as _compile_net
 from tnn_dsl.studies.casestudy import network_path  # noqa: E402
 
 C2K = 273.15

@@ -1,0 +1,495 @@
+"""The assembly of a compiled network's right-hand side (:class:`_Assembly`, the base of
+:class:`~tnn_dsl.compiler.core._Core`): what is evaluated per call, per sample or per right-hand side, the
+item closures that evaluate parameters and learned functions in topological order, and the constant matrices
+(incidence, scatter, lag and sensor maps, the blocks of the one T-linear product). Numbers are SI, K."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..ir import POSITIVE_ROLES
+from . import learned as _learned
+from . import physics as _physics
+from .expressions import compile_expr
+from .plan import _Plan
+
+__all__ = ["_Assembly", "_Prep", "_Env"]
+
+
+class _Prep:
+    __slots__ = ("vals", "z", "arrays", "scales", "yscale", "fnlin", "M_nn", "M_bn", "Mr_nn", "Mr_bn", "cQ",
+                 "Tb", "g_static_d", "invC", "inv_tau", "offsets", "diag_static", "diag_rad", "lin_fluid",
+                 "tnom", "tscale", "L", "Lsl")
+
+
+class _Env:
+    __slots__ = ("vals", "z", "T", "u", "cx", "pre")
+
+    def __init__(self, vals, z, T, u, cx=None, pre=None):
+        self.vals = vals
+        self.z = z
+        self.T = T
+        self.u = u
+        self.cx = cx  # {fn: input-only part of the normalised input} when precomputed
+        self.pre = pre  # {fn: first-layer pre-activation} for functions folded into the T-linear product
+
+
+def _noop_item(prep, env):
+    return None
+
+
+def _first_layer(fn, arrays):
+    """``(W, b)`` of the first (linear) layer of a ``linear`` or ``mlp`` learned function."""
+    return (arrays["W"], arrays["b"]) if fn.kind == "linear" else (arrays["W0"], arrays["b0"])
+
+
+def _apply_from_first(xp, fn, arrays, pre):
+    """The raw output ``z`` of a ``linear``/``mlp`` function from its first layer's pre-activation
+    ``pre = xn @ W0 + b0`` (the rest of :func:`tnn_dsl.compiler.learned.apply_normalised`)."""
+    if fn.kind == "linear":
+        return pre
+    act = _learned.activation(xp, fn.activation)
+    n_layers = len(fn.hidden) + 1
+    h = pre
+    for k in range(1, n_layers):
+        h = xp.matmul(act(h), arrays[f"W{k}"]) + arrays[f"b{k}"]
+    return h
+
+
+def _diag(xp, M, n):
+    idx = np.arange(n)
+    return M[idx, idx] if xp.name != "torch" else M.diagonal()
+
+
+def _incidence(group, n: int, nb: int):
+    """Scatter ``D (n + nb, k)`` and gather ``Inc (k, n)`` matrices of a group of two-ended elements (numpy)."""
+    D = np.zeros((n + nb, len(group)))
+    Inc = np.zeros((len(group), n))
+    for k, (_, a, b, *_r) in enumerate(group):
+        ia = a[1] if a[0] == "n" else n + a[1]
+        ib = b[1] if b[0] == "n" else n + b[1]
+        D[ib, k] += 1.0
+        D[ia, k] -= 1.0
+        if a[0] == "n":
+            Inc[k, a[1]] += 1.0
+        if b[0] == "n":
+            Inc[k, b[1]] -= 1.0
+    return D, Inc
+
+
+def _rows_matrix(rows, n: int, asn):
+    """The matrix ``(len(rows), n)`` scattering point flows onto their nodes (boundary rows stay 0)."""
+    M = np.zeros((len(rows), n))
+    for k, v in enumerate(rows):
+        if v[0] == "n":
+            M[k, v[1]] = 1.0
+    return asn(M)
+
+
+class _Assembly:
+    """The plan bound to an array namespace ``xp``: built once per compiled model, in named steps."""
+
+    def __init__(self, plan: _Plan, xp):
+        self.plan = plan
+        self.xp = xp
+        self._vectorised_functions()
+        self._item_closures()
+        self._static_elements()
+        self._incidence_matrices()
+        self._input_only_split()
+        self._affine_terms()
+        self._point_flows()
+        self._context_needs()
+        self._vectorised_links()
+        self._lag_and_sensor_maps()
+        self._first_layer_blocks()
+
+    def _vectorised_functions(self) -> None:
+        """Learned functions whose targets are all constant parameters of one positivity: their targets are
+        evaluated as one vector (a few array ops instead of a handful per target)."""
+        P = self.plan
+        self._vec_fns: dict[str, tuple[list[str], bool]] = {}
+        for fn in P.net.learned:
+            names = [t.name for t in fn.targets]
+            if not names or any(t.kind != "param" for t in fn.targets) or len(set(names)) != len(names):
+                continue
+            if any(P.param_targets.get(nm, (None,))[0] is not fn for nm in names):
+                continue
+            if not all(P.params[nm].is_constant for nm in names):
+                continue
+            pos = {P.params[nm].role in POSITIVE_ROLES for nm in names}
+            if len(pos) == 1:
+                self._vec_fns[fn.name] = (names, pos.pop())
+        self._vec_targets = {nm for names, _ in self._vec_fns.values() for nm in names}
+
+    def _item_closures(self) -> None:
+        """One closure per parameter and learned function, evaluated in topological order."""
+        P, xp = self.plan, self.xp
+
+        def ref(name):
+            if name in P.params:
+                return lambda env: env.vals[name]
+            i = P.input_idx[name]
+            return lambda env: env.u[..., i]
+
+        def temp(node):
+            if node in P.node_idx:
+                i = P.node_idx[node]
+                return lambda env: env.T[..., i]
+            bp = P.bnd_param[node]
+            return lambda env: env.vals[bp]
+
+        self._items = {}
+        for p in P.net.params:
+            if p.is_constant:  # the value comes from the parameter table, not from the IR literal
+                expr_fn = (lambda name: lambda env: env.vals[name])(p.name)
+            else:
+                expr_fn = compile_expr(p.expr, xp, ref, temp)
+            self._items[("p", p.name)] = self._param_item(p, expr_fn)
+        for fn in P.net.learned:
+            self._items[("f", fn.name)] = self._fn_item(fn)
+        self._dyn_items = [self._items[it] for it in P.dyn_order]
+        self._mono = {fn.name: _learned.monomial_index(len(fn.inputs), int(fn.degree or 2))
+                      for fn in P.net.learned if fn.kind == "poly"}
+
+    def _static_elements(self) -> None:
+        """Which links, radiation, fluids, sources, boundaries, capacities, lags and offsets are static."""
+        P = self.plan
+        self.links_s = [lk for lk in P.links if P.is_static(lk[3])]
+        self.links_d = [lk for lk in P.links if not P.is_static(lk[3])]
+        self.rads_s = [r for r in P.rads if all(P.is_static(q) for q in r[3])]
+        self.rads_d = [r for r in P.rads if not all(P.is_static(q) for q in r[3])]
+        self.fluids_lin = [f for f in P.fluids if f"{f.name}.Q" not in P.flow_targets
+                           and all(P.is_static(q) for q in (f.mdot, f.cp, f.ua))]
+        self.fluids_nl = [f for f in P.fluids if f not in self.fluids_lin]
+        self.sources_s = [s for s in P.net.sources if P.is_static(s.value)]
+        self.sources_d = [s for s in P.net.sources if not P.is_static(s.value)]
+        self.bnd_static = all(P.is_static(P.bnd_param[b]) for b in P.bnds)
+        self.C_static = all(P.is_static(nd.capacitance) for nd in P.net.nodes)
+        self.tau_static = all(P.is_static(s.lag) for s in P.lagged)
+        self.off_static = all(s.offset is None or P.is_static(s.offset) for s in P.net.sensors)
+
+    def _incidence_matrices(self) -> None:
+        """Scatter/gather matrices of the static and dynamic links and radiation."""
+        P, asn = self.plan, self.xp.asarray
+        n, nb = P.n, P.nb
+        self.D_ls, self.I_ls = _incidence(self.links_s, n, nb)  # numpy (used in prepare)
+        D, Inc = _incidence(self.links_d, n, nb)
+        self.Dd_n, self.Dd_b, self.Id = asn(D[:n]), asn(D[n:]), asn(Inc)
+        self.Ad_neg = asn(-np.abs(Inc))
+        self.D_rs, self.I_rs = _incidence(self.rads_s, n, nb)
+        D, Inc = _incidence(self.rads_d, n, nb)
+        self.Dr_n, self.Dr_b, self.Ir = asn(D[:n]), asn(D[n:]), asn(Inc)
+        self.Ar_neg4 = asn(-4.0 * np.abs(Inc))
+        self.has_links_s = bool(self.links_s) or bool(self.fluids_lin)
+
+    def _input_only_split(self) -> None:
+        """Input-only vs state-dependent work. Items that do not read a node temperature (directly or through
+        other items) depend on the inputs alone; ``rhs_u`` evaluates them once per sample (a rollout does it
+        for the whole input sequence at once, outside the time loop) together with every heat flow whose
+        coefficients are input-only, reduced to an affine form ``q + d·T`` per node. ``rhs_T`` then does only
+        the state-dependent work per right-hand-side evaluation."""
+        P = self.plan
+        td = P.tdep
+        self._u_items = [self._items[it] for it in P.dyn_order if not td[it]]
+        self._t_items = [self._items[it] for it in P.dyn_order if td[it]]
+        self._u_pnames = [nm for kd, nm in P.dyn_order if kd == "p" and not td[(kd, nm)]]
+        self._u_fnames = [nm for kd, nm in P.dyn_order if kd == "f" and not td[(kd, nm)]]
+        self._t_fnames = [nm for kd, nm in P.dyn_order if kd == "f" and td[(kd, nm)]]
+
+        self.tb_u = not any(td[("p", P.bnd_param[b])] for b in P.bnds)  # boundary temperatures input-only
+        ft = P.flow_targets
+        self.pe_aff = [(pe, h, c) for pe, h, c in P.peltiers
+                       if f"{pe.name}.Q_hot" not in ft and f"{pe.name}.Q_cold" not in ft
+                       and not any(td[("p", q)] for q in (pe.current, pe.seebeck, pe.resistance))
+                       and (self.tb_u or (h[0] == "n" and c[0] == "n"))]
+        self.pe_gen = [x for x in P.peltiers if x not in self.pe_aff]
+        self.fnl_aff = [f for f in self.fluids_nl if f"{f.name}.Q" not in ft
+                        and not any(td[("p", q)] for q in (f.mdot, f.cp, f.ua, f.inlet))]
+        self.fnl_gen = [f for f in self.fluids_nl if f not in self.fnl_aff]
+        self.flin_u = [f for f in self.fluids_lin if not P.is_static(f.inlet) and not td[("p", f.inlet)]]
+        self.flin_t = [f for f in self.fluids_lin if not P.is_static(f.inlet) and td[("p", f.inlet)]]
+        self.src_u = [s for s in self.sources_d if not td[("p", s.value)]]
+        self.src_t = [s for s in self.sources_d if td[("p", s.value)]]
+        self.hl_u = [(node, fn, i) for node, (fn, i) in P.heat_loads.items()
+                     if not P.static[("f", fn.name)] and not td[("f", fn.name)]]
+        self.hl_t = [(node, fn, i) for node, (fn, i) in P.heat_loads.items() if td[("f", fn.name)]]
+
+    def _affine_terms(self) -> None:
+        """Rows of the input-only affine terms ``q`` (W) and ``d`` (W/K) and their nodes."""
+        P, asn = self.plan, self.xp.asarray
+        n, nb = P.n, P.nb
+        qrows, drows = [], []
+        for pe, h, c in self.pe_aff:
+            qrows += [h, c]
+            drows += [h, c]
+        for f in self.fnl_aff:
+            qrows.append(("n", P.node_idx[f.node]))
+            drows.append(("n", P.node_idx[f.node]))
+        qrows += [("n", P.node_idx[f.node]) for f in self.flin_u]
+        qrows += [("n", P.node_idx[s.node]) for s in self.src_u]
+        qrows += [("n", P.node_idx[node]) for node, _, _ in self.hl_u]
+        self.Eq = _rows_matrix(qrows, n, asn) if qrows else None
+        self.Ed = _rows_matrix(drows, n, asn) if drows else None
+        self.has_ctx_q = bool(qrows) or (not self.bnd_static and self.tb_u and nb > 0
+                                         and (bool(self.links_s) or bool(self.rads_s)))
+
+    def _point_flows(self) -> None:
+        """Point flows evaluated per right-hand side (state-dependent), their nodes and diagonal terms."""
+        P, asn = self.plan, self.xp.asarray
+        n = P.n
+        rows = []
+        for pe, h, c in self.pe_gen:
+            rows.append(h)
+            rows.append(c)
+        rows += [("n", P.node_idx[f.node]) for f in self.fnl_gen]
+        rows += [("n", P.node_idx[f.node]) for f in self.flin_t]
+        rows += [("n", P.node_idx[s.node]) for s in self.src_t]
+        rows += [("n", P.node_idx[node]) for node, _, _ in self.hl_t]
+        self.n_point = len(rows)
+        self.Pm = _rows_matrix(rows, n, asn)
+        # diagonal terms (expeuler) of the state-dependent Peltier sides and non-linear fluids
+        drows = []
+        for pe, h, c in self.pe_gen:
+            drows += [h, c]
+        drows += [("n", P.node_idx[f.node]) for f in self.fnl_gen]
+        self.Pd = _rows_matrix(drows, n, asn)
+
+    def _context_needs(self) -> None:
+        """The input-only parameters that the state-dependent work reads from the per-sample context."""
+        P = self.plan
+        td = P.tdep
+        need = set()
+        for it in P.dyn_order:
+            if td[it]:
+                need |= {nm for kd, nm in P.deps[it] if kd == "p"}
+        need |= {lk[3] for lk in self.links_d}
+        need |= {q for r in self.rads_d for q in r[3]}
+        need |= {q for pe, _, _ in self.pe_gen for q in (pe.current, pe.seebeck, pe.resistance)}
+        need |= {q for f in self.fnl_gen for q in (f.mdot, f.cp, f.ua, f.inlet)}
+        if not self.C_static:
+            need |= {nd.capacitance for nd in P.net.nodes}
+        if not self.tau_static:
+            need |= {s.lag for s in P.lagged}
+        if not self.tb_u:
+            need |= {P.bnd_param[b] for b in P.bnds}
+        self._ctx_s = [nm for nm in self._u_pnames if nm in need]
+
+    def _vectorised_links(self) -> None:
+        """Links whose conductances are the targets of one vectorised, state-dependent learned function: their
+        conductance vector is a gather of the function's target vector."""
+        P = self.plan
+        td = P.tdep
+        self._links_vec = None
+        self._links_d_keys = [lk[0] for lk in self.links_d]
+        if self.links_d:
+            ps = [lk[3] for lk in self.links_d]
+            forms = {lk[4] for lk in self.links_d}
+            owners = {P.param_targets[q][0].name if q in self._vec_targets else None for q in ps}
+            if len(owners) == 1 and None not in owners and len(forms) == 1:
+                fname = owners.pop()
+                if td[("f", fname)]:
+                    names = self._vec_fns[fname][0]
+                    idx = [names.index(q) for q in ps]
+                    self._links_vec = (fname, None if idx == list(range(len(names))) else idx, forms.pop())
+        self._Tb_in_ctx = P.nb > 0 and self.tb_u and any(h[0] == "b" or c[0] == "b" for _, h, c in self.pe_gen)
+
+    def _lag_and_sensor_maps(self) -> None:
+        """Lag states (sources from nodes or boundaries) and the sensor map; items the outputs need."""
+        P, asn = self.plan, self.xp.asarray
+        n, nb = P.n, P.nb
+        nl = len(P.lagged)
+        Sl_n = np.zeros((n, nl))
+        Sl_b = np.zeros((nb, nl))
+        for k, s in enumerate(P.lagged):
+            if s.node in P.node_idx:
+                Sl_n[P.node_idx[s.node], k] = 1.0
+            else:
+                Sl_b[P.bnd_idx[s.node], k] = 1.0
+        self.nl = nl
+        self.Sl_n, self.Sl_b, self.lag_from_bnd = asn(Sl_n), asn(Sl_b), bool(Sl_b.any())
+        Sy = np.zeros((P.ns, len(P.net.sensors)))
+        Sy_b = np.zeros((nb, len(P.net.sensors)))
+        lag_k = {s.name: k for k, s in enumerate(P.lagged)}
+        for j, s in enumerate(P.net.sensors):
+            if s.name in lag_k:
+                Sy[n + lag_k[s.name], j] = 1.0
+            elif s.node in P.node_idx:
+                Sy[P.node_idx[s.node], j] = 1.0
+            else:
+                Sy_b[P.bnd_idx[s.node], j] = 1.0
+        self.Sy, self.Sy_b, self.y_from_bnd = asn(Sy), asn(Sy_b), bool(Sy_b.any())
+        need = set()
+        if not self.off_static:
+            need |= {("p", s.offset) for s in P.net.sensors if s.offset}
+        if self.y_from_bnd and not self.bnd_static:
+            need |= {("p", P.bnd_param[b]) for b in P.bnds}
+        anc = P.ancestors(need)
+        self._out_items = [self._items[it] for it in P.dyn_order if it in anc]
+
+    def _first_layer_blocks(self) -> None:
+        """One T-linear product per right-hand side.
+
+        Every product of the node temperatures by a matrix that is
+        constant over a rollout — the static conductance matrix, the gather of dynamic links' endpoints, the
+        lag sources, and the first layer of state-dependent linear/MLP functions (their input gather and
+        normalisation folded into the weights, ``A_T·W0``; the input-only part ``cx·W0 + b0`` comes from
+        rhs_u, once per sample) — is one matmul ``Tn @ L`` by a matrix ``L`` assembled once per call in
+        ``prepare``, whose column blocks are sliced apart (on CPU each small product is a kernel launch)."""
+        P, n, nl = self.plan, self.plan.n, self.nl
+        td = P.tdep
+        self._fold = []
+        for fname in self._t_fnames:
+            fn = P.fns[fname]
+            ins = P.fn_inputs[fname]
+            if fn.kind not in ("mlp", "linear") or not any(kd == "node" for kd, _ in ins):
+                continue
+            if any(kd == "param" and not P.is_static(nm) and td[("p", nm)] for kd, nm in ins):
+                continue  # a state-dependent parameter input: the generic path
+            self._fold.append(fname)
+        blocks = []
+        if self.has_links_s:
+            blocks.append(("M", n))
+        if self.links_d:
+            blocks.append(("D", len(self.links_d)))
+        if nl:
+            blocks.append(("S", nl))
+        for fname in self._fold:
+            fn = P.fns[fname]
+            width = int(fn.hidden[0]) if fn.kind == "mlp" and fn.hidden else len(fn.targets)
+            blocks.append((f"f:{fname}", width))
+        self._L_blocks = blocks
+
+    # -- item closures ---------------------------------------------------------------------------
+
+    def _param_item(self, p, expr_fn):
+        xp = self.xp
+        name = p.name
+        target = self.plan.param_targets.get(name)
+        positive = p.role in POSITIVE_ROLES
+        if name in self._vec_targets:  # set by its function's item (vectorised)
+            return _noop_item
+        if target is None:
+            def item(prep, env):
+                v = expr_fn(env)
+                s = prep.scales.get(name)
+                env.vals[name] = v if s is None else v * s
+            return item
+        fn, i = target
+        fname = fn.name
+
+        def item_t(prep, env):
+            v = expr_fn(env)
+            v = _learned.target_value(xp, env.z[fname][..., i], v, positive, prep.yscale[fname][i])
+            s = prep.scales.get(name)
+            env.vals[name] = v if s is None else v * s
+        return item_t
+
+    def _fn_item(self, fn):
+        xp = self.xp
+        fname = fn.name
+
+        def item(prep, env):
+            pre = env.pre.get(fname) if env.pre is not None else None
+            if pre is not None:  # first layer folded into rhs_T's one T-linear product (see _Core.__init__)
+                z = _apply_from_first(xp, fn, prep.arrays[fname], pre)
+            elif fname in prep.fnlin:  # dynamic: matmul gather + normalisation prepared once
+                A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT = prep.fnlin[fname]
+                cx = env.cx.get(fname) if env.cx is not None else None
+                if cx is None:  # the input-only part
+                    cx = self._fn_cx(prep, env, fname)
+                xn = cx
+                if A_T is not None:
+                    xn = xn + xp.matmul(env.T, A_T)
+                if dyn_pT:
+                    xn = xn + xp.matmul(xp.stack([env.vals[q] for q in dyn_pT], axis=-1), A_pT)
+                z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
+            else:  # static: all inputs are static parameters
+                arrays = prep.arrays[fname]
+                ins = self.plan.fn_inputs[fname]
+                if ins:
+                    x = xp.stack([env.vals[q] for _, q in ins], axis=-1)
+                    xn = _learned.normalise(x, arrays)
+                else:
+                    xn = None
+                z = _learned.apply_normalised(xp, fn, prep.arrays[fname], xn, self._mono.get(fname))
+            env.z[fname] = z
+            if vec is not None:
+                V = _learned.target_value(xp, z, prep.tnom[fname], positive, prep.arrays[fname]["y_scale"])
+                sv = prep.tscale[fname]
+                if sv is not None:
+                    V = V * sv
+                env.z[("V", fname)] = V
+                for i, nm in enumerate(names):
+                    env.vals[nm] = V[..., i]
+
+        vec = self._vec_fns.get(fname)
+        names, positive = vec if vec is not None else ((), False)
+        return item
+
+    def _fn_cx(self, prep, env, fname):
+        """The input-only part of a dynamic function's normalised input: ``bias + u @ A_u + stack(input-only
+        parameters) @ A_pu`` (``(..., n_in)``, or the bias alone)."""
+        xp = self.xp
+        A_T, A_u, bias, dyn_pu, A_pu, dyn_pT, A_pT = prep.fnlin[fname]
+        cx = bias
+        if A_u is not None:
+            cx = cx + xp.matmul(env.u, A_u)
+        if dyn_pu:
+            cx = cx + xp.matmul(xp.stack([env.vals[q] for q in dyn_pu], axis=-1), A_pu)
+        return cx
+
+    # -- shared helpers ----------------------------------------------------------------------------
+
+    @staticmethod
+    def _g(vals, p, form):
+        return 1.0 / vals[p] if form == "R" else vals[p]
+
+    def _heat_load(self, prep, z, fn, i):
+        return _learned.target_value(self.xp, z[fn.name][..., i], 0.0, False, prep.yscale[fn.name][i], fn.replace)
+
+    def _flow_target(self, prep, env, key, q):
+        t = self.plan.flow_targets.get(key)
+        if t is not None:
+            fn, i = t
+            q = _learned.target_value(self.xp, env.z[fn.name][..., i], q, False, prep.yscale[fn.name][i], fn.replace)
+        s = prep.scales.get(key)
+        return q if s is None else q * s
+
+    @staticmethod
+    def _vt(v, Tn, Tb):
+        return Tn[..., v[1]] if v[0] == "n" else Tb[..., v[1]]
+
+    def values(self, prep, T, u, items=None) -> _Env:
+        env = _Env(dict(prep.vals), dict(prep.z), T, u)
+        for item in (self._dyn_items if items is None else items):
+            item(prep, env)
+        return env
+
+    def _Tb(self, prep, vals):
+        P = self.plan
+        if not P.nb:
+            return None
+        if prep.Tb is not None:
+            return prep.Tb
+        return self.xp.stack([vals[P.bnd_param[b]] for b in P.bnds], axis=-1)
+
+    def _peltier(self, prep, env, pe, h, c, Tn, Tb):
+        vals = env.vals
+        I, S, R = vals[pe.current], vals[pe.seebeck], vals[pe.resistance]
+        qh, qc = _physics.peltier_heat_flows(S, R, I, self._vt(h, Tn, Tb), self._vt(c, Tn, Tb))
+        return (self._flow_target(prep, env, f"{pe.name}.Q_hot", qh),
+                self._flow_target(prep, env, f"{pe.name}.Q_cold", qc), S * I)
+
+    def _fluid_G(self, vals, f):
+        return _physics.fluid_conductance(self.xp, vals[f.mdot], vals[f.cp], vals[f.ua])
+
+    def _flow_scaled(self, prep, key, q):
+        s = prep.scales.get(key)
+        return q if s is None else q * s
+
+    def _diag_term(self, prep, key, d):
+        t = self.plan.flow_targets.get(key)
+        if t is not None and t[0].replace:
+            return d * 0.0
+        return self._flow_scaled(prep, key, d)
