@@ -186,7 +186,7 @@ def test_ir_json_round_trip():
 
 
 def test_grammar_is_found_from_package_resources(monkeypatch):
-    from tnn_dsl.lang import parser as _parser
+    from tnn_dsl.lang import grammar as _parser
 
     text = _parser._grammar_text()
     assert "start:" in text and "propagate" not in text.split("start:")[1][:0]

@@ -126,6 +126,20 @@ def walk(expr):
             stack.append(e.x)
 
 
+def map_children(expr, fn):
+    """A copy of ``expr`` with ``fn`` applied to each direct child expression (the same node for a leaf):
+    the one recursive step of every expression rewrite (``map_children(e, rewrite)`` inside ``rewrite``)."""
+    if isinstance(expr, Unary):
+        return expr.model_copy(update={"arg": fn(expr.arg)})
+    if isinstance(expr, Binary):
+        return expr.model_copy(update={"left": fn(expr.left), "right": fn(expr.right)})
+    if isinstance(expr, Call):
+        return expr.model_copy(update={"args": [fn(a) for a in expr.args]})
+    if isinstance(expr, Table):
+        return expr.model_copy(update={"x": fn(expr.x)})
+    return expr
+
+
 # ---------------------------------------------------------------------------------------------
 # Declarations
 # ---------------------------------------------------------------------------------------------
@@ -423,7 +437,7 @@ class Network(BaseModel):
 
 
 __all__ = [
-    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk",
+    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk", "map_children",
     "ParamRole", "POSITIVE_ROLES", "Param", "Input", "ThermalNode", "Boundary", "Link", "Radiation",
     "Peltier", "Fluid", "Source", "Sensor", "LearnTarget", "LearnInput", "LearnKind", "LearnFunction",
     "Network",

@@ -21,7 +21,21 @@ import difflib
 import re
 
 from ..core import Diagnostic, TnnError
-from ..ir import Binary, Call, LearnFunction, LearnInput, Network, Num, Param, Ref, Span, Table, Temp, Unary
+from ..ir import (
+    Binary,
+    Call,
+    LearnFunction,
+    LearnInput,
+    Network,
+    Num,
+    Param,
+    Ref,
+    Span,
+    Table,
+    Temp,
+    Unary,
+    map_children,
+)
 from .units import describe_dim, dim_div, dim_eq, dim_mul, dim_pow, format_dim, unit_dim
 
 _T_NUM = re.compile(r"^T(\d+)$")
@@ -145,15 +159,7 @@ class _V:
                 hint = self.suggest(e.node, [*self.nodes, *self.boundaries])
                 self.err(f"`T({e.node})`: there is no node `{e.node}`", e.span, hint=hint)
             return e
-        if isinstance(e, Unary):
-            return e.model_copy(update={"arg": self.resolve(e.arg)})
-        if isinstance(e, Binary):
-            return e.model_copy(update={"left": self.resolve(e.left), "right": self.resolve(e.right)})
-        if isinstance(e, Call):
-            return e.model_copy(update={"args": [self.resolve(a) for a in e.args]})
-        if isinstance(e, Table):
-            return e.model_copy(update={"x": self.resolve(e.x)})
-        return e
+        return map_children(e, self.resolve)
 
     def dim(self, e):
         """Static dimension of a resolved expression; ``None`` after a reported problem."""
