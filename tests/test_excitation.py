@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl.analysis.sensitivities import excitation, hankel_matrix, hankel_metrics
+from tnn_dsl.analysis.hankel import excitation, hankel_matrix, hankel_metrics
 from tnn_dsl.core.errors import DataError, TnnError
 
 

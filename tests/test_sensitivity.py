@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tnn_dsl.analysis.sensitivities import fisher_analysis
+from tnn_dsl.analysis.identifiability import fisher_analysis
 from tnn_dsl.core.errors import TnnError
 from tnn_dsl.ir.network import Num, Ref
 
@@ -71,7 +71,7 @@ def test_fisher_rejects_bad_sigma():
 compile_mod = pytest.importorskip("tnn_dsl.compiler.model", reason="the compiler is not there yet")
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.analysis.sensitivities import sensitivity  # noqa: E402
+from tnn_dsl.analysis.sensitivities import sensitivity
 from tnn_dsl.compiler.model import compile as _compile_net
 from tnn_dsl.studies.casestudy import network_path  # noqa: E402
 

@@ -6,9 +6,12 @@ May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``, 
 from __future__ import annotations
 
 from . import residuals
-from .sensitivities import excitation, fisher_analysis, sensitivity
+from .hankel import excitation
+from .identifiability import fisher_analysis
+from .report import SensitivityReport
+from .sensitivities import sensitivity
 from .significance import held_out_test
 
 __all__ = [
-    "residuals", "excitation", "fisher_analysis", "sensitivity", "held_out_test"
+    "residuals", "SensitivityReport", "excitation", "fisher_analysis", "sensitivity", "held_out_test"
 ]

@@ -1,7 +1,7 @@
 """``tnnc excitation DATA...``: compare how well data files excite the system (thesis §4.2, §5.6.1).
 
 The singular values of the block-Hankel matrix of each file's inputs and its condition number (lower =
-richer excitation); files are ranked best first. See ``tnn_dsl.analysis.sensitivities.excitation`` for the exact
+richer excitation); files are ranked best first. See ``tnn_dsl.analysis.hankel.excitation`` for the exact
 definition (centring, common scaling, constant channels left out).
 """
 

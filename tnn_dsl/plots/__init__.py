@@ -6,7 +6,8 @@ panel take ``ax=`` (draw into a given axes); those that draw a column of panels 
 at least as many axes). Temperatures are shown in the network's unit, time in s, min or h by duration.
 
 Modules: ``figure`` (the shared helpers), ``series`` (time series: simulation, predictions, filter),
-``functions`` (learned functions over their inputs), ``study`` (the thesis case study).
+``functions`` (learned functions over their inputs), ``study`` (the thesis case study), ``sensitivity`` (the
+ranked sensitivity bars).
 May import: ``tnn_dsl.core``, ``tnn_dsl.data`` (unit conversions); results arrive as arrays or duck-typed objects.
 """
 
@@ -14,8 +15,9 @@ from __future__ import annotations
 
 from .figure import new_figure, time_axis
 from .functions import learned_function
+from .sensitivity import sensitivity_bars
 from .series import filter_estimate, predictions, simulation
 from .study import ood_growth, validation_runs
 
 __all__ = ["new_figure", "time_axis", "learned_function", "filter_estimate", "predictions", "simulation",
-           "ood_growth", "validation_runs"]
+           "ood_growth", "validation_runs", "sensitivity_bars"]
