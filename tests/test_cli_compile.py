@@ -59,7 +59,9 @@ def test_graph_dot_to_stdout_and_file(m2_json, tmp_path, capsys):
 
 
 def test_graph_png(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(_emit.shutil, "which", lambda name: None)  # as on a machine without graphviz
+    import tnn_dsl.plots.drawing as drawing
+
+    monkeypatch.setattr(drawing.shutil, "which", lambda name: None)  # as on a machine without graphviz
     src = tmp_path / "t.json"
     src.write_text(_emit.ir_json(tclab_lag()))
     png = tmp_path / "net.png"

@@ -391,9 +391,11 @@ def test_dot_escapes_quotes_in_labels():
 
 
 def test_png_without_graphviz_uses_matplotlib(tmp_path, monkeypatch):
-    monkeypatch.setattr(_emit.shutil, "which", lambda name: None)
+    import tnn_dsl.plots.drawing as drawing
+
+    monkeypatch.setattr(drawing.shutil, "which", lambda name: None)
     out = tmp_path / "net.png"
-    how = _emit.render_png(case_study("linear"), str(out), dpi=40)
+    how = drawing.render_png(case_study("linear"), str(out), dpi=40)
     assert how == "matplotlib"
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

@@ -80,6 +80,7 @@ def _output_kind(emit: str, out: str) -> OutputKind:
 
 
 def run(args) -> int:
+    from .. import plots
     from ..ir import emit as _emit
 
     out = args.output
@@ -98,7 +99,7 @@ def run(args) -> int:
             _write_text(out, _emit.dot(net))
         elif suffix == ".png":
             try:
-                how = _emit.render_png(net, out)
+                how = plots.render_png(net, out)
             except OSError as err:
                 raise TnnError(Diagnostic(f"{out}: cannot write: {err.strerror}",
                                           hint="check that the directory exists and is writable")) from None

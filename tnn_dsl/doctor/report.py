@@ -20,11 +20,9 @@ __all__ = ["write_report"]
 
 
 def _png(fig) -> str:
+    """A figure as a ``data:`` URI (the report embeds its plots)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -39,78 +37,16 @@ def _num(x, d=4) -> str:
 
 
 def _plots(d) -> list[tuple[str, str]]:
-    import matplotlib
+    """``[(title, data URI)]``: before/after per sensor, whiteness per sensor, residual against variables."""
+    from .. import plots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    p = d.plots
-    out = []
-    t = np.asarray(p["t"], float) / 3600.0
-    names = p["output_names"]
-    y, yn, ye = np.asarray(p["y"]), np.asarray(p["y_nominal"]), np.asarray(p["y_extended"])
-    vm = np.asarray(p["val_mask"])
-    x = np.arange(len(t))
-    for j, s in enumerate(names):
-        fig, ax = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
-        ax[0].plot(x, y[:, j] - 273.15, "k.", ms=1, label="measured")
-        ax[0].plot(x, yn[:, j] - 273.15, lw=1, label="nominal (fitted)")
-        if d.accepted:
-            ax[0].plot(x, ye[:, j] - 273.15, lw=1, label="extended")
-        ax[0].set_ylabel(f"{s} (°C)")
-        ax[0].legend(loc="best", fontsize=8)
-        ax[1].plot(x, y[:, j] - yn[:, j], lw=0.8, label="residual, nominal")
-        if d.accepted:
-            ax[1].plot(x, y[:, j] - ye[:, j], lw=0.8, label="residual, extended")
-        ax[1].axhline(0, color="k", lw=0.5)
-        ax[1].set_ylabel("residual (K)")
-        ax[1].set_xlabel("sample (all experiments, in order)")
-        ax[1].legend(loc="best", fontsize=8)
-        for a in ax:
-            lo, hi = a.get_ylim()
-            a.fill_between(x, lo, hi, where=vm[:, j], color="0.9", zorder=-1, step="mid")
-            a.set_ylim(lo, hi)
-        fig.suptitle(f"{s}: measured and simulated (grey: held-out rows)")
-        out.append((f"{s}: before and after", _png(fig)))
-    for s, w in d.residuals.whiteness.items():
-        if "acf" not in w:
-            continue
-        fig, ax = plt.subplots(1, 2, figsize=(10, 3.2))
-        ax[0].bar(w["lags"], w["acf"], width=0.6)
-        ax[0].axhline(w["acf_band"], ls="--", color="r", lw=0.8)
-        ax[0].axhline(-w["acf_band"], ls="--", color="r", lw=0.8)
-        ax[0].set_title(f"autocorrelation (Ljung–Box p = {w['ljung_box_p']:.2g})", fontsize=9)
-        ax[0].set_xlabel("lag (samples)")
-        f = np.asarray(w["cpgram_freq"])
-        c = np.asarray(w["cpgram"])
-        ax[1].plot(f, c, lw=1)
-        ideal = np.linspace(0, 1, len(f)) if len(f) else f
-        ax[1].plot(f, ideal, "k", lw=0.5)
-        ax[1].plot(f, ideal + w["ks_band"], "r--", lw=0.8)
-        ax[1].plot(f, ideal - w["ks_band"], "r--", lw=0.8)
-        ax[1].set_ylim(0, 1)
-        ax[1].set_title(f"cumulated periodogram (KS p = {w['ks_p']:.2g})", fontsize=9)
-        ax[1].set_xlabel("frequency (1/sample)")
-        fig.suptitle(f"is the held-out residual of {s} white?")
-        out.append((f"{s}: whiteness", _png(fig)))
-    for s, deps in p.get("dependence", {}).items():
-        items = [(v, dd) for v, dd in deps.items() if dd.get("centers")]
-        if not items:
-            continue
-        n = len(items)
-        cols = min(4, n)
-        rows = int(math.ceil(n / cols))
-        fig, axs = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
-        for a in axs.ravel()[n:]:
-            a.axis("off")
-        for a, (v, dd) in zip(axs.ravel(), items):
-            a.plot(dd["centers"], dd["means"], "o-", ms=3)
-            a.axhline(0, color="k", lw=0.5)
-            a.set_title(f"{v} (r = {dd['corr']:.2f})", fontsize=8)
-            a.tick_params(labelsize=7)
-        fig.suptitle(f"{s}: mean held-out residual (K) in bins of each variable")
-        fig.tight_layout()
-        out.append((f"{s}: residual against each variable", _png(fig)))
+    out = [(f"{s}: before and after", _png(plots.before_after(d.plots, j, extended=bool(d.accepted))))
+           for j, s in enumerate(d.plots["output_names"])]
+    out += [(f"{s}: whiteness", _png(plots.whiteness(s, w))) for s, w in d.residuals.whiteness.items() if "acf" in w]
+    for s, deps in d.plots.get("dependence", {}).items():
+        fig = plots.residual_dependence(s, deps)
+        if fig is not None:
+            out.append((f"{s}: residual against each variable", _png(fig)))
     return out
 
 

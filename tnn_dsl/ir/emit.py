@@ -18,10 +18,8 @@ trees. Units are printed in SI (the IR holds SI values; the text the user wrote 
 from __future__ import annotations
 
 import math
-import shutil
-import subprocess
 
-from ..core import TnnError, atomic_path, save_figure
+from ..core import TnnError
 from .network import (
     POSITIVE_ROLES,
     Binary,
@@ -38,7 +36,8 @@ from .network import (
     Unary,
 )
 
-__all__ = ["equations", "ir_json", "network_from_json", "dot", "render_png", "format_dim", "format_quantity", "format_expr"]
+__all__ = ["equations", "ir_json", "network_from_json", "dot", "format_dim", "format_quantity", "format_expr",
+           "element_label", "LEARNED_COLOR"]
 
 SIGMA = 5.670374419e-8
 """Stefan–Boltzmann constant, W/(m²·K⁴)."""
@@ -521,7 +520,7 @@ def network_from_json(text: str, filename: str = "<json>") -> Network:
 # DOT
 # ---------------------------------------------------------------------------------------------
 
-_LEARNED_COLOR = "#d62728"
+LEARNED_COLOR = "#d62728"
 _STYLE = {
     "node": 'shape=ellipse, style=filled, fillcolor="#dbe9f6", color="#1f4e79"',
     "boundary": 'shape=box, style="filled,rounded", fillcolor="#e6e6e6", color="#555555"',
@@ -572,7 +571,7 @@ def dot(net: Network) -> str:
     for n in net.nodes:
         cap = _value_text(pr, n.capacitance)
         label = n.name + (f"\n{n.label}" if n.label else "") + f"\n{cap}"
-        extra = f', color="{_LEARNED_COLOR}", penwidth=2' if n.capacitance in pr.targets else ""
+        extra = f', color="{LEARNED_COLOR}", penwidth=2' if n.capacitance in pr.targets else ""
         out.append(f"  {_q(n.name)} [label={_q(label)}, {_STYLE['node']}{extra}];")
     for b in net.boundaries:
         label = f"{b.name}\n{_value_text(pr, b.temperature)}"
@@ -587,12 +586,12 @@ def dot(net: Network) -> str:
         if link.label:
             lab = f"{link.label}\n{lab}"
         learned = link.value in pr.targets
-        style = f'color="{_LEARNED_COLOR}", fontcolor="{_LEARNED_COLOR}", penwidth=2.5' if learned else 'color="#333333"'
+        style = f'color="{LEARNED_COLOR}", fontcolor="{LEARNED_COLOR}", penwidth=2.5' if learned else 'color="#333333"'
         out.append(f"  {_q(link.a)} -> {_q(link.b)} [label={_q(lab)}, {style}];")
     for r in net.radiations:
         lab = "\n".join([f"radiation {r.name}", *(_value_text(pr, x) for x in (r.area, r.emissivity, r.view_factor))])
         learned = any(x in pr.targets for x in (r.area, r.emissivity, r.view_factor))
-        color = _LEARNED_COLOR if learned else "#e07b00"
+        color = LEARNED_COLOR if learned else "#e07b00"
         out.append(f'  {_q(r.a)} -> {_q(r.b)} [label={_q(lab)}, color="{color}", fontcolor="{color}", style=dashed];')
     for pe in net.peltiers:
         parts = [f"Peltier {pe.name}"]
@@ -606,7 +605,7 @@ def dot(net: Network) -> str:
             parts.append(_value_text(pr, pe.r_internal))
         learned = any(k in pr.targets for k in (f"{pe.name}.Q_hot", f"{pe.name}.Q_cold", pe.seebeck,
                                                  pe.resistance, pe.r_internal or ""))
-        color = _LEARNED_COLOR if learned else "#1f77b4"
+        color = LEARNED_COLOR if learned else "#1f77b4"
         out.append(f"  {_q(pe.cold)} -> {_q(pe.hot)} [label={_q(chr(10).join(parts))}, color=\"{color}\", "
                    f"fontcolor=\"{color}\", penwidth=3, dir=forward, arrowhead=normal];")
     for f in net.fluids:
@@ -615,14 +614,14 @@ def dot(net: Network) -> str:
         if f"{f.name}.Q" in pr.targets:
             fn, _ = pr.targets[f"{f.name}.Q"]
             parts.insert(1, f"{f.name}.Q ~ {pr.kind_call(fn)}")
-        color = _LEARNED_COLOR if learned else "#2e7d4f"
+        color = LEARNED_COLOR if learned else "#2e7d4f"
         out.append(f"  {_q(f.name + '.inlet')} -> {_q(f.node)} [label={_q(chr(10).join(parts))}, color=\"{color}\", "
                    f"fontcolor=\"{color}\", style=bold, dir=forward];")
 
     for src in net.sources:
         vid = f"source:{src.name}"
         learned = src.value in pr.targets
-        color = _LEARNED_COLOR if learned else "#8c4a00"
+        color = LEARNED_COLOR if learned else "#8c4a00"
         out.append(f"  {_q(vid)} [label={_q(_value_text(pr, src.value))}, {_STYLE['source']}];")
         out.append(f'  {_q(vid)} -> {_q(src.node)} [color="{color}", dir=forward];')
     for fn in net.learned:
@@ -630,8 +629,8 @@ def dot(net: Network) -> str:
             if t.kind == "heat_load":
                 vid = f"heat_load:{t.name}"
                 lab = f"Q[{t.name}] ~ {pr.kind_call(fn)}"
-                out.append(f'  {_q(vid)} [label={_q(lab)}, shape=plaintext, fontcolor="{_LEARNED_COLOR}"];')
-                out.append(f'  {_q(vid)} -> {_q(t.name)} [color="{_LEARNED_COLOR}", penwidth=2, dir=forward];')
+                out.append(f'  {_q(vid)} [label={_q(lab)}, shape=plaintext, fontcolor="{LEARNED_COLOR}"];')
+                out.append(f'  {_q(vid)} -> {_q(t.name)} [color="{LEARNED_COLOR}", penwidth=2, dir=forward];')
     for s in net.sensors:
         vid = f"sensor:{s.name}"
         parts = [f"sensor {s.name}", f'column "{s.column}"']
@@ -645,88 +644,8 @@ def dot(net: Network) -> str:
     return "\n".join(out) + "\n"
 
 
-# ---------------------------------------------------------------------------------------------
-# PNG
-# ---------------------------------------------------------------------------------------------
-
-
-def render_png(net: Network, path: str, *, dpi: int = 150) -> str:
-    """Write a PNG picture of ``net`` to ``path``. Uses Graphviz's ``dot`` binary when it is on PATH
-    (the same picture as :func:`dot`), otherwise draws the network with matplotlib + networkx.
-    Returns ``"graphviz"`` or ``"matplotlib"``, whichever drew it."""
-    exe = shutil.which("dot")
-    if exe is not None:
-        with atomic_path(path) as tmp:
-            proc = subprocess.run([exe, "-Tpng", f"-Gdpi={dpi}", "-o", str(tmp)], input=dot(net).encode("utf-8"),
-                                  capture_output=True, timeout=120, check=False)
-            if proc.returncode != 0:
-                raise TnnError(f"graphviz `dot` failed on this network: "
-                               f"{proc.stderr.decode('utf-8', 'replace').strip()}")
-        return "graphviz"
-    _draw_matplotlib(net, path, dpi=dpi)
-    return "matplotlib"
-
-
-def _draw_matplotlib(net: Network, path: str, *, dpi: int) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import networkx as nx
-
+def element_label(net: Network, name: str) -> tuple[str, bool]:
+    """``(text, learned)``: a parameter's value as the DOT picture labels it (``"0.2 K/W"``, ``"learned"``...)
+    and whether a learned function targets it (for other drawings of the network)."""
     pr = _Printer(net)
-    g = net.graph()
-    n = max(g.number_of_nodes(), 1)
-    fig, ax = plt.subplots(figsize=(min(4 + 1.6 * math.sqrt(n) * 2, 24), min(3 + 1.4 * math.sqrt(n) * 2, 18)))
-    pos = nx.kamada_kawai_layout(nx.Graph(g)) if n > 2 else nx.spring_layout(nx.Graph(g), seed=0)
-    kinds = nx.get_node_attributes(g, "kind")
-    colors = {"node": "#dbe9f6", "boundary": "#e6e6e6", "fluid_inlet": "#d9f2e6"}
-    shapes = {"node": "o", "boundary": "s", "fluid_inlet": ">"}
-    for kind, shape in shapes.items():
-        vs = [v for v in g.nodes if kinds.get(v) == kind]
-        if vs:
-            edge = [_LEARNED_COLOR if kind == "node" and
-                    next(x for x in net.nodes if x.name == v).capacitance in pr.targets else "#333333" for v in vs]
-            nx.draw_networkx_nodes(g, pos, nodelist=vs, node_color=colors[kind], node_shape=shape,
-                                   node_size=1400, edgecolors=edge, linewidths=1.5, ax=ax)
-    read_by: dict[str, list[str]] = {}
-    for sen in net.sensors:
-        read_by.setdefault(sen.node, []).append(sen.name)
-    labels = {v: (f"{v}\n[{', '.join(read_by[v])}]" if v in read_by else
-                  f"{v[:-len('.inlet')]}\ninlet" if kinds.get(v) == "fluid_inlet" else v) for v in g.nodes}
-    nx.draw_networkx_labels(g, pos, labels=labels, font_size=8, ax=ax)
-    edge_colors = {"link": "#333333", "radiation": "#e07b00", "peltier": "#1f77b4", "fluid": "#2e7d4f"}
-    edge_labels: dict[tuple[str, str], list[str]] = {}
-    for u, v, _key, data in g.edges(keys=True, data=True):
-        el = data["element"]
-        kind = data["kind"]
-        if kind == "link":
-            learned = el.value in pr.targets
-            text = _value_text(pr, el.value)
-        elif kind == "peltier":
-            learned = any(f"{el.name}.{fl}" in pr.targets for fl in ("Q_hot", "Q_cold"))
-            text = f"Peltier {el.name}"
-        elif kind == "fluid":
-            learned = f"{el.name}.Q" in pr.targets
-            text = f"fluid {el.name}"
-        else:
-            learned = any(x in pr.targets for x in (el.area, el.emissivity, el.view_factor))
-            text = f"radiation {el.name}"
-        k = len(edge_labels.get((u, v), []))  # parallel edges (a link and radiation ...) bend apart
-        rad = 0.0 if k == 0 else (0.2 * ((k + 1) // 2)) * (1 if k % 2 else -1)
-        nx.draw_networkx_edges(g, pos, edgelist=[(u, v)], ax=ax, width=2.5 if learned else 1.2,
-                               edge_color=_LEARNED_COLOR if learned else edge_colors[kind],
-                               style="dashed" if kind == "radiation" else "solid",
-                               arrows=True, arrowstyle="-", connectionstyle=f"arc3,rad={rad}",
-                               node_size=1400)
-        edge_labels.setdefault((u, v), []).append(text)
-    nx.draw_networkx_edge_labels(g, pos, edge_labels={k: "\n".join(v) for k, v in edge_labels.items()},
-                                 font_size=7, ax=ax)
-    ax.set_title(net.name + (f" — {net.label}" if net.label else ""))
-    ax.text(0.01, 0.01, "learned parts in red; [sensors] under the node they read "
-            "(drawn with matplotlib; install graphviz for the full picture)",
-            transform=ax.transAxes, fontsize=7, color="#666666")
-    ax.axis("off")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=dpi)
-    plt.close(fig)
+    return _value_text(pr, name), name in pr.targets
