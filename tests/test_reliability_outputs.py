@@ -55,7 +55,7 @@ def _user_dir(tmp_path: Path, data: str) -> Path:
 @pytest.fixture
 def no_training(monkeypatch):
     """Any attempt to train fails the test: refusals must come before any work."""
-    import tnn_dsl.fit.trainer as T
+    import tnn_dsl.fit.training as T
 
     def boom(*a, **k):
         raise AssertionError("training started although the output should have been refused first")

@@ -14,18 +14,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tnn_dsl.core.errors import TnnError
+from tnn_dsl.fit.config import TrainConfig, load_config
 from tnn_dsl.fit.simulation import error_metrics
-from tnn_dsl.fit.trainer import (
-    MIN_WINDOW_SAMPLES,
-    TrainConfig,
-    _from_z,
-    _make_slot,
-    _NumpyOps,
-    _to_z,
-    _windows,
-    auto_window,
-    load_config,
-)
+from tnn_dsl.fit.transforms import _from_z, _make_slot, _NumpyOps, _to_z
+from tnn_dsl.fit.windows import MIN_WINDOW_SAMPLES, _windows, auto_window
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TNN_SHARED", ROOT.parent / "shared")) / "data"
@@ -461,7 +453,7 @@ def test_tanh_coordinates_give_the_same_sigmoid_mlp(backend):
     """``_tanh_to_sigmoid`` maps the weights of a tanh MLP to those of the sigmoid MLP computing the same
     function (exactly, on backend arrays), and ``_sigmoid_to_tanh`` inverts it."""
     from tnn_dsl.compiler.backends.adapter import Backend as _Ops
-    from tnn_dsl.fit.trainer import _sigmoid_to_tanh, _tanh_to_sigmoid
+    from tnn_dsl.fit.transforms import _sigmoid_to_tanh, _tanh_to_sigmoid
 
     ops = _Ops(backend)
     rng = np.random.default_rng(4)

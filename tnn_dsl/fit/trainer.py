@@ -26,11 +26,10 @@ shooting). ``auto`` picks ``free`` for short experiments and ``estimated`` for l
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,338 +37,12 @@ import numpy as np
 
 from ..compiler import Backend
 from ..core import Diagnostic, TnnError
-from ..data import as_experiments
-from ..ir import POSITIVE_ROLES, Network
-from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
+from ..ir import Network
+from .config import TrainConfig
+from .model_files import load_model
 from .simulation import _measured_init_arrays, _measured_state, _resolve_init, simulate
-
-__all__ = ["TrainConfig", "train", "evaluate", "load_config"]
-
-# ---------------------------------------------------------------------------------------------
-# Configuration
-# ---------------------------------------------------------------------------------------------
-
-ROLLOUTS = ("auto", "free", "steady", "measured", "estimated")
-INITS = ("auto", "steady", "measured")
-
-
-@dataclass
-class TrainConfig:
-    """Every training option (all also ``tnnc train`` flags and YAML keys). Defaults work without
-    tuning on the networks in ``networks/``.
-
-    Units: ``window`` and ``time_limit`` in s; ``lam`` weights a max error in K against a mean squared
-    error in K²; ``gamma`` weights squared *relative* deviations from the reference values."""
-
-    backend: str = "jax"
-    """``jax`` or ``torch``."""
-    torch_compile: bool | None = None
-    """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; the
-    case study's M2 trained 2.5× faster in all, compilation included, benchmarks/bench_train.py). ``None``:
-    the ``TNN_TORCH_COMPILE`` environment variable (default off)."""
-    dtype: str = "float64"
-    seed: int = 0
-    integrator: str = "rk4"
-    """``euler`` (thesis eq. 4.7), ``rk4`` or ``expeuler``."""
-    substeps: int | None = None
-    rollout: str = "auto"
-    """``auto``, ``free``, ``steady``, ``measured`` or ``estimated`` (see the module docstring)."""
-    window: float | None = None
-    """Window length (s) for windowed rollouts; ``None``: :func:`auto_window` (600 s, and at least
-    :data:`MIN_WINDOW_SAMPLES` samples of the coarsest training file)."""
-    batch_size: int = 0
-    """Windows per optimiser step; 0 = all (full batch)."""
-    epochs: int = 300
-    """Adam steps over the whole training set."""
-    lr: float = 0.02
-    """Adam step size in transformed coordinates (0.02 ≈ 2 % of a positive parameter per step)."""
-    lr_final: float = 0.1
-    """Cosine decay of the step size to ``lr · lr_final`` at the last epoch."""
-    clip: float | None = None
-    """Global gradient-norm clip; ``None``: clip at 10× the running mean norm."""
-    lam: float = 0.0
-    """λ of eq. 4.8: weight of the max absolute error over each window."""
-    gamma: float | dict[str, float] = 0.0
-    """γ of eq. 4.8: weight of ((θ − θ_ref)/θ_ref)² per free physical parameter (one number for all,
-    or ``{name: γ}``)."""
-    weight_decay: float = 0.0
-    """L2 weight on learned-function weights."""
-    continuity: float = 10.0
-    """Weight of the multiple-shooting continuity penalty (``rollout=estimated``)."""
-    lbfgs_iters: int = 1000
-    """L-BFGS polish iterations after Adam (0 to skip). The polish starts from Adam's last state, keeps
-    the iterate with the best validation MAE (Adam's best if none is better) and stops after 100
-    iterations without a better one."""
-    patience: int = 80
-    """Early stopping: epochs without a better validation MAE, checked from half of ``epochs`` on (a free
-    run's validation error often rises while a learned function leaves its nominal value, then falls)."""
-    val_every: int = 0
-    """Validate every N epochs; 0 = automatically (validation takes ≤ ~40 % of the time; from step counts,
-    so the schedule — and the model picked — is the same on every machine and backend)."""
-    val_fraction: float = 0.0
-    """Without validation files: hold out the last fraction of each training file."""
-    init: str = "auto"
-    """Initial state of free runs (validation, prediction): ``steady``, ``measured`` or ``auto``
-    (``measured`` for a part that starts mid-file, else ``steady``)."""
-    freeze: list[str] = field(default_factory=list)
-    """Parameter names or learned-function names kept fixed."""
-    init_from: str | None = None
-    """A model directory whose arrays (same name and shape) initialise this model."""
-    prefit: bool = True
-    """Pre-fit ``replace``-mode flow functions to the nominal physics flow."""
-    centre_sigmoid: bool = True
-    """Optimise sigmoid MLPs in tanh coordinates (σ(a) = ½ + ½·tanh(a/2), see ``_tanh_to_sigmoid``):
-    the same functions and stored weights, but zero-centred hidden units with unit slope, so the steps
-    of Adam are not spent moving the next layer's bias against its weights."""
-    max_restarts: int = 6
-    """Divergence guard: how often the best state is restored with a smaller step before giving up."""
-    time_limit: float | None = None
-    """Stop Adam after this many seconds (the best state is kept)."""
-
-    def __post_init__(self) -> None:
-        problems = []
-        if self.backend not in ("jax", "torch"):
-            problems.append(f"backend must be jax or torch, not {self.backend!r}")
-        if self.dtype not in ("float64", "float32"):
-            problems.append(f"dtype must be float64 or float32, not {self.dtype!r}")
-        if self.rollout not in ROLLOUTS:
-            problems.append(f"rollout must be one of {', '.join(ROLLOUTS)}, not {self.rollout!r}")
-        if self.init not in INITS:
-            problems.append(f"init must be one of {', '.join(INITS)}, not {self.init!r}")
-        if self.integrator not in ("euler", "rk4", "expeuler"):
-            problems.append(f"integrator must be euler, rk4 or expeuler, not {self.integrator!r}")
-        for name in (("window",) if self.window is not None else ()) + ("lr",):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
-                problems.append(f"{name} must be a positive number, not {getattr(self, name)!r}")
-        for name in ("epochs", "lbfgs_iters", "patience", "val_every", "batch_size", "max_restarts"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                problems.append(f"{name} must be a non-negative integer, not {v!r}")
-        if not (0.0 <= float(self.val_fraction) < 1.0):
-            problems.append(f"val_fraction must be in [0, 1), not {self.val_fraction!r}")
-        for name in ("lam", "weight_decay", "continuity", "lr_final"):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) >= 0):
-                problems.append(f"{name} must be a non-negative number, not {getattr(self, name)!r}")
-        if isinstance(self.freeze, str):
-            self.freeze = [s for s in self.freeze.replace(",", " ").split() if s]
-        if problems:
-            raise TnnError([Diagnostic(f"training option: {p}", hint="see `tnnc train --help`") for p in problems])
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-
-def load_config(path: str | os.PathLike | None = None, **overrides) -> TrainConfig:
-    """A :class:`TrainConfig` from a YAML file (keys = option names, ``-`` or ``_``) and overrides
-    (``None`` values ignored). Unknown keys are an error naming the known ones."""
-    import yaml
-
-    data: dict[str, Any] = {}
-    if path is not None:
-        p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as e:
-            raise TnnError(Diagnostic(f"cannot read the training config {p}: {e.strerror}",
-                                      hint="pass an existing YAML file to --config"))
-        try:
-            loaded = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            from ..ir import Span
-
-            span = Span(file=str(p), line=mark.line + 1, col=mark.column + 1, end_line=mark.line + 1,
-                        end_col=mark.column + 2) if mark is not None else None
-            raise TnnError(Diagnostic(f"the training config is not valid YAML: {getattr(e, 'problem', e)}",
-                                      span=span, hint="write `key: value` lines, e.g. `epochs: 200`"))
-        if loaded is None:
-            loaded = {}
-        if not isinstance(loaded, dict):
-            raise TnnError(Diagnostic(f"{p}: the training config must be a mapping of option: value",
-                                      hint="write `key: value` lines, e.g. `epochs: 200`"))
-        known = {f.name for f in dataclasses.fields(TrainConfig)}
-        for k, v in loaded.items():
-            key = str(k).replace("-", "_")
-            if key not in known:
-                import difflib
-
-                close = difflib.get_close_matches(key, sorted(known), n=1)
-                hint = f"did you mean `{close[0]}`?" if close else f"known options: {', '.join(sorted(known))}"
-                raise TnnError(Diagnostic(f"{p}: unknown training option {k!r}", hint=hint))
-            data[key] = v
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return TrainConfig(**data)
-    except TypeError as e:
-        raise TnnError(Diagnostic(f"training config: {e}"))
-
-
-# ---------------------------------------------------------------------------------------------
-# Parameter transforms: flat unconstrained z <-> named arrays
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Slot:
-    name: str
-    shape: tuple[int, ...]
-    start: int
-    size: int
-    transform: str  # log | sigmoid | ident | lower | upper
-    lo: float = 0.0
-    hi: float = 1.0
-    offset: float = 0.0
-    scale: float = 1.0
-
-
-def _make_slot(name: str, spec, value: np.ndarray, start: int, role: str | None) -> _Slot:
-    shape = tuple(int(s) for s in np.shape(value))
-    size = int(np.prod(shape)) if shape else 1
-    lo = spec.lower if spec.lower is not None and np.isfinite(spec.lower) else None
-    hi = spec.upper if spec.upper is not None and np.isfinite(spec.upper) else None
-    positive = bool(spec.positive) or (role in POSITIVE_ROLES)
-    if spec.kind != "physical":
-        return _Slot(name, shape, start, size, "ident", offset=0.0, scale=1.0)
-    if positive and lo is not None:
-        lo = max(lo, 0.0)
-    if positive and lo is None:
-        lo = 0.0
-    if lo is not None and hi is not None and hi > lo:
-        return _Slot(name, shape, start, size, "sigmoid", lo=float(lo), hi=float(hi))
-    if lo is not None:
-        return _Slot(name, shape, start, size, "log" if lo == 0.0 and positive else "lower", lo=float(lo))
-    if hi is not None:
-        return _Slot(name, shape, start, size, "upper", hi=float(hi))
-    v = float(np.max(np.abs(value))) if size else 0.0
-    scale = 1.0 if role in ("temperature", "offset") else (v if v > 0 else 1.0)
-    return _Slot(name, shape, start, size, "ident", offset=0.0, scale=scale)
-
-
-def _to_z(slot: _Slot, value: np.ndarray) -> np.ndarray:
-    v = np.asarray(value, dtype=float).reshape(-1)
-    t = slot.transform
-    if t == "log":
-        return np.log(np.maximum(v, 1e-300))
-    if t == "lower":
-        return np.log(np.maximum(v - slot.lo, 1e-12 * max(1.0, abs(slot.lo))))
-    if t == "upper":
-        return np.log(np.maximum(slot.hi - v, 1e-12 * max(1.0, abs(slot.hi))))
-    if t == "sigmoid":
-        p = np.clip((v - slot.lo) / (slot.hi - slot.lo), 1e-6, 1 - 1e-6)
-        return np.log(p) - np.log1p(-p)
-    return (v - slot.offset) / slot.scale
-
-
-def _from_z(slot: _Slot, zs, ops):
-    t = slot.transform
-    if t == "log":
-        v = ops.exp(zs)
-    elif t == "lower":
-        v = slot.lo + ops.exp(zs)
-    elif t == "upper":
-        v = slot.hi - ops.exp(zs)
-    elif t == "sigmoid":
-        v = slot.lo + (slot.hi - slot.lo) * ops.sigmoid(zs)
-    else:
-        v = slot.offset + slot.scale * zs if (slot.offset != 0.0 or slot.scale != 1.0) else zs
-    return v.reshape(slot.shape)
-
-
-class _NumpyOps:
-    backend = "numpy"
-
-    @staticmethod
-    def exp(x):
-        return np.exp(x)
-
-    @staticmethod
-    def sigmoid(x):
-        return 0.5 * (1.0 + np.tanh(0.5 * x))
-
-
-# ---------------------------------------------------------------------------------------------
-# Windows
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Window:
-    exp: int
-    start: int
-    length: int
-    succ: tuple[int, int] | None = None  # (successor window id, offset in this window)
-
-
-MIN_WINDOW_SAMPLES = 50
-"""Fewest samples in an automatic window (``TrainConfig.window=None``)."""
-DEFAULT_WINDOW_S = 600.0
-"""The automatic window (s) where the data are sampled at ``dt ≤ 12 s``."""
-
-
-def auto_window(exps) -> float:
-    """The automatic window length (s): ``max(600 s, 50·dt)`` with ``dt`` the coarsest sample time of ``exps``.
-
-    600 s suits data sampled every second (the case study, TCLab); at 5-minute sampling (buildings) it would be
-    3 samples, and a multiple-shooting window that short is all initial state: its loss falls while the
-    free run gets worse (measured on Bacher & Madsen's TiTeTh: training free-run MAE 6.4 K with 600 s windows,
-    1.4 K with 50 samples)."""
-    dt = max(float(e.dt) for e in exps)
-    return max(DEFAULT_WINDOW_S, MIN_WINDOW_SAMPLES * dt)
-
-
-def _windows(exps, window_s: float) -> list[_Window]:
-    out: list[_Window] = []
-    for e_i, e in enumerate(exps):
-        n = int(e.n_steps) if hasattr(e, "n_steps") else len(e.t)
-        L = max(2, int(round(window_s / float(e.dt))) + 1)
-        if n <= L:
-            out.append(_Window(e_i, 0, n))
-            continue
-        starts = list(range(0, n - L + 1, L - 1))
-        if starts[-1] + L < n:
-            starts.append(n - L)
-        ids = []
-        for s in starts:
-            ids.append(len(out))
-            out.append(_Window(e_i, s, L))
-        for a, b in zip(ids[:-1], ids[1:]):
-            out[a].succ = (b, out[b].start - out[a].start)
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# The trainer
-# ---------------------------------------------------------------------------------------------
-
-
-def _tanh_to_sigmoid(p: dict, fn: str, K: int) -> None:
-    """In place: weights ``W'k, b'k`` of a tanh MLP with ``K`` hidden layers → the weights of the sigmoid
-    MLP computing the same function (``p["<fn>.Wk"]``, ``p["<fn>.bk"]``; numpy, JAX or torch arrays).
-
-    With σ(a) = ½ + ½·tanh(a/2), hidden unit k of the sigmoid net is ½ + ½·t_k with t_k the tanh net's
-    unit: first layer ``W0 = 2W'0, b0 = 2b'0``; hidden → hidden ``Wk = 4W'k, bk = 2b'k − 2·Σ_rows W'k``;
-    last layer ``WK = 2W'K, bK = b'K − Σ_rows W'K``. A linear change of coordinates: the trainer runs
-    Adam and L-BFGS on the primed (centred, unit-slope) weights."""
-    for k in range(K + 1):
-        W, b = p[f"{fn}.W{k}"], p[f"{fn}.b{k}"]
-        if k == 0:
-            p[f"{fn}.W0"], p[f"{fn}.b0"] = 2.0 * W, 2.0 * b
-        elif k < K:
-            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 4.0 * W, 2.0 * b - 2.0 * W.sum(0)
-        else:
-            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = 2.0 * W, b - W.sum(0)
-
-
-def _sigmoid_to_tanh(p: dict, fn: str, K: int) -> None:
-    """In place, numpy: the inverse of :func:`_tanh_to_sigmoid`."""
-    for k in range(K + 1):
-        W, b = np.asarray(p[f"{fn}.W{k}"], dtype=float), np.asarray(p[f"{fn}.b{k}"], dtype=float)
-        if k == 0:
-            p[f"{fn}.W0"], p[f"{fn}.b0"] = W / 2.0, b / 2.0
-        elif k < K:
-            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 4.0, (b + W.sum(0) / 2.0) / 2.0
-        else:
-            p[f"{fn}.W{k}"], p[f"{fn}.b{k}"] = W / 2.0, b + W.sum(0) / 2.0
+from .transforms import _from_z, _make_slot, _NumpyOps, _sigmoid_to_tanh, _Slot, _tanh_to_sigmoid, _to_z
+from .windows import _Window, _windows, auto_window
 
 
 class _Stop(Exception):
@@ -386,6 +59,57 @@ def _net_of(network) -> Network:
 
 def _nominal_network(net: Network) -> Network:
     return net.model_copy(update={"learned": []})
+
+
+class _Adam:
+    """Adam's moments for one flat vector, with gradient-norm clipping (``clip``, default 10× the running
+    mean norm), the step scale the divergence guard lowers and its restart count."""
+
+    b1, b2, eps = 0.9, 0.999, 1e-8
+
+    def __init__(self, z: np.ndarray):
+        self.m = np.zeros_like(z)
+        self.v = np.zeros_like(z)
+        self.step = 0
+        self.gnorm_ema: float | None = None
+        self.lr_scale = 1.0
+        self.restarts = 0
+
+    def update(self, z: np.ndarray, g: np.ndarray, lr: float, clip: float | None) -> np.ndarray:
+        gn = float(np.linalg.norm(g))
+        limit = clip if clip is not None else (10.0 * self.gnorm_ema if self.gnorm_ema else None)
+        if limit is not None and gn > limit > 0:
+            g = g * (limit / gn)
+            gn = limit
+        self.gnorm_ema = gn if self.gnorm_ema is None else 0.9 * self.gnorm_ema + 0.1 * gn
+        self.step += 1
+        self.m = self.b1 * self.m + (1 - self.b1) * g
+        self.v = self.b2 * self.v + (1 - self.b2) * g * g
+        mh = self.m / (1 - self.b1 ** self.step)
+        vh = self.v / (1 - self.b2 ** self.step)
+        return z - lr * mh / (np.sqrt(vh) + self.eps)
+
+    def reset(self) -> None:
+        self.m[:] = 0.0
+        self.v[:] = 0.0
+        self.step = 0
+
+
+@dataclass
+class _AdamRun:
+    """The state of the Adam phase: the current and the best ``z`` with its loss, validation MAE and epoch."""
+
+    z: np.ndarray
+    t0: float
+    has_val: bool
+    adam: _Adam
+    best_z: np.ndarray | None = None
+    best_loss: float = math.inf
+    best_val: float = math.inf
+    best_epoch: int = 0
+    val: float = math.inf
+    t_val: float = 0.0
+    t_epoch: float | None = None
 
 
 class _Trainer:
@@ -824,6 +548,8 @@ class _Trainer:
 
     # -- optimisation --------------------------------------------------------------------
     def run(self) -> np.ndarray:
+        """Adam epochs (cosine step decay, gradient clipping, divergence guard, early stopping on validation),
+        then the L-BFGS polish; returns the chosen ``z``."""
         cfg = self.cfg
         rng = np.random.default_rng(cfg.seed)
         z = np.concatenate([self.z_from_params(self.params0)]
@@ -831,120 +557,120 @@ class _Trainer:
         minibatch = bool(cfg.batch_size) and any(len(g["windows"]) > cfg.batch_size for g in self.groups)
         data, statics = self.batch_arrays(None)
         full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        batch_vg = None
         if minibatch:
-            bdata, bstatics = self.batch_arrays(rng)
+            _, bstatics = self.batch_arrays(rng)
             batch_vg = self.ops.value_and_grad(self.make_loss(bstatics))
-        has_val = bool(self.vals)
-        t0 = time.perf_counter()
-        best_z = z.copy()
+        r = _AdamRun(z=z, t0=time.perf_counter(), has_val=bool(self.vals), adam=_Adam(z))
         loss0, g0 = full_vg(z, data)
         if not math.isfinite(loss0) or not np.all(np.isfinite(g0)):
             raise TnnError(Diagnostic(
                 "the initial model gives a non-finite loss: the simulation blows up with the starting values",
                 hint="check the nominal values and the integrator (try --integrator expeuler or --substeps 4)"))
-        best_loss = loss0
-        best_val = self.validate(z) if has_val else math.inf
-        t_val = time.perf_counter() - t0
-        self.record(0, loss0, best_val, t0, "start")
-        best_epoch, since_best = 0, 0
-        m = np.zeros_like(z)
-        v = np.zeros_like(z)
-        b1, b2, eps = 0.9, 0.999, 1e-8
-        lr_scale, restarts, step = 1.0, 0, 0
-        gnorm_ema = None
+        r.best_z, r.best_loss = z.copy(), loss0
+        r.best_val = r.val = self.validate(z) if r.has_val else math.inf
+        r.t_val = time.perf_counter() - r.t0
+        self.record(0, loss0, r.best_val, r.t0, "start")
         val_every = cfg.val_every or self.auto_val_every()
-        loss = loss0
-        val = best_val
-        t_epoch = None
         try:
             for epoch in range(1, cfg.epochs + 1):
-                te = time.perf_counter()
-                lr = cfg.lr * lr_scale * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * (epoch - 1) / max(cfg.epochs, 1))))
-                n_batches = 1 if not minibatch else max(1, math.ceil(max(len(g["windows"]) for g in self.groups) / cfg.batch_size))
-                diverged = False
-                ep_loss = 0.0
-                for _ in range(n_batches):
-                    z_prev = z
-                    if minibatch:
-                        bdata, _ = self.batch_arrays(rng)
-                        loss, g = batch_vg(z, bdata)
-                    else:
-                        loss, g = full_vg(z, data)
-                    if (not math.isfinite(loss) or not np.all(np.isfinite(g))
-                            or loss > 1e4 * max(best_loss, 1e-12) + 1e3):
-                        diverged = True
-                        break
-                    ep_loss += loss / n_batches
-                    gn = float(np.linalg.norm(g))
-                    limit = cfg.clip if cfg.clip is not None else (10.0 * gnorm_ema if gnorm_ema else None)
-                    if limit is not None and gn > limit > 0:
-                        g = g * (limit / gn)
-                        gn = limit
-                    gnorm_ema = gn if gnorm_ema is None else 0.9 * gnorm_ema + 0.1 * gn
-                    step += 1
-                    m = b1 * m + (1 - b1) * g
-                    v = b2 * v + (1 - b2) * g * g
-                    mh = m / (1 - b1 ** step)
-                    vh = v / (1 - b2 ** step)
-                    z = z - lr * mh / (np.sqrt(vh) + eps)
-                if not diverged and not has_val and ep_loss < best_loss:
-                    best_loss, best_z, best_epoch = ep_loss, (z_prev if n_batches == 1 else z).copy(), epoch
-                # validation
-                dt_ep = time.perf_counter() - te
-                if epoch > 1:  # the first epoch includes compilation
-                    t_epoch = dt_ep if t_epoch is None else 0.8 * t_epoch + 0.2 * dt_ep
-                if has_val and not diverged:
-                    if epoch <= 2 or epoch % max(val_every, 1) == 0 or epoch == cfg.epochs:
-                        tv = time.perf_counter()
-                        val = self.validate(z)
-                        t_val = (time.perf_counter() - tv) if epoch == 1 else 0.5 * t_val + 0.5 * (time.perf_counter() - tv)
-                        if not math.isfinite(val):
-                            diverged = True
-                        elif val < best_val:
-                            best_val, best_z, best_epoch = val, z.copy(), epoch
-                            best_loss = min(best_loss, ep_loss)
-                            since_best = 0
-                if diverged:
-                    restarts += 1
-                    msg = (f"epoch {epoch}: the loss diverged (non-finite or exploding); restored the best state "
-                           f"(epoch {best_epoch}) and lowered the step to {cfg.lr * lr_scale * 0.3:.3g}")
-                    self.warnings.append(msg)
-                    self.log("warning: " + msg)
-                    if restarts > cfg.max_restarts:
-                        self.stopped = "diverged"
-                        self.warnings.append(
-                            f"training diverged {restarts} times; stopped at epoch {epoch} and kept the best model "
-                            f"(epoch {best_epoch}); lower --lr or use --integrator expeuler")
-                        raise _Stop
-                    z = best_z.copy()
-                    m[:] = 0.0
-                    v[:] = 0.0
-                    step = 0
-                    lr_scale *= 0.3
-                    continue
-                since_best = epoch - best_epoch
-                self.record(epoch, ep_loss, val, t0, "adam",
-                            eta=(cfg.epochs - epoch) * t_epoch * (1 + 0.4 * has_val) if t_epoch else math.nan)
-                if cfg.patience and since_best >= cfg.patience and epoch >= cfg.epochs // 2:
-                    self.stopped = "early_stopping"
-                    self.log(f"early stopping at epoch {epoch}: no better validation MAE for {since_best} epochs")
-                    break
-                if cfg.time_limit is not None and time.perf_counter() - t0 > cfg.time_limit:
-                    self.stopped = "time_limit"
+                if not self._adam_epoch(r, epoch, rng, minibatch, full_vg, batch_vg, data, val_every):
                     break
         except _Stop:
-            return best_z
+            return r.best_z
         except KeyboardInterrupt:
             self.stopped = "interrupted"
-            self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {best_epoch})")
-            return best_z
+            self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {r.best_epoch})")
+            return r.best_z
         # L-BFGS polish on the full training loss, from Adam's last state (lower training loss than an
         # early best-validation state; that one stays the fallback)
         if cfg.lbfgs_iters > 0:
-            start = z if np.all(np.isfinite(z)) else best_z
-            return self.polish(start, full_vg, data, best_val if has_val else best_loss, has_val, t0,
-                               fallback=best_z)
-        return best_z.copy()
+            start = r.z if np.all(np.isfinite(r.z)) else r.best_z
+            return self.polish(start, full_vg, data, r.best_val if r.has_val else r.best_loss, r.has_val, r.t0,
+                               fallback=r.best_z)
+        return r.best_z.copy()
+
+    def _adam_epoch(self, r: "_AdamRun", epoch: int, rng, minibatch: bool, full_vg, batch_vg, data,
+                    val_every: int) -> bool:
+        """One epoch: the Adam steps, validation, the divergence guard, progress, the stopping rules.
+        ``False``: stop."""
+        cfg = self.cfg
+        te = time.perf_counter()
+        lr = cfg.lr * r.adam.lr_scale * (cfg.lr_final + (1 - cfg.lr_final) * 0.5
+                                        * (1 + math.cos(math.pi * (epoch - 1) / max(cfg.epochs, 1))))
+        n_batches = 1 if not minibatch else max(1, math.ceil(max(len(g["windows"]) for g in self.groups)
+                                                              / cfg.batch_size))
+        ep_loss, z_prev, diverged = self._adam_steps(r, lr, n_batches, minibatch, rng, full_vg, batch_vg, data)
+        if not diverged and not r.has_val and ep_loss < r.best_loss:
+            r.best_loss, r.best_z, r.best_epoch = ep_loss, (z_prev if n_batches == 1 else r.z).copy(), epoch
+        dt_ep = time.perf_counter() - te
+        if epoch > 1:  # the first epoch includes compilation
+            r.t_epoch = dt_ep if r.t_epoch is None else 0.8 * r.t_epoch + 0.2 * dt_ep
+        if r.has_val and not diverged:
+            diverged = self._validate_epoch(r, epoch, ep_loss, val_every)
+        if diverged:
+            self._restart(r, epoch)
+            return True
+        since_best = epoch - r.best_epoch
+        self.record(epoch, ep_loss, r.val, r.t0, "adam",
+                    eta=(cfg.epochs - epoch) * r.t_epoch * (1 + 0.4 * r.has_val) if r.t_epoch else math.nan)
+        if cfg.patience and since_best >= cfg.patience and epoch >= cfg.epochs // 2:
+            self.stopped = "early_stopping"
+            self.log(f"early stopping at epoch {epoch}: no better validation MAE for {since_best} epochs")
+            return False
+        if cfg.time_limit is not None and time.perf_counter() - r.t0 > cfg.time_limit:
+            self.stopped = "time_limit"
+            return False
+        return True
+
+    def _adam_steps(self, r: "_AdamRun", lr: float, n_batches: int, minibatch: bool, rng, full_vg, batch_vg, data):
+        """The epoch's Adam steps → ``(mean loss, z before the last step, diverged)``."""
+        ep_loss, z_prev = 0.0, r.z
+        for _ in range(n_batches):
+            z_prev = r.z
+            if minibatch:
+                bdata, _ = self.batch_arrays(rng)
+                loss, g = batch_vg(r.z, bdata)
+            else:
+                loss, g = full_vg(r.z, data)
+            if not math.isfinite(loss) or not np.all(np.isfinite(g)) or loss > 1e4 * max(r.best_loss, 1e-12) + 1e3:
+                return ep_loss, z_prev, True
+            ep_loss += loss / n_batches
+            r.z = r.adam.update(r.z, g, lr, self.cfg.clip)
+        return ep_loss, z_prev, False
+
+    def _validate_epoch(self, r: "_AdamRun", epoch: int, ep_loss: float, val_every: int) -> bool:
+        """Validate on the epochs due (the first two, every ``val_every``, the last) and keep the best state.
+        ``True``: the validation run diverged."""
+        if not (epoch <= 2 or epoch % max(val_every, 1) == 0 or epoch == self.cfg.epochs):
+            return False
+        tv = time.perf_counter()
+        r.val = self.validate(r.z)
+        r.t_val = (time.perf_counter() - tv) if epoch == 1 else 0.5 * r.t_val + 0.5 * (time.perf_counter() - tv)
+        if not math.isfinite(r.val):
+            return True
+        if r.val < r.best_val:
+            r.best_val, r.best_z, r.best_epoch = r.val, r.z.copy(), epoch
+            r.best_loss = min(r.best_loss, ep_loss)
+        return False
+
+    def _restart(self, r: "_AdamRun", epoch: int) -> None:
+        """The divergence guard: back to the best state with a smaller step, or stop (``_Stop``)."""
+        cfg = self.cfg
+        r.adam.restarts += 1
+        msg = (f"epoch {epoch}: the loss diverged (non-finite or exploding); restored the best state "
+               f"(epoch {r.best_epoch}) and lowered the step to {cfg.lr * r.adam.lr_scale * 0.3:.3g}")
+        self.warnings.append(msg)
+        self.log("warning: " + msg)
+        if r.adam.restarts > cfg.max_restarts:
+            self.stopped = "diverged"
+            self.warnings.append(
+                f"training diverged {r.adam.restarts} times; stopped at epoch {epoch} and kept the best model "
+                f"(epoch {r.best_epoch}); lower --lr or use --integrator expeuler")
+            raise _Stop
+        r.z = r.best_z.copy()
+        r.adam.reset()
+        r.adam.lr_scale *= 0.3
 
     def auto_val_every(self) -> int:
         """Validation period when ``val_every = 0``: validation costs at most ~40 % of the time and runs at
@@ -1037,137 +763,3 @@ def _safe(res: tuple[float, np.ndarray]) -> tuple[float, np.ndarray]:
     if not math.isfinite(v) or not np.all(np.isfinite(g)):
         return 1e30, np.zeros_like(g)
     return v, g
-
-
-# ---------------------------------------------------------------------------------------------
-# Public API
-# ---------------------------------------------------------------------------------------------
-
-
-def train(network, data, val=None, *, config: TrainConfig | dict | str | os.PathLike | None = None,
-          out: str | os.PathLike | None = None, force: bool = False,
-          callback: Callable[[dict], None] | None = None,
-          log: Callable[[str], None] | None = None, **options):
-    """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
-
-    Parameters
-    ----------
-    network : Network or path to a ``.thn`` file
-    data : training data: path(s) or ``Experiment``(s); several files are trained together
-    val : validation data (path(s) or ``Experiment``s); validation is a free run over each experiment.
-        Without it, ``val_fraction`` holds out the end of each training file, else the training loss
-        decides early stopping.
-    config : :class:`TrainConfig`, a dict of options or a YAML file; ``**options`` override it.
-    out : model directory to write (atomically), also after Ctrl-C or divergence (best state kept). It is
-        checked before training starts: it must be absent, empty or a model directory, unless ``force``
-        (then the model's files are written into the directory and its other files are kept).
-    callback : ``f(info)`` after each epoch: ``epoch, epochs, phase, loss, val_mae, best_val_mae,
-        elapsed, eta`` (s).
-    log : ``f(message)`` for notes and warnings (default: silent).
-
-    Returns a :class:`TrainedModel`; ``meta["metrics"]`` holds training and validation errors (K),
-    ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
-    (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
-    from ..compiler import compile as compile_network
-    from ..core import check_output
-    from ..data import split_by_time
-
-    if isinstance(config, TrainConfig):
-        cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
-    elif isinstance(config, dict):
-        cfg = load_config(None, **{**config, **options})
-    else:
-        cfg = load_config(config, **options)
-    if out is not None:
-        check_output(out, MODEL_DIR, force=force, inputs=[*_input_paths(network, data, val), cfg.init_from])
-    net = _net_of(network)
-    exps = as_experiments(net, data)
-    if not exps:
-        raise TnnError(Diagnostic("no training data given", hint="pass at least one CSV or Parquet file"))
-    vals = as_experiments(net, val)
-    if not vals and cfg.val_fraction > 0:
-        parts = [split_by_time(e, 1.0 - cfg.val_fraction) for e in exps]
-        exps, vals = [a for a, _ in parts], [b for _, b in parts]
-    for e in exps + vals:
-        if e.n_steps < 2:
-            raise TnnError(Diagnostic(f"{e.path}: {e.name} has {e.n_steps} sample(s); training needs at least 2",
-                                      hint="pass a longer data file"))
-        if not np.isfinite(np.asarray(e.outputs, dtype=float)).any():
-            raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
-                                      hint="check the sensor columns named in the network"))
-    model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
-    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
-    t_start = time.perf_counter()
-    params = tr.initial_params()
-    nom, nom_bp, runs = tr.nominal_runs(params)
-    tr.set_stats(params, nom, nom_bp, runs)
-    tr.prefit_replace(params, nom, nom_bp, runs)
-    tr.layout(params)
-    tr.build_batches(runs)
-    z = tr.run()
-    final = tr.numpy_params(z)
-    trained = TrainedModel(net, final, meta={}, path=None)
-    trained._models[(cfg.backend, cfg.dtype)] = model
-    metrics: dict[str, Any] = {}
-    metrics["train"] = _metrics_or_nan(trained, exps, cfg)
-    if vals:
-        metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
-    fitted = {}
-    for sl in tr.slots:
-        if model.param_specs[sl.name].kind == "physical":
-            fitted[sl.name] = {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
-    trained.meta = {
-        "network": net.name,
-        "backend": cfg.backend,
-        "dtype": cfg.dtype,
-        "versions": versions(cfg.backend),
-        "data": {"train": _data_desc(exps), "validation": _data_desc(vals)},
-        "data_files": data_records(sorted({e.path for e in exps + vals if getattr(e, "path", None)})),
-        "normalisation": tr.normalisation,
-        "metrics": metrics,
-        "fitted": fitted,
-        "curve": tr.curve,
-        "config": cfg.to_dict(),
-        "rollout": tr.mode,
-        "window_s": None if tr.mode == "free" else tr.window,
-        "stopped": tr.stopped,
-        "warnings": tr.warnings,
-        "train_seconds": time.perf_counter() - t_start,
-    }
-    if out is not None:
-        trained.save(out, force=force)
-    return trained
-
-
-def _input_paths(network, data, val) -> list:
-    """The files a training run reads (for the output check): the network's sources and the data paths."""
-    paths: list = []
-    if isinstance(network, (str, os.PathLike)):
-        paths.append(network)
-    else:
-        paths.extend(getattr(network, "source_files", ()) or ())
-    for d in (data, val):
-        items = d if isinstance(d, (list, tuple)) else [d]
-        paths.extend(x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items)
-    return paths
-
-
-def _metrics_or_nan(trained, exps, cfg):
-    try:
-        return trained.evaluate(exps, backend=cfg.backend, init=cfg.init)
-    except FloatingPointError:
-        return {"mae": math.nan}
-
-
-def _data_desc(exps) -> list[dict[str, Any]]:
-    return [{"name": e.name, "path": getattr(e, "path", None), "n_samples": int(e.n_steps), "dt": float(e.dt),
-             "t0": float(np.asarray(e.t)[0]), "notes": list(getattr(e, "notes", ()))} for e in exps]
-
-
-def evaluate(model, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
-    """Errors of a trained model (a :class:`TrainedModel` or a model directory) on data: per-sensor and
-    overall MAE, max error (thesis eq. 4.9), bias and RMSE in K. Free run from the steady state of the
-    first inputs (``init="measured"``: sensor nodes from the first measurement)."""
-
-    tm = model if isinstance(model, TrainedModel) else load_model(model)
-    return tm.evaluate(data, backend=backend, init=init)

@@ -1,0 +1,168 @@
+"""Training options: :class:`TrainConfig` (every option with its default and meaning) and :func:`load_config`
+(YAML file, then overrides)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..core import Diagnostic, TnnError
+
+ROLLOUTS = ("auto", "free", "steady", "measured", "estimated")
+
+
+INITS = ("auto", "steady", "measured")
+
+
+@dataclass
+class TrainConfig:
+    """Every training option (all also ``tnnc train`` flags and YAML keys). Defaults work without
+    tuning on the networks in ``networks/``.
+
+    Units: ``window`` and ``time_limit`` in s; ``lam`` weights a max error in K against a mean squared
+    error in K²; ``gamma`` weights squared *relative* deviations from the reference values."""
+
+    backend: str = "jax"
+    """``jax`` or ``torch``."""
+    torch_compile: bool | None = None
+    """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; the
+    case study's M2 trained 2.5× faster in all, compilation included, benchmarks/bench_train.py). ``None``:
+    the ``TNN_TORCH_COMPILE`` environment variable (default off)."""
+    dtype: str = "float64"
+    seed: int = 0
+    integrator: str = "rk4"
+    """``euler`` (thesis eq. 4.7), ``rk4`` or ``expeuler``."""
+    substeps: int | None = None
+    rollout: str = "auto"
+    """``auto``, ``free``, ``steady``, ``measured`` or ``estimated`` (see the module docstring)."""
+    window: float | None = None
+    """Window length (s) for windowed rollouts; ``None``: :func:`auto_window` (600 s, and at least
+    :data:`MIN_WINDOW_SAMPLES` samples of the coarsest training file)."""
+    batch_size: int = 0
+    """Windows per optimiser step; 0 = all (full batch)."""
+    epochs: int = 300
+    """Adam steps over the whole training set."""
+    lr: float = 0.02
+    """Adam step size in transformed coordinates (0.02 ≈ 2 % of a positive parameter per step)."""
+    lr_final: float = 0.1
+    """Cosine decay of the step size to ``lr · lr_final`` at the last epoch."""
+    clip: float | None = None
+    """Global gradient-norm clip; ``None``: clip at 10× the running mean norm."""
+    lam: float = 0.0
+    """λ of eq. 4.8: weight of the max absolute error over each window."""
+    gamma: float | dict[str, float] = 0.0
+    """γ of eq. 4.8: weight of ((θ − θ_ref)/θ_ref)² per free physical parameter (one number for all,
+    or ``{name: γ}``)."""
+    weight_decay: float = 0.0
+    """L2 weight on learned-function weights."""
+    continuity: float = 10.0
+    """Weight of the multiple-shooting continuity penalty (``rollout=estimated``)."""
+    lbfgs_iters: int = 1000
+    """L-BFGS polish iterations after Adam (0 to skip). The polish starts from Adam's last state, keeps
+    the iterate with the best validation MAE (Adam's best if none is better) and stops after 100
+    iterations without a better one."""
+    patience: int = 80
+    """Early stopping: epochs without a better validation MAE, checked from half of ``epochs`` on (a free
+    run's validation error often rises while a learned function leaves its nominal value, then falls)."""
+    val_every: int = 0
+    """Validate every N epochs; 0 = automatically (validation takes ≤ ~40 % of the time; from step counts,
+    so the schedule — and the model picked — is the same on every machine and backend)."""
+    val_fraction: float = 0.0
+    """Without validation files: hold out the last fraction of each training file."""
+    init: str = "auto"
+    """Initial state of free runs (validation, prediction): ``steady``, ``measured`` or ``auto``
+    (``measured`` for a part that starts mid-file, else ``steady``)."""
+    freeze: list[str] = field(default_factory=list)
+    """Parameter names or learned-function names kept fixed."""
+    init_from: str | None = None
+    """A model directory whose arrays (same name and shape) initialise this model."""
+    prefit: bool = True
+    """Pre-fit ``replace``-mode flow functions to the nominal physics flow."""
+    centre_sigmoid: bool = True
+    """Optimise sigmoid MLPs in tanh coordinates (σ(a) = ½ + ½·tanh(a/2), see ``_tanh_to_sigmoid``):
+    the same functions and stored weights, but zero-centred hidden units with unit slope, so the steps
+    of Adam are not spent moving the next layer's bias against its weights."""
+    max_restarts: int = 6
+    """Divergence guard: how often the best state is restored with a smaller step before giving up."""
+    time_limit: float | None = None
+    """Stop Adam after this many seconds (the best state is kept)."""
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.backend not in ("jax", "torch"):
+            problems.append(f"backend must be jax or torch, not {self.backend!r}")
+        if self.dtype not in ("float64", "float32"):
+            problems.append(f"dtype must be float64 or float32, not {self.dtype!r}")
+        if self.rollout not in ROLLOUTS:
+            problems.append(f"rollout must be one of {', '.join(ROLLOUTS)}, not {self.rollout!r}")
+        if self.init not in INITS:
+            problems.append(f"init must be one of {', '.join(INITS)}, not {self.init!r}")
+        if self.integrator not in ("euler", "rk4", "expeuler"):
+            problems.append(f"integrator must be euler, rk4 or expeuler, not {self.integrator!r}")
+        for name in (("window",) if self.window is not None else ()) + ("lr",):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                problems.append(f"{name} must be a positive number, not {getattr(self, name)!r}")
+        for name in ("epochs", "lbfgs_iters", "patience", "val_every", "batch_size", "max_restarts"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                problems.append(f"{name} must be a non-negative integer, not {v!r}")
+        if not (0.0 <= float(self.val_fraction) < 1.0):
+            problems.append(f"val_fraction must be in [0, 1), not {self.val_fraction!r}")
+        for name in ("lam", "weight_decay", "continuity", "lr_final"):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) >= 0):
+                problems.append(f"{name} must be a non-negative number, not {getattr(self, name)!r}")
+        if isinstance(self.freeze, str):
+            self.freeze = [s for s in self.freeze.replace(",", " ").split() if s]
+        if problems:
+            raise TnnError([Diagnostic(f"training option: {p}", hint="see `tnnc train --help`") for p in problems])
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def load_config(path: str | os.PathLike | None = None, **overrides) -> TrainConfig:
+    """A :class:`TrainConfig` from a YAML file (keys = option names, ``-`` or ``_``) and overrides
+    (``None`` values ignored). Unknown keys are an error naming the known ones."""
+    import yaml
+
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as e:
+            raise TnnError(Diagnostic(f"cannot read the training config {p}: {e.strerror}",
+                                      hint="pass an existing YAML file to --config"))
+        try:
+            loaded = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            from ..ir import Span
+
+            span = Span(file=str(p), line=mark.line + 1, col=mark.column + 1, end_line=mark.line + 1,
+                        end_col=mark.column + 2) if mark is not None else None
+            raise TnnError(Diagnostic(f"the training config is not valid YAML: {getattr(e, 'problem', e)}",
+                                      span=span, hint="write `key: value` lines, e.g. `epochs: 200`"))
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise TnnError(Diagnostic(f"{p}: the training config must be a mapping of option: value",
+                                      hint="write `key: value` lines, e.g. `epochs: 200`"))
+        known = {f.name for f in dataclasses.fields(TrainConfig)}
+        for k, v in loaded.items():
+            key = str(k).replace("-", "_")
+            if key not in known:
+                import difflib
+
+                close = difflib.get_close_matches(key, sorted(known), n=1)
+                hint = f"did you mean `{close[0]}`?" if close else f"known options: {', '.join(sorted(known))}"
+                raise TnnError(Diagnostic(f"{p}: unknown training option {k!r}", hint=hint))
+            data[key] = v
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return TrainConfig(**data)
+    except TypeError as e:
+        raise TnnError(Diagnostic(f"training config: {e}"))

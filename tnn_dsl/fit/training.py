@@ -1,0 +1,173 @@
+"""Training a network: :func:`train` (one trainer for both backends, thesis §4.5, eq. 4.6–4.8; see
+:mod:`.trainer` for how it works) and :func:`evaluate`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ..core import Diagnostic, TnnError
+from ..data import as_experiments
+from .config import TrainConfig, load_config
+from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
+from .trainer import _net_of, _Trainer
+
+__all__ = ["TrainConfig", "train", "evaluate", "load_config"]
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter transforms: flat unconstrained z <-> named arrays
+# ---------------------------------------------------------------------------------------------
+
+
+# ---------------------------------------------------------------------------------------------
+# Windows
+# ---------------------------------------------------------------------------------------------
+
+
+# ---------------------------------------------------------------------------------------------
+# The trainer
+# ---------------------------------------------------------------------------------------------
+
+
+# ---------------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------------
+
+
+def train(network, data, val=None, *, config: TrainConfig | dict | str | os.PathLike | None = None,
+          out: str | os.PathLike | None = None, force: bool = False,
+          callback: Callable[[dict], None] | None = None,
+          log: Callable[[str], None] | None = None, **options):
+    """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
+
+    Parameters
+    ----------
+    network : Network or path to a ``.thn`` file
+    data : training data: path(s) or ``Experiment``(s); several files are trained together
+    val : validation data (path(s) or ``Experiment``s); validation is a free run over each experiment.
+        Without it, ``val_fraction`` holds out the end of each training file, else the training loss
+        decides early stopping.
+    config : :class:`TrainConfig`, a dict of options or a YAML file; ``**options`` override it.
+    out : model directory to write (atomically), also after Ctrl-C or divergence (best state kept). It is
+        checked before training starts: it must be absent, empty or a model directory, unless ``force``
+        (then the model's files are written into the directory and its other files are kept).
+    callback : ``f(info)`` after each epoch: ``epoch, epochs, phase, loss, val_mae, best_val_mae,
+        elapsed, eta`` (s).
+    log : ``f(message)`` for notes and warnings (default: silent).
+
+    Returns a :class:`TrainedModel`; ``meta["metrics"]`` holds training and validation errors (K),
+    ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
+    (``completed``, ``early_stopping``, ``time_limit``, ``interrupted``, ``diverged``)."""
+    from ..compiler import compile as compile_network
+    from ..core import check_output
+    from ..data import split_by_time
+
+    if isinstance(config, TrainConfig):
+        cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
+    elif isinstance(config, dict):
+        cfg = load_config(None, **{**config, **options})
+    else:
+        cfg = load_config(config, **options)
+    if out is not None:
+        check_output(out, MODEL_DIR, force=force, inputs=[*_input_paths(network, data, val), cfg.init_from])
+    net = _net_of(network)
+    exps = as_experiments(net, data)
+    if not exps:
+        raise TnnError(Diagnostic("no training data given", hint="pass at least one CSV or Parquet file"))
+    vals = as_experiments(net, val)
+    if not vals and cfg.val_fraction > 0:
+        parts = [split_by_time(e, 1.0 - cfg.val_fraction) for e in exps]
+        exps, vals = [a for a, _ in parts], [b for _, b in parts]
+    for e in exps + vals:
+        if e.n_steps < 2:
+            raise TnnError(Diagnostic(f"{e.path}: {e.name} has {e.n_steps} sample(s); training needs at least 2",
+                                      hint="pass a longer data file"))
+        if not np.isfinite(np.asarray(e.outputs, dtype=float)).any():
+            raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
+                                      hint="check the sensor columns named in the network"))
+    model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
+    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
+    t_start = time.perf_counter()
+    params = tr.initial_params()
+    nom, nom_bp, runs = tr.nominal_runs(params)
+    tr.set_stats(params, nom, nom_bp, runs)
+    tr.prefit_replace(params, nom, nom_bp, runs)
+    tr.layout(params)
+    tr.build_batches(runs)
+    z = tr.run()
+    final = tr.numpy_params(z)
+    trained = TrainedModel(net, final, meta={}, path=None)
+    trained._models[(cfg.backend, cfg.dtype)] = model
+    metrics: dict[str, Any] = {}
+    metrics["train"] = _metrics_or_nan(trained, exps, cfg)
+    if vals:
+        metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
+    fitted = {}
+    for sl in tr.slots:
+        if model.param_specs[sl.name].kind == "physical":
+            fitted[sl.name] = {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
+    trained.meta = {
+        "network": net.name,
+        "backend": cfg.backend,
+        "dtype": cfg.dtype,
+        "versions": versions(cfg.backend),
+        "data": {"train": _data_desc(exps), "validation": _data_desc(vals)},
+        "data_files": data_records(sorted({e.path for e in exps + vals if getattr(e, "path", None)})),
+        "normalisation": tr.normalisation,
+        "metrics": metrics,
+        "fitted": fitted,
+        "curve": tr.curve,
+        "config": cfg.to_dict(),
+        "rollout": tr.mode,
+        "window_s": None if tr.mode == "free" else tr.window,
+        "stopped": tr.stopped,
+        "warnings": tr.warnings,
+        "train_seconds": time.perf_counter() - t_start,
+    }
+    if out is not None:
+        trained.save(out, force=force)
+    return trained
+
+
+def _input_paths(network, data, val) -> list:
+    """The files a training run reads (for the output check): the network's sources and the data paths."""
+    paths: list = []
+    if isinstance(network, (str, os.PathLike)):
+        paths.append(network)
+    else:
+        paths.extend(getattr(network, "source_files", ()) or ())
+    for d in (data, val):
+        items = d if isinstance(d, (list, tuple)) else [d]
+        paths.extend(x if isinstance(x, (str, os.PathLike)) else getattr(x, "path", None) for x in items)
+    return paths
+
+
+def _metrics_or_nan(trained, exps, cfg):
+    try:
+        return trained.evaluate(exps, backend=cfg.backend, init=cfg.init)
+    except FloatingPointError:
+        return {"mae": math.nan}
+
+
+def _data_desc(exps) -> list[dict[str, Any]]:
+    return [{"name": e.name, "path": getattr(e, "path", None), "n_samples": int(e.n_steps), "dt": float(e.dt),
+             "t0": float(np.asarray(e.t)[0]), "notes": list(getattr(e, "notes", ()))} for e in exps]
+
+
+def evaluate(model, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
+    """Errors of a trained model (a :class:`TrainedModel` or a model directory) on data: per-sensor and
+    overall MAE, max error (thesis eq. 4.9), bias and RMSE in K. Free run from the steady state of the
+    first inputs (``init="measured"``: sensor nodes from the first measurement)."""
+
+    tm = model if isinstance(model, TrainedModel) else load_model(model)
+    return tm.evaluate(data, backend=backend, init=init)
