@@ -251,7 +251,7 @@ def _inputs(spec: NetSpec, names, n: int, seed: int):
 def make_data(case: Case, noise: float, seed: int, quick: bool, workdir: str):
     """(network the doctor sees, train, val): Experiments, or CSV paths for an unused-column case."""
     import tnn_dsl
-    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.data.experiment import Experiment
     from tnn_dsl.studies.planted import plant
 
     spec = NETWORKS[case.net]
@@ -277,7 +277,8 @@ def make_data(case: Case, noise: float, seed: int, quick: bool, workdir: str):
         return net, exps[:1], exps[1:]
     # a data column the model does not read: the truth has it as an input driving a heat load
     node, col, gain = case.column
-    from tnn_dsl.data.io import unit_factor, write_csv
+    from tnn_dsl.data.units import unit_factor
+    from tnn_dsl.data.write import write_csv
     from tnn_dsl.ir.network import Binary, Input, Num, Param, Ref, Source
 
     pname = f"Q_planted_{col}"

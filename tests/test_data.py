@@ -1,4 +1,4 @@
-"""Data loading (tnn_dsl.data.io): CSV/Parquet → Experiment, units, time, resampling, errors."""
+"""Data loading (tnn_dsl.data): CSV/Parquet → Experiment, units, time, resampling, errors."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tnn_dsl import DataError
-from tnn_dsl.data.io import Experiment, from_kelvin, read_data, split_by_time, to_kelvin, write_csv
+from tnn_dsl.data import Experiment, from_kelvin, read_data, split_by_time, to_kelvin, write_csv
 from tnn_dsl.ir.network import Input, Network, Sensor
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

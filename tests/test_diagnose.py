@@ -226,11 +226,11 @@ def test_null_data_set_gives_no_finding(backend):
 
 
 def _write(exp, net, path):
-    from tnn_dsl.data.io import write_csv
+    from tnn_dsl.data import write_csv
 
     cols = {}
     for j, i in enumerate(net.inputs):
-        from tnn_dsl.data.io import unit_factor
+        from tnn_dsl.data import unit_factor
 
         cols[i.column] = exp.inputs[:, j] / (1.0 if i.is_temperature else unit_factor(i.unit))
     kel = [s.column for s in net.sensors]

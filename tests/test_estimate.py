@@ -171,7 +171,7 @@ def test_option_errors():
 
 def test_cli_estimate(tmp_path, capsys):
     from tnn_dsl.cli import main
-    from tnn_dsl.data.io import write_csv
+    from tnn_dsl.data import write_csv
 
     U, Y = _two_data(N=300)
     t = np.arange(300.0)

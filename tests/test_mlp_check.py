@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl.data.io import Experiment
+from tnn_dsl.data import Experiment
 from tnn_dsl.doctor.mlp_check import compare, mlp_text
 
 BASE = """network board "one heater"

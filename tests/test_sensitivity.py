@@ -210,7 +210,7 @@ def test_same_results_on_both_backends(m1_reports):
 def test_trajectory_sensitivity_matches_finite_differences(backend, m1):
     from tnn_dsl.analysis.sensitivities import _trajectory_sensitivity
     from tnn_dsl.compiler.backends.adapter import backend_of
-    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.data import Experiment
 
     model = _compile_net(m1, backend=backend, dtype="float64")
     n = 301
@@ -271,7 +271,7 @@ def series_net():
 
 
 def _series_data(net, tmp_path=None, seconds: int = 3 * 3600, dt: float = 10.0):
-    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.data import Experiment
     from tnn_dsl.studies.casestudy import step_sequence
 
     n = int(seconds / dt) + 1

@@ -23,7 +23,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.compiler.model import compile as _compile
-from tnn_dsl.data.io import Experiment
+from tnn_dsl.data import Experiment
 from tnn_dsl.doctor.base import MASS_FRACTION_BOUNDS
 from tnn_dsl.doctor.candidates import build_extended
 from tnn_dsl.doctor.forcing import mass_forcing, mass_grid

@@ -209,7 +209,7 @@ def _prbs(rng, n, lo, hi, hold=(30, 150)):
 
 def _simulated(net, seed, n, dt=2.0, backend="jax"):
     """An Experiment simulated from ``net`` (its written values) with PRBS heater inputs."""
-    from tnn_dsl.data.io import Experiment
+    from tnn_dsl.data import Experiment
     from tnn_dsl.fit.simulation import simulate
 
     rng = np.random.default_rng(seed)
@@ -343,7 +343,7 @@ STEPS = DATA / "tclab_apmonitor_energy_balance_steps.csv"
 @pytest.mark.parametrize("backend", SLOW_TORCH)
 def test_tclab_real_fit(backend):
     import tnn_dsl
-    from tnn_dsl.data.io import read_data, split_by_time
+    from tnn_dsl.data import read_data, split_by_time
 
     net = tnn_dsl.load(ROOT / "networks" / "tclab" / "tclab.thn")
     (exp,) = read_data(net, PRBS)
@@ -370,7 +370,7 @@ def test_building_titeth_default_windows_fit_the_free_run(backend):
     worse: training MAE 6.4 K, measured 2026-11-23). The fitted model must follow the training part as a
     free run about as well as the one-state model Ti does (1.64 K), and its windows must be 50 samples."""
     import tnn_dsl
-    from tnn_dsl.data.io import read_data, split_by_time
+    from tnn_dsl.data import read_data, split_by_time
 
     net = tnn_dsl.load(ROOT / "networks" / "building" / "titeth.thn")
     (exp,) = read_data(net, BUILDING, time_unit="h")
@@ -387,7 +387,7 @@ def test_loss_and_gradient_agree_across_backends(case_short):
     """The one trainer on both backends: same loss and gradient for M2 (multiple shooting, all terms on)."""
     import tnn_dsl
     from tnn_dsl.compiler.model import compile as compile_network
-    from tnn_dsl.data.io import read_data
+    from tnn_dsl.data import read_data
     from tnn_dsl.fit.trainer import _Trainer
 
     net = tnn_dsl.load(NETS / "m2.thn")

@@ -6,18 +6,11 @@ May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.lang`` (units).
 
 from __future__ import annotations
 
-from .io import (
-    Experiment,
-    as_experiments,
-    from_kelvin,
-    read_data,
-    read_table,
-    split_by_time,
-    to_kelvin,
-    unit_factor,
-    unit_scale_offset,
-    write_csv,
-)
+from .experiment import Experiment, split_by_time
+from .reading import as_experiments, read_data
+from .tables import read_table
+from .units import from_kelvin, to_kelvin, unit_factor, unit_scale_offset
+from .write import write_csv
 
 __all__ = [
     "Experiment", "as_experiments", "from_kelvin", "read_data", "read_table", "split_by_time", "to_kelvin",
