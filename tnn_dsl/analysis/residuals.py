@@ -213,5 +213,3 @@ def summarise(residuals: np.ndarray, names: list[str], variables: dict[str, np.n
     for j, n in enumerate(names):
         dep[n] = {v: binned_dependence(residuals[:, j], x, bins) for v, x in (variables or {}).items()}
     return ResidualSummary(errs, white, sig, dep)
-
-

@@ -57,7 +57,6 @@ from .base import _AREA_DIM, _DEP_ROLES, _GK_DIM, _K_DIM, Candidate, Column, Ext
 __all__ = ["build_extended"]
 
 
-
 def _param_nodes(net: Network) -> dict[str, set[str]]:
     """Parameter name → the nodes/boundaries of the element(s) that use it (directly or through a derived
     parameter's expression)."""

@@ -92,5 +92,3 @@ def load(path: str | os.PathLike) -> Network:
 
 
 __all__ = ["load", "loads", "parse"]
-
-
