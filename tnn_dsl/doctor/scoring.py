@@ -71,27 +71,7 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     rates = cur.rates(X, U) if struct else None  # (N, ns) K/s
     mass_rows: list[tuple[Candidate, float | None, str | None]] = []  # (candidate, C or τ, source part)
     if mass or smass:
-        # At first order (T_m = (1−f)·T_a + f·T_b) a mass on a link to a constant boundary is exactly a larger
-        # capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its
-        # lag at a grid of capacities (``mass_grid``: T_m lagged behind its quasi-static value on the current
-        # trajectory, the flows divided by C); the column explaining most of the residual is the candidate's.
-        from .forcing import mass_forcing, mass_grid, source_lag_forcing, source_tau_grid
-
-        lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
-        dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
-        duration = max(n * d for n, d in zip(lens, dts))
-        Fm = []
-        for c in mass:
-            for cg in [None] + mass_grid(cur.net, c, cur.params, min(dts), duration):
-                Fm.append(mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates,
-                                       mass=cg)[:, :nn])
-                mass_rows.append((c, cg, None))
-        for c in smass:  # two columns per τ: the lag part and the capacity part (per J/K of C_h)
-            for tau in source_tau_grid(min(dts), duration):
-                Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau)[:, :nn])
-                mass_rows.append((c, tau, "lag"))
-                Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau, rates=rates)[:, :nn])
-                mass_rows.append((c, tau, "capacity"))
+        Fm, mass_rows = _structural_forcing(cur, mass, smass, X, U, rates, nn)
         if Fm:
             F = np.concatenate([F, np.stack(Fm)], axis=0)
     J_all = cur.forced_jacobian(active_base, F)
@@ -99,65 +79,112 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     n0 = len(active_base)
     J_all[:, n0: n0 + direct.shape[1]] += direct
     if struct:
-        names = list(cur.model.state_names)
-        outs = list(cur.model.output_names)
-        cols_of = dict(cols_of)
-        n_new = 0
-        extra_cols = []
-        if mass_rows:  # the forced Jacobian's last columns: keep each mass's best one (free directions projected out)
-            n_c = n0 + direct.shape[1]
-            Jm, J_all = J_all[:, n_c:], J_all[:, :n_c]
-            r_tr = cur.residual().ravel()[cur.train_idx]
-            Ub = _free_basis(J_all[:, :n0])
-            rp = r_tr - Ub @ (Ub.T @ r_tr)
-            Jp = Jm - Ub @ (Ub.T @ Jm)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                share = (Jp.T @ rp) ** 2 / (np.sum(Jp * Jp, axis=0) * max(float(rp @ rp), 1e-300))
-            share = np.where(np.isfinite(share), share, -1.0)
-            best: dict[str, tuple[float, int, int]] = {}  # key -> (share of the residual, first column, width)
-            i = 0
-            while i < len(mass_rows):
-                c, _, part = mass_rows[i]
-                width = 2 if part == "lag" else 1
-                if width == 2:  # a source's lag and capacity columns together
-                    A = Jp[:, i:i + 2]
-                    coef = np.linalg.lstsq(A, rp, rcond=None)[0]
-                    fit = A @ coef
-                    sc = float(fit @ fit) / max(float(rp @ rp), 1e-300)
-                    sc = sc if np.isfinite(sc) else -1.0
-                else:
-                    sc = float(share[i])
-                if c.key not in best or sc > best[c.key][0]:
-                    best[c.key] = (sc, i, width)
-                i += width
-            for c in mass + smass:
-                _, i, width = best[c.key]
-                c.element["score_mass" if c.kind == "thermal_mass" else "score_tau"] = mass_rows[i][1]  # None: 1st order
-                idx = []
-                for w in range(width):
-                    extra_cols.append(Jm[:, i + w])
-                    idx.append(len(big.cols) + n_new)
-                    n_new += 1
-                cols_of[c.key] = idx
-                cand_idx = cand_idx + idx
-        for c in struct:
-            if c.kind in ("thermal_mass", "source_mass"):
-                continue
-            col = np.zeros((nsr, len(outs)))
-            if c.kind == "sensor_lag":
-                col[:, outs.index(c.target)] = -rates[:, names.index(c.element["node"])]
-                col = _best_lag_column(cur, c, col, X[:, names.index(c.element["node"])], outs.index(c.target),
-                                       J_all[:, :n0])
-            j = len(big.cols) + n_new
-            n_new += 1
-            cols_of[c.key] = [j]
-            cand_idx = cand_idx + [j]
-            extra_cols.append(col.reshape(-1)[cur.train_idx])
-        if extra_cols:
-            J_all = np.concatenate([J_all, np.stack(extra_cols, axis=1)], axis=1)
+        J_all, cols_of, cand_idx = _structural_columns(cur, big, struct, mass_rows, J_all, n0, direct.shape[1], X,
+                                                       rates, dict(cols_of), cand_idx)
     e = cur.residual()
     return _score_stats(J_all, len(active_base), e.ravel()[cur.train_idx], cands, cand_idx, cols_of,
                         _noise_var(e, cur.train_mask))
+
+
+def _structural_forcing(cur: _Engine, mass: list[Candidate], smass: list[Candidate], X, U, rates, nn: int):
+    """Forcing heat flows of the thermal-mass and source-mass candidates, ``[(N, nn)]``, and what each is:
+    ``[(candidate, capacity or τ, source part)]``.
+
+    At first order (T_m = (1−f)·T_a + f·T_b) a mass on a link to a constant boundary is exactly a larger
+    capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its lag
+    at a grid of capacities (``mass_grid``: T_m lagged behind its quasi-static value on the current trajectory,
+    the flows divided by C); a source mass gets two columns per τ of a grid, the lag part and the capacity part
+    (per J/K of C_h). The column explaining most of the residual is the candidate's
+    (:func:`_best_structural_columns`)."""
+    from .forcing import mass_forcing, mass_grid, source_lag_forcing, source_tau_grid
+
+    lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
+    dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
+    duration = max(n * d for n, d in zip(lens, dts))
+    Fm, rows = [], []
+    for c in mass:
+        for cg in [None] + mass_grid(cur.net, c, cur.params, min(dts), duration):
+            Fm.append(mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates, mass=cg)[:, :nn])
+            rows.append((c, cg, None))
+    for c in smass:
+        for tau in source_tau_grid(min(dts), duration):
+            Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau)[:, :nn])
+            rows.append((c, tau, "lag"))
+            Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau, rates=rates)[:, :nn])
+            rows.append((c, tau, "capacity"))
+    return Fm, rows
+
+
+def _structural_columns(cur: _Engine, big: _Engine, struct: list[Candidate], mass_rows, J_all: np.ndarray, n0: int,
+                        n_direct: int, X, rates, cols_of: dict[str, list[int]], cand_idx: list[int]):
+    """The score-test columns of the structural candidates appended to ``J_all``: each mass's best forced
+    column (the forced Jacobian's last columns), a sensor lag's direct output column ``−dT_n/dt`` at its best
+    lag. Returns ``(J_all, cols_of, cand_idx)`` with their column indices after the big engine's."""
+    names = list(cur.model.state_names)
+    outs = list(cur.model.output_names)
+    nsr = cur.n_score_rows
+    n_new = 0
+    extra_cols = []
+    if mass_rows:
+        n_c = n0 + n_direct
+        Jm, J_all = J_all[:, n_c:], J_all[:, :n_c]
+        best = _best_structural_columns(cur, Jm, J_all[:, :n0], mass_rows)
+        mass = [c for c in struct if c.kind == "thermal_mass"]
+        for c in mass + [c for c in struct if c.kind == "source_mass"]:
+            _, i, width = best[c.key]
+            c.element["score_mass" if c.kind == "thermal_mass" else "score_tau"] = mass_rows[i][1]  # None: 1st order
+            idx = []
+            for w in range(width):
+                extra_cols.append(Jm[:, i + w])
+                idx.append(len(big.cols) + n_new)
+                n_new += 1
+            cols_of[c.key] = idx
+            cand_idx = cand_idx + idx
+    for c in struct:
+        if c.kind in ("thermal_mass", "source_mass"):
+            continue
+        col = np.zeros((nsr, len(outs)))
+        if c.kind == "sensor_lag":
+            col[:, outs.index(c.target)] = -rates[:, names.index(c.element["node"])]
+            col = _best_lag_column(cur, c, col, X[:, names.index(c.element["node"])], outs.index(c.target),
+                                   J_all[:, :n0])
+        j = len(big.cols) + n_new
+        n_new += 1
+        cols_of[c.key] = [j]
+        cand_idx = cand_idx + [j]
+        extra_cols.append(col.reshape(-1)[cur.train_idx])
+    if extra_cols:
+        J_all = np.concatenate([J_all, np.stack(extra_cols, axis=1)], axis=1)
+    return J_all, cols_of, cand_idx
+
+
+def _best_structural_columns(cur: _Engine, Jm: np.ndarray, J_free: np.ndarray, mass_rows) -> dict:
+    """For each mass candidate, the column (a source's lag and capacity columns: the pair) whose projection
+    off the free directions explains most of the training residual: ``key -> (share, first column, width)``."""
+    r_tr = cur.residual().ravel()[cur.train_idx]
+    Ub = _free_basis(J_free)
+    rp = r_tr - Ub @ (Ub.T @ r_tr)
+    Jp = Jm - Ub @ (Ub.T @ Jm)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = (Jp.T @ rp) ** 2 / (np.sum(Jp * Jp, axis=0) * max(float(rp @ rp), 1e-300))
+    share = np.where(np.isfinite(share), share, -1.0)
+    best: dict[str, tuple[float, int, int]] = {}
+    i = 0
+    while i < len(mass_rows):
+        c, _, part = mass_rows[i]
+        width = 2 if part == "lag" else 1
+        if width == 2:  # a source's lag and capacity columns together
+            A = Jp[:, i:i + 2]
+            coef = np.linalg.lstsq(A, rp, rcond=None)[0]
+            fit = A @ coef
+            sc = float(fit @ fit) / max(float(rp @ rp), 1e-300)
+            sc = sc if np.isfinite(sc) else -1.0
+        else:
+            sc = float(share[i])
+        if c.key not in best or sc > best[c.key][0]:
+            best[c.key] = (sc, i, width)
+        i += width
+    return best
 
 
 def _free_basis(Jf: np.ndarray) -> np.ndarray:
