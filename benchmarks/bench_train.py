@@ -90,15 +90,17 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
         opts = (f"a fixed schedule for comparing backends (Adam {epochs} epochs, validation every 10, no L-BFGS, "
                 "no early stopping; otherwise defaults)")
     else:
-        opts = ("default options (`rollout auto` = multiple shooting with 600 s windows, Adam 300 epochs, then up to 1000 "
-                "L-BFGS iterations from Adam's last state; sigmoid MLPs optimised in tanh coordinates)")
+        opts = ("default options (`rollout auto` = multiple shooting with 600 s windows, Adam 300 epochs, then up to "
+                "1000 L-BFGS iterations from Adam's last state; sigmoid MLPs optimised in tanh coordinates)")
     out = [f"Case study ({size}, no noise), {opts}, seed 0, float64. The clock includes compilation and validation.",
            "", *lines, ""]
     if epochs:
-        fin = {r["backend"]: r["final_val_mae"] for r in rows if "final_val_mae" in r and r["model"] == rows[0]["model"]}
+        fin = {r["backend"]: r["final_val_mae"] for r in rows
+               if "final_val_mae" in r and r["model"] == rows[0]["model"]}
         if "torch" in fin and "jax" in fin:
-            out.append(f"{rows[0]['model'].upper()}: torch / JAX final validation MAE = {fin['torch'] / fin['jax']:.12f} "
-                       "(the one trainer follows the same trajectory on both backends).")
+            out.append(f"{rows[0]['model'].upper()}: torch / JAX final validation MAE = "
+                       f"{fin['torch'] / fin['jax']:.12f} (the one trainer follows the same trajectory on both "
+                       "backends).")
         return "\n".join(out) + "\n"
     if m2j is not None:
         ok = m2j["t_reach"] <= TARGET_M2_JAX_S

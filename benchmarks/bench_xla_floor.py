@@ -194,9 +194,9 @@ def main(argv=None) -> int:
     md = ["Per-kernel cost in a `lax.scan` body (chain of K dependent tanh layers on an 8-vector):", "",
           "| layers K | fusions in the compiled loop | ns per step |", "|---|---|---|"]
     md += [f"| {k} | {nf} | {ns:.0f} |" for k, nf, ns in fus]
-    md += ["", f"Slope: **{slope:.0f} ns per fusion** in the loop body. The model's compiled RK4 step of the case study "
-           f"(M3, single sequence) has {n_model} fusions in its loop body: **{n_model * slope / 1000:.2f} µs/step** from "
-           "kernel cost alone.", "",
+    md += ["", f"Slope: **{slope:.0f} ns per fusion** in the loop body. The model's compiled RK4 step of the case "
+           f"study (M3, single sequence) has {n_model} fusions in its loop body: "
+           f"**{n_model * slope / 1000:.2f} µs/step** from kernel cost alone.", "",
            "Skeleton of the batched M3 step (256 windows × 390 steps, RK4; MLP 4→8→8→3 and the network as small "
            "products), µs per window-step:", "",
            "| layout | with transcendentals (tanh-sigmoid, softplus) | µs per window-step |", "|---|---|---|"]

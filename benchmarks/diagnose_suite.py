@@ -394,7 +394,8 @@ def table(rows: list[dict]) -> str:
         a = np.median([r["mae_after"] for r in rs])
         above = [r["ratio"] >= 2 for r in rs if r["above_noise"]]
         if kind == "null":
-            out.append(f"| {net} | null | {noise:g} | {len(rs)} | | | | false acceptance {_pct(r['false_accept'] for r in rs)} "
+            out.append(f"| {net} | null | {noise:g} | {len(rs)} | | | | "
+                       f"false acceptance {_pct(r['false_accept'] for r in rs)} "
                        f"| {b:.3g} → {a:.3g} | | {rs[-1]['first_answer'] or '–'} |")
             continue
         dep = [r["dep"] for r in rs if "dep" in r]
@@ -429,7 +430,8 @@ def case_study_time(backend: str = "jax") -> dict:
         t0 = time.monotonic()
         d = tnn_dsl.diagnose(m1, cs["train"], cs["val"], backend=backend)
         dt = time.monotonic() - t0
-    return {"seconds": dt, "verdict": d.verdict, "mae_before": d.baseline["val_mae"], "mae_after": d.extended["val_mae"]}
+    return {"seconds": dt, "verdict": d.verdict, "mae_before": d.baseline["val_mae"],
+            "mae_after": d.extended["val_mae"]}
 
 
 def main(argv=None) -> int:
@@ -455,7 +457,8 @@ def main(argv=None) -> int:
 
     noises = tuple(float(x) for x in a.noise.split(",")) if a.noise else ((0.01,) if a.quick else NOISES)
     seeds = range(a.seeds if a.seeds is not None else (1 if a.quick else 2))
-    cases = [c for c in CASES if (a.only is None or a.only in c.name) and (not a.quick or a.all_nets or c.net.startswith("tclab"))]
+    cases = [c for c in CASES
+             if (a.only is None or a.only in c.name) and (not a.quick or a.all_nets or c.net.startswith("tclab"))]
     done: dict[tuple, dict] = {}
     rows: list[dict] = []
     if a.jsonl and (a.resume or a.table_only) and os.path.exists(a.jsonl):
@@ -501,7 +504,8 @@ def main(argv=None) -> int:
         sys.path.insert(0, HERE)
         from _report import write_section
 
-        write_section("diagnosis", md, path=os.path.join(ROOT, "BENCHMARKS.md"), title="Model doctor: hidden-effect suite")
+        write_section("diagnosis", md, path=os.path.join(ROOT, "BENCHMARKS.md"),
+                      title="Model doctor: hidden-effect suite")
     return 0
 
 

@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.data import read_data
-from tnn_dsl.data.experiment import split_by_time
+from tnn_dsl.data import read_data  # noqa: E402
+from tnn_dsl.data.experiment import split_by_time  # noqa: E402
 from tnn_dsl.estimation.kalman import ekf, tune_process_noise  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "bacher_madsen_inputPRBS1.csv"

@@ -11,7 +11,8 @@ automatic differentiation through the model's rollout; the bounds are enforced b
     .venv/bin/python examples/mpc_case_study.py [--backend jax|torch] [--plot docs/img/mpc_case_study.png]
 
 Checks (exit 1 if violated): in the 5 minutes before the controller's horizon first reaches a set-point
-change, before the disturbance and before the end (the settled windows), |T_out − r| < 0.1 K; the applied current never leaves [0, 3] A.
+change, before the disturbance and before the end (the settled windows), |T_out − r| < 0.1 K; the applied
+current never leaves [0, 3] A.
 """
 
 from __future__ import annotations
@@ -117,7 +118,8 @@ def plot(path, res, label, changes):
     ax[1].axhline(3, color="0.5", lw=0.8, ls=":", label="bounds")
     ax[1].set_ylabel("I [A]")
     ax[1].legend(fontsize=8)
-    ax[2].step(tm, res.u[:, 1], where="post", color="C2", lw=1.1, label="u1 (heat-pipe input; the nominal model ignores it)")
+    ax[2].step(tm, res.u[:, 1], where="post", color="C2", lw=1.1,
+               label="u1 (heat-pipe input; the nominal model ignores it)")
     ax[2].plot(tm, res.d * 1e3 / 100, color="C4", lw=0.9, label="output disturbance estimate d [×100 mK]")
     ax[2].set_ylabel("u1 [1]")
     ax[2].set_xlabel("time [min]")

@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.data import read_data
-from tnn_dsl.data.experiment import split_by_time
+from tnn_dsl.data import read_data  # noqa: E402
+from tnn_dsl.data.experiment import split_by_time  # noqa: E402
 from tnn_dsl.ir.emit import format_quantity  # noqa: E402
 
 DATA = Path(os.environ.get("TNN_SHARED", ROOT.parent / "shared")) / "data"

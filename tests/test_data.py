@@ -133,7 +133,8 @@ mutations = st.one_of(
     st.tuples(st.just("truncate"), st.integers(0, len(VALID)), st.just(0)),
     st.tuples(st.just("swap_lines"), st.integers(1, 5), st.integers(1, 5)),
     st.tuples(st.just("dup_line"), st.integers(1, 5), st.just(0)),
-    st.tuples(st.just("cell"), st.integers(0, 29), st.sampled_from(["abc", "", "nan", "1e999", "--", "1,5", '"x"', "inf"])),
+    st.tuples(st.just("cell"), st.integers(0, 29),
+              st.sampled_from(["abc", "", "nan", "1e999", "--", "1,5", '"x"', "inf"])),
 )
 
 
@@ -314,7 +315,8 @@ def test_irregular_sampling_is_resampled(tmp_path):
 
 
 def test_resampling_keeps_nan_sensor_gaps(tmp_path):
-    p = write(tmp_path / "g.csv", "time_s,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,1,2,20,4\n1.5,1,2,,4\n3,1,2,23,4\n4,1,2,24,4\n")
+    p = write(tmp_path / "g.csv",
+              "time_s,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,1,2,20,4\n1.5,1,2,,4\n3,1,2,23,4\n4,1,2,24,4\n")
     (exp,) = read_data(tclab_net(), p, dt=1.0)
     y = exp.outputs[:, 0] - 273.15
     assert y[0] == pytest.approx(20.0) and np.isnan(y[1]) and np.isnan(y[2]) and y[3] == pytest.approx(23.0)

@@ -131,7 +131,8 @@ def test_forced_score_matches_the_big_network(backend):
     kinds = ("wrong_constant", "radiation", "sensor_offset")  # a small "big" network: fast to compile
     ext = build_extended(net, ["Q1", "Q2"], kinds=kinds)
     state, ref = E._State(), {}
-    cur = E._make_engine(build_extended(net, ["Q1", "Q2"], kinds=kinds, only=set()), net, exps, tm, vm, backend, state, ref, [])[0]
+    cur = E._make_engine(build_extended(net, ["Q1", "Q2"], kinds=kinds, only=set()), net, exps, tm, vm, backend,
+                         state, ref, [])[0]
     big, _, free, cols = E._make_engine(ext, net, exps, tm, vm, backend, state, ref,
                                         [c.key for c in ext.candidates], with_candidates=True)
     fast = S._score_forced(cur, big, ext.candidates, cols, [])

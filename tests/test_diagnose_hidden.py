@@ -31,7 +31,8 @@ ROOT = os.path.dirname(HERE)
 
 
 def _load_suite():
-    spec = importlib.util.spec_from_file_location("diagnose_suite", os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
+    spec = importlib.util.spec_from_file_location("diagnose_suite",
+                                                  os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
     mod = importlib.util.module_from_spec(spec)
     sys.modules.setdefault("diagnose_suite", mod)  # dataclasses look their module up
     spec.loader.exec_module(mod)

@@ -8,7 +8,8 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.data import Experiment
-from tnn_dsl.doctor.mlp_check import compare, mlp_text
+from tnn_dsl.doctor.mlp_check import compare, mlp_variant
+from tnn_dsl.lang import print_thn
 
 BASE = """network board "one heater"
 units temperature = degC
@@ -21,22 +22,18 @@ source h = 0.01 W/% * Q  as Qh
 sensor T = h  column "T_degC"
 """
 
-EXTENDED = BASE + """
-# ---- added by `tnnc diagnose` -------------------------------------------------
-# U depends on Q
-learn U as linear(Q)
-"""
+EXTENDED = tnn_dsl.loads(BASE + "learn U as linear(Q)\n", "x.thn")  # the doctor's finding: U depends on Q
 
 
-def test_mlp_text_changes_only_the_doctors_linear_clauses():
-    user = BASE + "learn Qh as linear(Q)\n"
-    text = user + EXTENDED[len(BASE):]
-    new, n = mlp_text(text)
+def test_mlp_variant_changes_only_the_doctors_linear_functions():
+    net = tnn_dsl.loads(BASE + "learn Qh as linear(Q)\nlearn U as linear(Q)\n", "x.thn")
+    new, n = mlp_variant(net, {"U"})
     assert n == 1
-    assert "learn Qh as linear(Q)" in new  # the user's own clause, above the marker, is left alone
-    assert "learn U as mlp(Q; hidden = [8], activation = tanh)" in new
-    tnn_dsl.loads(new, "x.thn")  # a valid network
-    assert mlp_text(BASE) == (BASE, 0)
+    text = print_thn(new)
+    assert "learn Qh as linear(Q)" in text  # the user's own function is left alone
+    assert "learn U as mlp(Q; hidden = [8])" in text  # tanh: the default activation
+    assert [fn.kind for fn in tnn_dsl.loads(text, "x.thn").learned] == ["linear", "mlp"]  # a valid network
+    assert mlp_variant(net, set()) == (net, 0)
 
 
 def _data(conductance, n, seed):
@@ -67,18 +64,18 @@ def _data(conductance, n, seed):
 @pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
     curved = lambda q: 0.02 * (1 + 12 * (q - 0.5) ** 2)  # noqa: E731 - convection that rises at both ends
-    r = compare(EXTENDED, "x.thn", [_data(curved, 900, 1)], [_data(curved, 500, 2)], backend=backend,
+    r = compare(EXTENDED, {"U"}, [_data(curved, 900, 1)], [_data(curved, 500, 2)], backend=backend,
                 time_limit=20.0)
     assert r["choice"] == "mlp", r
     assert r["mlp"]["val_mae"] < 0.5 * r["linear"]["val_mae"]
-    assert "mlp(Q; hidden = [8], activation = tanh)" in r["text"]
+    assert "learn U as mlp(Q; hidden = [8])" in print_thn(r["network"])
     # the linear clause's own law: a conductance is ``nominal·pos1(1 + z)``, positive by construction, with
     # ``pos1(v) = softplus(4v)/softplus(4)`` (tnn_dsl.compiler.learned)
     def pos1(v):
         return np.logaddexp(0.0, 4.0 * v) / np.logaddexp(0.0, 4.0)
 
     straight = lambda q: 0.02 * float(pos1(1.0 + 0.5 * (q - 0.5) / 0.5))  # noqa: E731
-    r = compare(EXTENDED, "x.thn", [_data(straight, 900, 1)], [_data(straight, 500, 2)], backend=backend,
+    r = compare(EXTENDED, {"U"}, [_data(straight, 900, 1)], [_data(straight, 500, 2)], backend=backend,
                 time_limit=20.0)
     assert r["choice"] == "linear", r
-    assert "learn U as linear(Q)" in r["text"]
+    assert "learn U as linear(Q)" in print_thn(r["network"])

@@ -51,7 +51,8 @@ def test_every_network_loads_and_says_where_it_comes_from(path):
     assert net.nodes and net.sensors
     with open(path, encoding="utf-8") as f:
         first = f.readline()
-    assert first.startswith("# "), "each file opens with a comment saying what it models and where its numbers come from"
+    assert first.startswith("# "), (
+        "each file opens with a comment saying what it models and where its numbers come from")
 
 
 @pytest.mark.parametrize("path", ALL, ids=lambda p: os.path.relpath(p, NET))

@@ -53,7 +53,8 @@ NETS = {
     # T-linear product of the right-hand side (``_Core._fold``); heat_flows evaluates them unfolded
     "m2_extra": (lambda: case_study("linear", extra=True),
                  lambda rng, n: case_inputs(600, seed=2)[rng.integers(0, 600, n)]),
-    "m3_extra": (lambda: case_study("mlp", extra=True), lambda rng, n: case_inputs(600, seed=3)[rng.integers(0, 600, n)]),
+    "m3_extra": (lambda: case_study("mlp", extra=True),
+                 lambda rng, n: case_inputs(600, seed=3)[rng.integers(0, 600, n)]),
     "m4_extra": (lambda: case_study("mlp_peltier", extra=True),
                  lambda rng, n: case_inputs(600, seed=4)[rng.integers(0, 600, n)]),
 }
@@ -100,7 +101,8 @@ def assembled_rhs(model, p, T, u):
     lag = []
     for k, s in enumerate(P.lagged):
         # a boundary sensor in these nets reads an input-driven boundary (``amb = Ta``, input 1)
-        src = T[..., P.node_idx[s.node]] if s.node in P.node_idx else u[..., model.input_names.index("Ta")] * float(p.get("scale:T_amb", 1.0))
+        src = (T[..., P.node_idx[s.node]] if s.node in P.node_idx
+               else u[..., model.input_names.index("Ta")] * float(p.get("scale:T_amb", 1.0)))
         lag.append((src - T[..., n + k]) / val(s.lag))
     return np.concatenate([dT, np.stack(lag, -1)], -1) if lag else dT
 

@@ -71,8 +71,8 @@ def test_fisher_rejects_bad_sigma():
 compile_mod = pytest.importorskip("tnn_dsl.compiler.model", reason="the compiler is not there yet")
 
 import tnn_dsl  # noqa: E402
-from tnn_dsl.analysis.sensitivities import sensitivity
-from tnn_dsl.compiler.model import compile as _compile_net
+from tnn_dsl.analysis.sensitivities import sensitivity  # noqa: E402
+from tnn_dsl.compiler.model import compile as _compile_net  # noqa: E402
 from tnn_dsl.studies.casestudy import network_path  # noqa: E402
 
 C2K = 273.15
@@ -292,7 +292,8 @@ def _series_data(net, tmp_path=None, seconds: int = 3 * 3600, dt: float = 10.0):
     import pandas as pd
 
     path = tmp_path / "series.csv"
-    pd.DataFrame({"time": exp.t, "Q": q, "Ta": 20.0, "T_h": y[:, 0] - C2K, "T_s": y[:, 1] - C2K}).to_csv(path, index=False)
+    pd.DataFrame({"time": exp.t, "Q": q, "Ta": 20.0, "T_h": y[:, 0] - C2K,
+                  "T_s": y[:, 1] - C2K}).to_csv(path, index=False)
     return exp, str(path)
 
 
@@ -329,7 +330,8 @@ def test_series_resistances_not_separately_identifiable(backend, series_reports)
     kept = [n for n in ("R_a", "R_b") if verdict[n].verdict == "learn"]
     assert len(kept) == 1
     other = ({"R_a", "R_b"} - set(kept)).pop()
-    assert verdict[other].verdict == "fix" and "confounded" in verdict[other].reason and "learn only one" in verdict[other].reason
+    assert (verdict[other].verdict == "fix" and "confounded" in verdict[other].reason
+            and "learn only one" in verdict[other].reason)
     assert all(verdict[n].verdict == "learn" for n in ("R_c", "C_h", "C_s"))
     assert verdict["C_m"].verdict == "fix" and "insensitive" in verdict["C_m"].reason
 
@@ -351,7 +353,8 @@ def test_cli_sensitivity(tmp_path, capsys, series_net):
     thn.write_text(SERIES)
     _, csv = _series_data(series_net, tmp_path, seconds=3600)
     out_json, png = tmp_path / "s.json", tmp_path / "s.png"
-    rc = main(["sensitivity", str(thn), csv, "--sigma", "0.05", "--integrator", "expeuler", "--json", str(out_json), "--plot", str(png)])
+    rc = main(["sensitivity", str(thn), csv, "--sigma", "0.05", "--integrator", "expeuler",
+               "--json", str(out_json), "--plot", str(png)])
     text = capsys.readouterr().out
     assert rc == 0, text
     assert "Recommendation" in text and "R_a" in text and "Identifiability" in text

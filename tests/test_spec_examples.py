@@ -114,7 +114,8 @@ def test_tclab_means_what_it_says():
     assert net.param("a2").value == pytest.approx(0.75)
     assert net.boundaries[0].name == "amb" and net.param("T_amb").expr.name == "Ta"
     assert net.param("T_amb").expr.kind == "param"
-    assert [(n.name, n.label, n.capacitance) for n in net.nodes] == [("h1", "heater 1", "C_h1"), ("h2", "heater 2", "C_h2")]
+    assert [(n.name, n.label, n.capacitance) for n in net.nodes] == [
+        ("h1", "heater 1", "C_h1"), ("h2", "heater 2", "C_h2")]
     c = net.param("C_h1")
     assert c.value == 4.0 and c.free and c.role == "capacitance"
     assert [(l.name, l.a, l.b, l.form) for l in net.links] == [
@@ -154,7 +155,8 @@ def test_case_study_m2():
     assert next(i for i in net.inputs if i.name == "I").dim == {"A": 1.0}
     assert next(i for i in net.inputs if i.name == "u1").label == "heat-pipe operating input"
     names = [l.name for l in net.links]
-    assert names == ["R_ph_hs", "R_pc_hx1", "R_hp1", "R_hp2", "R_hpa", "R_hs_amb", "R_base_hs", "R_base_hx1", "R_base_amb"]
+    assert names == ["R_ph_hs", "R_pc_hx1", "R_hp1", "R_hp2", "R_hpa", "R_hs_amb",
+                     "R_base_hs", "R_base_hx1", "R_base_amb"]
     assert net.param("R_hpa").value == 10 and net.param("R_hpa").role == "resistance"
     assert net.param("R_ph_hs").dim == R_
     pe = net.peltiers[0]

@@ -6,7 +6,8 @@ boundary, the link split in two with the same total resistance.
   real simulation of the edited network w.r.t. the mass (Richardson-extrapolated finite difference), for a
   node–boundary link, a node–node link and a boundary driven by a stepped input; the finite-mass column is
   closer to the real effect of a large mass than the first-order one;
-* the extension's ``.thn`` text round-trips through the parser to the same simulation (file units kept);
+* the extension (the edit with its fitted values, printed by ``print_thn``) re-loads to the same simulation
+  (file units kept);
 * end to end, ``tnn_dsl.diagnose`` names ``thermal_mass:h1--amb`` first on the suite's TCLab case and writes a
   valid extension with the new node.
 """
@@ -27,7 +28,9 @@ from tnn_dsl.data import Experiment
 from tnn_dsl.doctor.base import MASS_FRACTION_BOUNDS
 from tnn_dsl.doctor.candidates import build_extended
 from tnn_dsl.doctor.forcing import mass_forcing, mass_grid
-from tnn_dsl.doctor.structural import apply_structural, mass_lines, structural_candidates
+from tnn_dsl.doctor.extension import extend_network, extension_text
+from tnn_dsl.doctor.structural import apply_structural, structural_candidates
+from tnn_dsl.lang import print_thn
 from tnn_dsl.studies.planted import step_inputs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -217,14 +220,11 @@ def test_extension_text_round_trips_through_the_parser(backend, path, key, cap, 
 
     net = tnn_dsl.load(path)
     cand = _cand(net, key)
-    edited = apply_structural(net, cand, cap, frac=0.37)
-    lines = mass_lines(edited, cand, {})
-    node_line = next(ln for ln in lines if ln.startswith(f"node {cand.element['node']} "))
+    edited = extend_network(apply_structural(net, cand, cap, frac=0.37), [cand], {})
+    text = print_thn(edited)
+    node_line = next(ln for ln in text.splitlines() if ln.startswith(f"node {cand.element['node']} "))
     assert re.search(rf"C = [0-9.e+-]+ {re.escape(unit)}\s+free", node_line), node_line
-    text = open(path, encoding="utf-8").read().splitlines()
-    link = next(l for l in net.links if l.name == cand.element["link"])
-    text[link.span.line - 1] = "# " + text[link.span.line - 1]
-    reloaded = tnn_dsl.loads("\n".join(text + lines) + "\n", "extended.thn")
+    reloaded = tnn_dsl.loads(text, "extended.thn")
     assert reloaded.node_names == edited.node_names
     assert {l.name for l in reloaded.links} == {l.name for l in edited.links}
     assert reloaded.param(cand.element["frac"]).free and reloaded.param(cand.element["param"]).free
@@ -234,23 +234,21 @@ def test_extension_text_round_trips_through_the_parser(backend, path, key, cap, 
     np.testing.assert_allclose(_sim(reloaded, u, dt, backend), _sim(edited, u, dt, backend), atol=1e-8)
 
 
-def test_extend_text_comments_the_split_link_out():
-    from tnn_dsl.doctor.extension import _extend_text, _merged_clauses
-
+def test_extension_splits_the_link_with_the_fitted_values():
     net = tnn_dsl.load(TCLAB)
     cand = _cand(net, "thermal_mass:h1--amb:")
     edited = apply_structural(net, cand, 3.0, frac=0.45)
-    ext = build_extended(edited, [], kinds=("sensor_offset",), only=set())
     params = {k: np.asarray(v) for k, v in _compile(edited, backend="numpy").init_params().items()}
-    clauses = _merged_clauses([cand], params, ext, None)
-    text = open(TCLAB, encoding="utf-8").read()
-    new, diff = _extend_text(text, clauses, [cand], net, params, ext, [])
-    assert "# (split by `tnnc diagnose` at the new thermal mass m_h1_amb" in new
-    assert 'node m_h1_amb "thermal mass found by tnnc diagnose"  C = 3 J/K  free' in new
-    assert "param U1 = 0.02 W/K" in new and "f_m_h1_amb = 0.45" in new
-    assert "+G h1 -- m_h1_amb = U1 / f_m_h1_amb" in diff
+    params[cand.element["param"]], params[cand.element["frac"]] = np.asarray(2.7182818), np.asarray(0.3141592)
+    new, diff = extension_text(net, extend_network(edited, [cand], params), [cand])
+    assert 'node m_h1_amb "thermal mass found by the model doctor"  C = 2.71828 J/K  free\n' in new  # 6 digits
+    assert "param f_m_h1_amb = 0.3142  free in [0.05, 0.95]" in new
+    assert "-G h1 -- amb = 0.02 W/K  as U1\n" in diff
+    assert '+param U1 = 0.02 W/K  "total of the links h1–m_h1_amb–amb"\n' in diff
+    assert "+G h1 -- m_h1_amb = U1 / f_m_h1_amb\n" in diff and "+G m_h1_amb -- amb = U1 / (1 - f_m_h1_amb)\n" in diff
     reloaded = tnn_dsl.loads(new, "extended.thn")
     assert "m_h1_amb" in reloaded.node_names and "U1" not in {l.name for l in reloaded.links}
+    assert reloaded.param("C_m_h1_amb").value == 2.71828 and reloaded.param("f_m_h1_amb").free
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,7 +257,8 @@ def test_extend_text_comments_the_split_link_out():
 
 
 def _load_suite():
-    spec = importlib.util.spec_from_file_location("diagnose_suite", os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
+    spec = importlib.util.spec_from_file_location("diagnose_suite",
+                                                  os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
     mod = importlib.util.module_from_spec(spec)
     sys.modules.setdefault("diagnose_suite", mod)
     spec.loader.exec_module(mod)
@@ -282,7 +281,7 @@ def _check_tclab(S, case, d, out):
     f = d.accepted[0]
     assert f.kind == "thermal_mass" and "m_h1_amb" in f.clause and "missing thermal mass between h1 and amb" in f.words
     text = out.read_text(encoding="utf-8")
-    assert "\nnode m_h1_amb " in text and "\n# (split by `tnnc diagnose`" in text
+    assert "\nnode m_h1_amb " in text and "\n# tclab_board (" in text and "missing thermal mass" in text
     reloaded = tnn_dsl.loads(text, str(out))
     cm = reloaded.param("C_m_h1_amb").value
     assert 1.0 < cm < 9.0  # the planted 3 J/K

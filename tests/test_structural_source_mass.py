@@ -5,7 +5,7 @@ the source heats a new node joined to its node by a resistance, instead of heati
 * the edit (``_candidates.apply_structural``) keeps the steady state and changes the transients;
 * ``_candidates.source_lag_forcing`` is the heat that really reaches the node in a simulation of the edited
   network (node held nearly constant by a huge capacity, so the exact ODE is the pure lag), both backends;
-* the ``.thn`` statements (new node, its link, the source line moved) re-load to the same simulation.
+* the printed extension (new node, its link, the source moved) re-loads to the same simulation.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ import pytest
 import tnn_dsl
 from tnn_dsl.compiler.model import compile as _compile
 from tnn_dsl.doctor.forcing import source_lag_forcing, source_tau_grid
+from tnn_dsl.doctor.extension import extend_network
 from tnn_dsl.doctor.structural import (
     apply_structural,
-    source_line_moved,
-    source_mass_lines,
     source_mass_values,
     structural_candidates,
 )
+from tnn_dsl.lang import print_thn
 from tnn_dsl.studies.planted import step_inputs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -118,19 +118,15 @@ def test_lines_and_moved_source_reload_to_the_same_simulation():
     p = m.to_numpy(m.init_params())
     v = source_mass_values(edited, c, p)
     assert v["C"] == pytest.approx(1.8e6) and v["R"] == pytest.approx(1e-3) and v["tau"] == pytest.approx(1800.0)
-    lines = source_mass_lines(edited, c, p)
-    assert "C = 0.5 kWh/K" in lines[0] and "free" in lines[0]  # the heated node's unit
-    assert lines[1].startswith("R m_Q_heat -- ti = 1 K/kW")  # the file's resistance unit
-    text = open(BUILDING, encoding="utf-8").read().splitlines()
-    src = next(s for s in net.sources if s.name == "Q_heat")
-    moved = source_line_moved(text[src.span.line - 1], c)
-    assert moved is not None and moved.split() [:4] == ["source", "m_Q_heat", "=", "Ph"]
-    text[src.span.line - 1] = moved
-    new = tnn_dsl.loads("\n".join(text + lines) + "\n", "extended.thn")
+    lines = print_thn(extend_network(edited, [c], p)).splitlines()
+    node = next(ln for ln in lines if ln.startswith("node m_Q_heat "))
+    assert "C = 0.5 kWh/K" in node and "free" in node  # the heated node's unit
+    assert "R m_Q_heat -- ti = 1 K/kW  free" in lines  # the file's resistance unit
+    assert "source m_Q_heat = Ph  as Q_heat" in lines  # the source moved to the new node
+    new = tnn_dsl.loads("\n".join(lines) + "\n", "extended.thn")
     U = step_inputs(np.random.default_rng(2), 200, {"Ta": (K0 - 5, K0 + 10), "Ps": (0, 600), "Ph": (0, 4000)},
                     net.input_names, (12, 72))
     np.testing.assert_allclose(_sim(new, U, 300.0), _sim(edited, U, 300.0), atol=1e-9)
-    assert source_line_moved("source other = Ph", c) is None
 
 
 def test_tau_grid():
@@ -145,7 +141,8 @@ def test_doctor_names_the_heater_mass_and_writes_the_moved_source():
     import importlib.util
     import sys
 
-    spec = importlib.util.spec_from_file_location("diagnose_suite", os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
+    spec = importlib.util.spec_from_file_location("diagnose_suite",
+                                                  os.path.join(ROOT, "benchmarks", "diagnose_suite.py"))
     S = importlib.util.module_from_spec(spec)
     sys.modules.setdefault("diagnose_suite", S)
     spec.loader.exec_module(S)
@@ -155,7 +152,7 @@ def test_doctor_names_the_heater_mass_and_writes_the_moved_source():
     first = d.accepted[0]
     assert first.kind == "source_mass" and first.target == "Q_heat", d.summary()
     assert "m_Q_heat" in first.words and "1.8e+06 J/K" in first.words, first.words
-    assert "source m_Q_heat = Ph" in d.extended_text
+    assert "source m_Q_heat = Ph  as Q_heat" in d.extended_text
     new = tnn_dsl.loads(d.extended_text, "extended.thn")
     assert {s.name: s.node for s in new.sources}["Q_heat"] == "m_Q_heat"
     assert d.extended["val_mae"] < 0.1 * d.baseline["val_mae"]

@@ -303,9 +303,10 @@ def test_case_study_acceptance(tmp_path):
 
     M2 ≤ M1/3; M3 within 25 % of M2 (2.46 and 2.70 mK: M3's sigmoid MLP trains in tanh coordinates and
     the L-BFGS polish runs from Adam's last state). M4 (MLP Peltier) and M5 (M4's net frozen + M3's
-    heat-pipe net) are trained and reported (M5 must beat M4). Backends: the default torch run takes ~45 min on a 2-core CPU (torch rollouts are ~60x
-    slower than JAX there), so torch and JAX train M2 on one fixed schedule (60 Adam epochs, validation
-    every 10, no polish) and must end within 5 % of each other (they agree to ~1e-12)."""
+    heat-pipe net) are trained and reported (M5 must beat M4). Backends: the default torch run takes ~45 min
+    on a 2-core CPU (torch rollouts are ~60x slower than JAX there), so torch and JAX train M2 on one fixed
+    schedule (60 Adam epochs, validation every 10, no polish) and must end within 5 % of each other (they
+    agree to ~1e-12)."""
     import shutil
 
     import tnn_dsl
@@ -354,7 +355,8 @@ def test_tclab_real_fit(backend):
     tm = tnn_dsl.train(net, [head], [tail], backend=backend, rollout="measured", window=600.0, epochs=150, seed=0)
     tail_mae = tm.evaluate(tail, backend=backend)["mae"]
     steps_mae = tm.evaluate(STEPS, backend=backend, init="measured")["mae"]
-    print(f"TCLab {backend}: last-30 % MAE {tail_mae:.3f} K (nominal {before:.3f} K); APMonitor steps {steps_mae:.3f} K")
+    print(f"TCLab {backend}: last-30 % MAE {tail_mae:.3f} K (nominal {before:.3f} K); "
+          f"APMonitor steps {steps_mae:.3f} K")
     assert tail_mae < 0.6 and tail_mae < before / 2
     assert np.isfinite(steps_mae)
 
@@ -379,7 +381,8 @@ def test_building_titeth_default_windows_fit_the_free_run(backend):
     assert tm.meta["config"]["window"] is None
     assert tm.meta["rollout"] == "estimated" and tm.meta["window_s"] == 50 * 300.0
     train_mae = tm.evaluate(head, backend=backend)["mae"]
-    print(f"TiTeTh {backend}: training free-run MAE {train_mae:.3f} K, held out {tm.meta['metrics']['validation']['mae']:.3f} K")
+    print(f"TiTeTh {backend}: training free-run MAE {train_mae:.3f} K, "
+          f"held out {tm.meta['metrics']['validation']['mae']:.3f} K")
     assert train_mae < 2.0
 
 

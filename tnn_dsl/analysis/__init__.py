@@ -1,5 +1,9 @@
 """What a model and its data say: sensitivity, identifiability, excitation, residuals, significance tests.
 
+Owns: the sensitivity pass (``sensitivities``: the α scan, the exact eq. 3.4 derivative, trajectory
+sensitivity; results in ``report``), identifiability from the Fisher information (``identifiability``),
+excitation from input Hankel singular values (``hankel``), residual analysis (``residuals``), the held-out
+test on prediction errors (``significance``) and shared formatting (``common``).
 May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``, ``fit``.
 """
 

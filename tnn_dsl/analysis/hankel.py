@@ -13,7 +13,8 @@ import numpy as np
 from ..core import DataError, Diagnostic, TnnError, to_jsonable
 from .common import _as_network, _fmt
 
-__all__ = ["excitation", "ExcitationReport", "ExcitationResult", "hankel_matrix", "hankel_metrics", "EXCITATION_DEFINITION"]
+__all__ = ["excitation", "ExcitationReport", "ExcitationResult", "hankel_matrix", "hankel_metrics",
+           "EXCITATION_DEFINITION"]
 
 
 def hankel_matrix(u: np.ndarray, window: int) -> np.ndarray:
@@ -132,7 +133,8 @@ class ExcitationReport:
         lines = [f"Input excitation (Hankel window {self.window}; channels: {', '.join(self.channels) or 'none'})"]
         if self.excluded:
             lines.append(f"left out (constant in every file): {', '.join(self.excluded)}")
-        head = f"{'rank':>4}  {'data':<40} {'samples':>8} {'H rank':>10} {'condition':>11} {'log10':>7} {'eff. rank':>9}"
+        head = (f"{'rank':>4}  {'data':<40} {'samples':>8} {'H rank':>10} {'condition':>11} {'log10':>7} "
+                f"{'eff. rank':>9}")
         lines += [head, "-" * len(head)]
         for i, r in enumerate(self.results, 1):
             name = r.name if len(r.name) <= 40 else "…" + r.name[-39:]
@@ -232,7 +234,7 @@ def _excitation_sets(data, net, columns) -> list[tuple[str, str | None, list[str
     return sets
 
 
-def excitation(data, *, net=None, window: int = 20, columns: Sequence[str] | None = None,
+def excitation(data: Any, *, net: Any = None, window: int = 20, columns: Sequence[str] | None = None,
                stride: int = 1, rtol: float = 1e-10) -> ExcitationReport:
     """Compare the input excitation of data sets by their block-Hankel singular values (thesis §4.2, §5.6.1).
 

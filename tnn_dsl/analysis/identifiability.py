@@ -3,6 +3,7 @@ errors, correlated pairs explained in the network's terms, weak directions."""
 
 from __future__ import annotations
 
+import html
 import math
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
@@ -10,6 +11,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..core import Diagnostic, TnnError, to_jsonable
+from ..core.htmlview import html_list, html_table
 from ..ir import Network
 from .common import _pct
 
@@ -111,15 +113,34 @@ class Identifiability:
             "weak_directions": [w.to_dict() for w in self.weak], "correlated_pairs": [p.to_dict() for p in self.pairs],
         }, inf_as_text=True)
 
-    def table(self, max_lines: int = 8) -> str:
-        lines = [f"Identifiability (Fisher information, σ = {self.sigma:g} K, {self.n_samples} readings; "
-                 f"standard errors relative to the nominal value, all {len(self.params)} estimated together / alone)"]
+    def rows(self) -> list[dict[str, Any]]:
+        """The verdict per parameter, best determined first (what :meth:`table` and the notebook view show):
+        ``name``, ``std_error`` and ``alone_std_error`` (relative), ``identifiable``, ``verdict`` (text)."""
         alone = self.alone_std_errors if self.alone_std_errors is not None else np.full(len(self.params), np.nan)
-        order = np.lexsort((alone, self.std_errors))
-        for i in order:
-            p = self.params[i]
-            mark = "ok" if self.identifiable(p) else "NOT separately identifiable"
-            lines.append(f"  {p:<24} ±{_pct(self.std_errors[i]):>10}  alone ±{_pct(alone[i]):>10}   {mark}")
+        return [{"name": self.params[i], "std_error": float(self.std_errors[i]), "alone_std_error": float(alone[i]),
+                 "identifiable": self.identifiable(self.params[i]),
+                 "verdict": "ok" if self.identifiable(self.params[i]) else "NOT separately identifiable"}
+                for i in np.lexsort((alone, self.std_errors))]
+
+    def _title(self) -> str:
+        return (f"Identifiability (Fisher information, σ = {self.sigma:g} K, {self.n_samples} readings; "
+                f"standard errors relative to the nominal value, all {len(self.params)} estimated together / alone)")
+
+    def html(self, max_lines: int = 8) -> str:
+        """:meth:`table` as an HTML fragment (escaped): the verdicts as a table, then the correlated pairs and
+        weak directions as a list."""
+        rows = [[r["name"], "±" + _pct(r["std_error"]), "±" + _pct(r["alone_std_error"]), r["verdict"]]
+                for r in self.rows()]
+        tab = html_table(["parameter", "std. error (together)", "alone", "verdict"], rows,
+                         numeric=[False, True, True, False])
+        lines = self.table(max_lines).splitlines()[1 + len(rows):]
+        return f"<b>{html.escape(self._title())}</b>" + tab + html_list(s.strip() for s in lines)
+
+    def table(self, max_lines: int = 8) -> str:
+        lines = [self._title()]
+        for r in self.rows():
+            lines.append(f"  {r['name']:<24} ±{_pct(r['std_error']):>10}  alone ±{_pct(r['alone_std_error']):>10}   "
+                         f"{r['verdict']}")
         direct = [pr for pr in self.pairs if pr.direct]
         for pr in direct[:max_lines]:
             lines.append(f"  corr({pr.a}, {pr.b}) = {pr.correlation:+.3f}: {pr.explanation}")
@@ -229,7 +250,8 @@ def _explain_pair(a: str, b: str, info: dict[str, Any], cos: float) -> tuple[str
             f"(cos = {cos:+.3f})", f"one combination of {a} and {b}", False)
 
 
-def _cov_from_fisher(F: np.ndarray, struct_rtol: float = 1e-13) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _cov_from_fisher(F: np.ndarray,
+                     struct_rtol: float = 1e-13) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Eigen-decomposition of ``F`` and the covariance ``F⁻¹`` with directions below ``struct_rtol·λ_max``
     clamped there (they carry no information); returns (eigenvalues ascending, eigenvectors, cov,
     structural-null mask per parameter)."""
@@ -255,7 +277,8 @@ def _rel_std_errors(S: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray
     return se, np.clip(corr, -1.0, 1.0)
 
 
-def fisher_analysis(S: np.ndarray, names: Sequence[str], sigma: float = 0.1, *, nominal: Mapping[str, float | None] | None = None,
+def fisher_analysis(S: np.ndarray, names: Sequence[str], sigma: float = 0.1, *,
+                    nominal: Mapping[str, float | None] | None = None,
                     net: Network | None = None, max_se: float = 0.1) -> Identifiability:
     """Identifiability from trajectory sensitivities.
 

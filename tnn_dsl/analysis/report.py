@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..core import to_jsonable
+from ..core.htmlview import html_list, html_table, safe_repr_html, view
 from .common import _fmt
 from .identifiability import Identifiability
 
@@ -107,36 +109,76 @@ class SensitivityReport:
             "notes": self.notes, "min_effect": self.min_effect,
         }, inf_as_text=True)
 
+    def ranking_rows(self, top: int | None = None) -> list[dict[str, Any]]:
+        """The ranking table's rows (what :meth:`table` and the notebook view show): ``rank``, ``name``,
+        ``group``, ``sensitivity`` and ``autodiff`` (K per unit α), ``linearity`` (R²), ``dynamic_rms`` (K per
+        unit α, NaN without data)."""
+        return [{"rank": k, "name": p.name, "group": p.group, "sensitivity": p.sensitivity,
+                 "autodiff": p.autodiff_sensitivity, "linearity": p.linearity,
+                 "dynamic_rms": p.dynamic_rms if p.dynamic_rms is not None else math.nan}
+                for k, p in enumerate(self.parameters[: top or None], 1)]
+
+    def skipped_by_reason(self) -> dict[str, list[str]]:
+        """The parameters that were not scanned, grouped by the reason."""
+        by_reason: dict[str, list[str]] = {}
+        for k, v in self.skipped.items():
+            by_reason.setdefault(v, []).append(k)
+        return by_reason
+
+    def ordered_recommendations(self) -> list[Recommendation]:
+        """The recommendations in the order the table shows them: learn, candidate, fix."""
+        return [r for verdict in ("learn", "candidate", "fix") for r in self.recommendations if r.verdict == verdict]
+
+    def _title(self) -> str:
+        return (f"Steady-state sensitivity of {', '.join(self.output_names)} (network {self.network}, "
+                f"{self.backend}; α ∈ [{1 - self.delta:g}, {1 + self.delta:g}], thesis §4.3)")
+
     def table(self, top: int | None = None) -> str:
-        out = [f"Steady-state sensitivity of {', '.join(self.output_names)} (network {self.network}, "
-               f"{self.backend}; α ∈ [{1 - self.delta:g}, {1 + self.delta:g}], thesis §4.3)",
-               "inputs: " + ", ".join(f"{k} = {v:.6g}" for k, v in self.inputs.items())]
+        out = [self._title(), "inputs: " + ", ".join(f"{k} = {v:.6g}" for k, v in self.inputs.items())]
         dyn = any(p.dynamic_rms is not None for p in self.parameters)
         head = (f"{'#':>3}  {'parameter':<24} {'group':<10} {'|dy/dα| K':>11} {'autodiff K':>11} "
                 f"{'R²':>6}" + (f" {'dyn. RMS K':>11}" if dyn else ""))
         out += [head, "-" * len(head)]
-        for k, p in enumerate(self.parameters[: top or None], 1):
-            line = (f"{k:>3}  {p.name:<24} {p.group:<10} {_fmt(p.sensitivity, 4):>11} "
-                    f"{_fmt(p.autodiff_sensitivity, 4):>11} {_fmt(p.linearity, 3):>6}")
+        for r in self.ranking_rows(top):
+            line = (f"{r['rank']:>3}  {r['name']:<24} {r['group']:<10} {_fmt(r['sensitivity'], 4):>11} "
+                    f"{_fmt(r['autodiff'], 4):>11} {_fmt(r['linearity'], 3):>6}")
             if dyn:
-                line += f" {_fmt(p.dynamic_rms if p.dynamic_rms is not None else math.nan, 4):>11}"
+                line += f" {_fmt(r['dynamic_rms'], 4):>11}"
             out.append(line)
-        by_reason: dict[str, list[str]] = {}
-        for k, v in self.skipped.items():
-            by_reason.setdefault(v, []).append(k)
-        for reason, names in by_reason.items():
+        for reason, names in self.skipped_by_reason().items():
             out.append(f"not scanned: {', '.join(names)} ({reason})")
         if self.identifiability is not None:
             out += ["", self.identifiability.table()]
         if self.recommendations:
             out += ["", "Recommendation (thesis §4.4: combine with physical insight — keep well-known physics fixed)"]
-            for verdict in ("learn", "candidate", "fix"):
-                for r in self.recommendations:
-                    if r.verdict == verdict:
-                        out.append(f"  {r.verdict.upper():<9} {r.name:<24} {r.reason}")
+            for r in self.ordered_recommendations():
+                out.append(f"  {r.verdict.upper():<9} {r.name:<24} {r.reason}")
         for n in self.notes:
             out.append(f"note: {n}")
         return "\n".join(out)
+
+    def _repr_html_(self) -> str:
+        """The notebook view: :meth:`table` as tables (``<pre>`` of the table should that fail)."""
+        return safe_repr_html(self._html, self.table, f"SensitivityReport({self.network!r})")
+
+    def _html(self) -> str:
+        dyn = any(p.dynamic_rms is not None for p in self.parameters)
+        head = ["#", "parameter", "group", "|dy/dα| K", "autodiff K", "R²"] + (["dyn. RMS K"] if dyn else [])
+        rows = [[r["rank"], r["name"], r["group"], r["sensitivity"], r["autodiff"], r["linearity"]]
+                + ([r["dynamic_rms"]] if dyn else []) for r in self.ranking_rows()]
+        parts = [html_list(["inputs: " + ", ".join(f"{k} = {v:.6g}" for k, v in self.inputs.items())]),
+                 html_table(head, rows, numeric=[True, False, False] + [True] * (len(head) - 3))]
+        notes = [f"not scanned: {', '.join(names)} ({reason})" for reason, names in self.skipped_by_reason().items()]
+        if self.identifiability is not None:
+            parts.append(self.identifiability.html())
+        recs = self.ordered_recommendations()
+        if recs:
+            parts.append("<b>Recommendation</b> (thesis §4.4: combine with physical insight — keep well-known "
+                         "physics fixed)"
+                         + html_table(["verdict", "parameter", "reason"], [[r.verdict.upper(), r.name, r.reason]
+                                                                          for r in recs]))
+        parts.append(html_list(notes + [f"note: {n}" for n in self.notes]))
+        return view(self._title(), *parts)
 
     def plot(self, path: str, top: int | None = 25) -> str:
         """Write the ranked bar chart (thesis Figure 5.3; :func:`tnn_dsl.plots.sensitivity_bars`) to ``path``."""

@@ -190,7 +190,7 @@ def _input_vector(net: Network, inputs: Mapping[str, float] | None, experiments)
     return u, notes
 
 
-def sensitivity(net, data=None, *, inputs: Mapping[str, float] | None = None, backend: str = "jax",
+def sensitivity(net: Any, data: Any = None, *, inputs: Mapping[str, float] | None = None, backend: str = "jax",
                 dtype: str = "float64", params: Mapping[str, Any] | None = None, delta: float = 0.2,
                 n_alpha: int = 5, targets: Sequence[str] | None = None, fisher_params: Sequence[str] | None = None,
                 sigma: float = 0.1, max_se: float = 0.1, min_effect: float | None = None, min_rel: float = 0.05,
@@ -411,7 +411,8 @@ def _local_jacobians(model, ops: Backend, with_scales, T_np: np.ndarray, u, P: i
     return J[:n_s, :n_s], J[:n_s, n_s:], J[n_s:, :n_s], J[n_s:, n_s:]
 
 
-def _trajectory_sensitivity(model, ops: Backend, with_scales, scale_names, exp, integrator: str, init: str) -> np.ndarray:
+def _trajectory_sensitivity(model, ops: Backend, with_scales, scale_names, exp, integrator: str,
+                            init: str) -> np.ndarray:
     """``S`` (N, n_out, P): ``∂y(t_k)/∂α`` along one experiment (eq. 3.2 by forward-mode AD through the rollout)."""
     P = len(scale_names)
     n_s = len(model.state_names)

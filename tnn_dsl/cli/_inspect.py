@@ -19,9 +19,6 @@ import numpy as np
 
 from ._common import add_command, add_force_flag, check_outputs, write_json
 
-_ROLE_UNIT = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "time_constant": "s",
-              "heat_flow": "W", "offset": "K", "temperature": "K"}
-
 
 def register(subparsers) -> None:
     p = add_command(
@@ -36,20 +33,9 @@ def register(subparsers) -> None:
 
 
 def parameter_table(tm, all_params: bool = False) -> list[dict]:
-    """Rows ``{name, role, unit, nominal, fitted, change_pct, free}`` (SI; temperatures in K)."""
-    rows = []
-    for p in tm.network.params:
-        if not p.is_constant or p.name not in tm.params:
-            continue
-        if not (p.free or all_params):
-            continue
-        fitted = float(np.asarray(tm.params[p.name]).reshape(-1)[0])
-        nominal = float(p.value)
-        change = (fitted - nominal) / abs(nominal) * 100.0 if nominal != 0 else math.nan
-        rows.append({"name": p.name, "role": p.role, "unit": _ROLE_UNIT.get(p.role, p.unit or "SI"),
-                     "nominal": nominal, "fitted": fitted, "change_pct": change, "free": bool(p.free),
-                     "bounds": [p.lower, p.upper]})
-    return rows
+    """Rows ``{name, role, unit, nominal, fitted, change_pct, free}`` (SI; temperatures in K): see
+    :meth:`tnn_dsl.fit.TrainedModel.parameter_table`."""
+    return tm.parameter_table(all_params)
 
 
 def learned_summary(tm) -> list[dict]:
@@ -93,9 +79,9 @@ def learned_values(tm, fn, X: np.ndarray) -> np.ndarray:
 
 
 def _fmt(v: float, role: str, unit: str) -> str:
-    if role == "temperature" and unit == "K":
-        return f"{v:.6g} K ({v - 273.15:.4g} °C)"
-    return f"{v:.6g} {unit}"
+    from ..fit.model_files import format_value
+
+    return format_value(v, role, unit)
 
 
 def run(args) -> int:

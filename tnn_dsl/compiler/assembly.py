@@ -488,6 +488,18 @@ class _Assembly:
         s = prep.scales.get(key)
         return q if s is None else q * s
 
+    def _driven_flows(self, prep, vals, z, fluids, sources, loads) -> list:
+        """Heat flows (W) that enter a node's balance as a plain term: the inlet part ``G·T_in`` of the
+        ``fluids`` whose conductance is linear (``prep.lin_fluid``), the ``sources`` and the learned heat
+        ``loads`` ``(node, fn, i)``, each scaled by its ``scale:`` key."""
+        out = []
+        if fluids:
+            lin_G = {f.name: G for f, G in prep.lin_fluid}
+            out += [lin_G[f.name] * vals[f.inlet] for f in fluids]
+        out += [self._flow_scaled(prep, f"{s.name}.Q", vals[s.value]) for s in sources]
+        out += [self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, z, fn, i)) for node, fn, i in loads]
+        return out
+
     def _diag_term(self, prep, key, d):
         t = self.plan.flow_targets.get(key)
         if t is not None and t[0].replace:

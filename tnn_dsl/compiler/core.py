@@ -322,13 +322,7 @@ class _Core(_Assembly):
             G = self._flow_scaled(prep, f"{f.name}.Q", self._fluid_G(vals, f))
             qs.append(G * vals[f.inlet])
             ds.append(-G)
-        lin_G = {f.name: G for f, G in prep.lin_fluid}
-        for f in self.flin_u:
-            qs.append(lin_G[f.name] * vals[f.inlet])
-        for s in self.src_u:
-            qs.append(self._flow_scaled(prep, f"{s.name}.Q", vals[s.value]))
-        for node, fn, i in self.hl_u:
-            qs.append(self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i)))
+        qs += self._driven_flows(prep, vals, env.z, self.flin_u, self.src_u, self.hl_u)
         return qs, ds
 
     def ctx_at(self, ctx, k):
@@ -471,14 +465,7 @@ class _Core(_Assembly):
             pts.append(self._flow_target(prep, env, f"{f.name}.Q", q))
             if with_diag:
                 dterms.append(self._diag_term(prep, f"{f.name}.Q", -G))
-        if self.flin_t:
-            lin_G = {f.name: G for f, G in prep.lin_fluid}
-            for f in self.flin_t:
-                pts.append(lin_G[f.name] * vals[f.inlet])
-        for s in self.src_t:
-            pts.append(self._flow_scaled(prep, f"{s.name}.Q", vals[s.value]))
-        for node, fn, i in self.hl_t:
-            pts.append(self._flow_scaled(prep, f"Q[{node}]", self._heat_load(prep, env.z, fn, i)))
+        pts += self._driven_flows(prep, vals, env.z, self.flin_t, self.src_t, self.hl_t)
         dQ = xp.matmul(xp.stack(pts, axis=-1), self.Pm)
         if with_diag and dterms:
             diag = xp.matmul(xp.stack(dterms, axis=-1), self.Pd)

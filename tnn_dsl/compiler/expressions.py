@@ -20,7 +20,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..ir import Binary, Call, Num, Ref, Table, Temp, Unary
+from ..ir import Binary, Call, Expr, Num, Ref, Table, Temp, Unary
 from .backends import _interp_segments, interp_with
 
 Getter = Callable[[Any], Any]
@@ -47,7 +47,8 @@ def _is_const(v) -> bool:
     return isinstance(v, float)
 
 
-def compile_expr(expr, xp, ref: Callable[[str], Getter | float], temp: Callable[[str], Getter | float]) -> Callable[[Any], Any]:
+def compile_expr(expr, xp, ref: Callable[[str], Getter | float],
+                 temp: Callable[[str], Getter | float]) -> Callable[[Any], Any]:
     """Turn ``expr`` into ``fn(env) -> value`` (a backend array, or a Python float if constant).
 
     ``ref(name)`` and ``temp(node)`` return either a getter ``g(env)`` or a Python float (a value known
@@ -193,7 +194,8 @@ def _call_float(fn, args):
     raise ValueError(f"unknown function {fn!r}")
 
 
-def evaluate(expr, xp, values: Mapping[str, Any] | None = None, temps: Mapping[str, Any] | None = None):
+def evaluate(expr: Expr, xp: Any, values: Mapping[str, Any] | None = None,
+             temps: Mapping[str, Any] | None = None) -> Any:
     """Evaluate ``expr`` once: ``values`` maps parameter and input names to values, ``temps`` node
     (or boundary) names to temperatures (K). Convenience wrapper around :func:`compile_expr`."""
     values = dict(values or {})

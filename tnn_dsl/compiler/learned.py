@@ -25,8 +25,11 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import Any, Mapping
 
 import numpy as np
+
+from ..ir import LearnFunction
 
 WEIGHT_NAMES_FIXED = {"const": ("c",), "linear": ("W", "b"), "poly": ("W", "b"), "table": ("values",)}
 STAT_NAMES = ("x_mean", "x_scale", "y_scale")
@@ -153,7 +156,7 @@ def normalise(x, arrays):
     return (x - arrays["x_mean"]) / arrays["x_scale"]
 
 
-def apply(xp, fn, arrays, x):
+def apply(xp: Any, fn: LearnFunction, arrays: Mapping[str, Any], x: Any) -> Any:
     """The raw output ``z (..., n_out)`` of ``fn`` for ``x (..., n_in)`` (SI; node temperatures in K)."""
     return apply_normalised(xp, fn, arrays, normalise(x, arrays))
 
@@ -163,7 +166,7 @@ def pos1(xp, v):
     return xp.softplus(4.0 * v) / _SOFTPLUS4
 
 
-def target_value(xp, z, nominal, positive: bool, y_scale, replace: bool = False):
+def target_value(xp: Any, z: Any, nominal: Any, positive: bool, y_scale: Any, replace: bool = False) -> Any:
     """The value of one target from its raw output ``z``.
 
     * positive parameter (R, G, C, τ): ``nominal · pos1(1 + z)``;

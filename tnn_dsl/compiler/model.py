@@ -33,7 +33,7 @@ import os
 import types
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -81,7 +81,7 @@ class Model:
     Shapes: ``T (..., n_states)`` K, ``u (..., n_inputs)`` SI (temperature inputs in K), outputs
     ``(..., n_outputs)`` K. Leading axes broadcast (batches of windows)."""
 
-    def __init__(self, net: Network, backend: str = "jax", dtype: str = "float64", torch_compile: bool = False):
+    def __init__(self, net: Network, backend: str = "jax", dtype: str = "float64", torch_compile: bool = False) -> None:
         if not isinstance(net, Network):
             raise TypeError(f"compile() needs a tnn_dsl.Network, got {type(net).__name__}")
         self.network = net
@@ -169,11 +169,11 @@ class Model:
         """The parameter table: constants at their SI values, learned arrays initialised (``seed``)."""
         return self.from_numpy(self._init_numpy(seed))
 
-    def to_numpy(self, params) -> dict[str, np.ndarray]:
+    def to_numpy(self, params: Mapping[str, Any]) -> dict[str, np.ndarray]:
         """Backend arrays → float64 numpy arrays (copies)."""
         return {k: np.array(self.xp.to_numpy(v), dtype=np.float64) for k, v in params.items()}
 
-    def from_numpy(self, arrays) -> dict:
+    def from_numpy(self, arrays: Mapping[str, Any]) -> dict:
         """numpy arrays (or floats) → backend arrays in the model's dtype."""
         out = {}
         for k, v in arrays.items():
@@ -194,7 +194,8 @@ class Model:
         bad = [k for k in params if k.startswith("scale:") and k not in self._scale_set]
         if bad:
             raise TnnError([Diagnostic(f"unknown scale key {bad[0]!r}",
-                                       hint="scale keys are 'scale:<parameter>' or 'scale:<flow>'; see model.scale_keys")])
+                                       hint="scale keys are 'scale:<parameter>' or 'scale:<flow>'; "
+                                            "see model.scale_keys")])
 
     @property
     def _scale_set(self):
@@ -209,7 +210,7 @@ class Model:
 
     # -- time constants --------------------------------------------------------------------------
 
-    def time_constants(self, params=None) -> dict[str, float]:
+    def time_constants(self, params: Mapping[str, Any] | None = None) -> dict[str, float]:
         """``{state: τ}`` (s) = ``−1/d`` from the diagonal of the linear part at the nominal point
         (default parameters unless given as numpy-convertible ``params``); ``inf`` where d ≥ 0."""
         p_np = self._init_numpy(0) if params is None else self.to_numpy(params)
@@ -233,25 +234,25 @@ class Model:
     def _arr(self, x):
         return self.xp.asarray(x)
 
-    def rhs(self, params, T, u):
+    def rhs(self, params: Mapping[str, Any], T: Any, u: Any) -> Any:
         """``dT/dt (..., n_states)`` K/s for ``T (..., n_states)`` K and ``u (..., n_inputs)`` SI."""
         if self.backend == "jax":
             return self._jitted("rhs")(params, self._arr(T), self._arr(u))
         return self._core.rhs(self._prepare(params), self._arr(T), self._arr(u))
 
-    def outputs(self, params, T, u):
+    def outputs(self, params: Mapping[str, Any], T: Any, u: Any) -> Any:
         """Sensor readings ``(..., n_outputs)`` K (node or lag state + offset)."""
         if self.backend == "jax":
             return self._jitted("outputs")(params, self._arr(T), self._arr(u))
         return self._core.outputs(self._prepare(params), self._arr(T), self._arr(u))
 
-    def heat_flows(self, params, T, u) -> dict:
+    def heat_flows(self, params: Mapping[str, Any], T: Any, u: Any) -> dict:
         """Every link/component flow (W) by name (see :attr:`flow_names`), shape ``T.shape[:-1]``."""
         if self.backend == "jax":
             return self._jitted("heat_flows")(params, self._arr(T), self._arr(u))
         return self._core.heat_flows(self._prepare(params), self._arr(T), self._arr(u))
 
-    def rhs_and_diag(self, params, T, u):
+    def rhs_and_diag(self, params: Mapping[str, Any], T: Any, u: Any) -> tuple[Any, Any]:
         """``(dT/dt, d)``: the right-hand side and the diagonal of its linear part (1/s), as used by
         ``expeuler``."""
         return self._core.rhs(self._prepare(params), self._arr(T), self._arr(u), with_diag=True)
@@ -277,7 +278,8 @@ class Model:
 
     # -- rollout -------------------------------------------------------------------------------------
 
-    def rollout(self, params, T0, inputs, dt, integrator: str = "rk4", substeps: int | None = None):
+    def rollout(self, params: Mapping[str, Any], T0: Any, inputs: Any, dt: float, integrator: str = "rk4",
+                substeps: int | None = None) -> tuple[Any, Any]:
         """Simulate from ``T0 (..., n_states)`` K with ``inputs (..., N, n_inputs)`` held over each interval
         of ``dt`` seconds. Returns ``(states (..., N, n_states), outputs (..., N, n_outputs))`` with
         ``states[..., 0, :] = T0`` and ``outputs[..., k, :]`` the sensors at ``states[k]``, ``inputs[k]``.
@@ -425,7 +427,8 @@ class Model:
 
     # -- steady state --------------------------------------------------------------------------------
 
-    def steady_state(self, params, u, T_init=None, max_iter: int = 50, tol: float = 1e-10):
+    def steady_state(self, params: Mapping[str, Any], u: Any, T_init: Any = None, max_iter: int = 50,
+                     tol: float = 1e-10) -> Any:
         """The steady state ``T* (..., n_states)`` K with ``f(T*, u) = 0`` for constant inputs
         ``u (..., n_inputs)`` (thesis eq. 4.1).
 
@@ -542,8 +545,9 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     ``torch.compile`` (inductor). Measured on the case study M3 (benchmarks/bench_rollout.py, BENCHMARKS.md):
     a single sequence 3.1× faster than eager, a batch of 256 windows 1.1× (forward) and 1.3×
     (forward+gradient), after 13–33 s of compilation; M2's training 2.5× faster in all
-    (benchmarks/bench_train.py). Worth it for training runs of minutes, not for one short simulation. ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``,
-    default off). Ignored by the other backends (JAX is always compiled)."""
+    (benchmarks/bench_train.py). Worth it for training runs of minutes, not for one short simulation.
+    ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off). Ignored by
+    the other backends (JAX is always compiled)."""
     if backend not in ("jax", "torch", "numpy"):
         raise TnnError([Diagnostic(f"unknown backend {backend!r}", hint="use backend='jax' or backend='torch'")])
     if dtype not in ("float64", "float32"):

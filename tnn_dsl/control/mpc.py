@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -49,9 +49,10 @@ class MPC:
     integrator, substeps : the model's discretisation of one interval
     """
 
-    def __init__(self, model, params, output: str, controls: Mapping[str, tuple[float, float]], *,
+    def __init__(self, model: Any, params: Mapping[str, Any], output: str,
+                 controls: Mapping[str, tuple[float, float]], *,
                  horizon: int = 30, dt: float = 10.0, move_penalty: float = 0.05, track_weight: float = 1.0,
-                 max_iter: int = 60, integrator: str = "rk4", substeps: int | None = None):
+                 max_iter: int = 60, integrator: str = "rk4", substeps: int | None = None) -> None:
         if model.backend not in ("jax", "torch"):
             raise TnnError(Diagnostic(f"MPC needs gradients; backend {model.backend!r} has none",
                                       hint="compile with backend='jax' or backend='torch'"))
@@ -118,7 +119,8 @@ class MPC:
 
     # -- one solve ---------------------------------------------------------------------------------
 
-    def plan(self, x0, u_now, setpoint, u_prev=None, d: float = 0.0) -> tuple[np.ndarray, dict]:
+    def plan(self, x0: Any, u_now: Any, setpoint: float, u_prev: Any = None,
+             d: float = 0.0) -> tuple[np.ndarray, dict]:
         """Solve the horizon problem from the controller-model state ``x0 (n_states,)`` K.
 
         ``u_now (n_inputs,)`` SI: current inputs (the non-manipulated ones are held over the horizon);
@@ -171,8 +173,9 @@ class ClosedLoopResult:
     iterations: list[int] = field(default_factory=list)
 
 
-def closed_loop(plant, plant_params, mpc: MPC, inputs, setpoint, plant_dt: float = 1.0,
-                plant_substeps: int | None = None, progress=None) -> ClosedLoopResult:
+def closed_loop(plant: Any, plant_params: Mapping[str, Any], mpc: MPC, inputs: Any, setpoint: Any,
+                plant_dt: float = 1.0, plant_substeps: int | None = None,
+                progress: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None) -> ClosedLoopResult:
     """Simulate ``mpc`` controlling ``plant`` (a compiled model: the true system).
 
     ``inputs (N, n_inputs)`` SI on the plant grid: the non-manipulated inputs (their manipulated columns

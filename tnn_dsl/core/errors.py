@@ -71,7 +71,8 @@ def _read_lines(path: str) -> list[str] | None:
 class TnnError(Exception):
     """One or more problems the user can fix. ``str(err)`` is the full formatted report."""
 
-    def __init__(self, diagnostics: Iterable[Diagnostic] | Diagnostic | str, *, sources: dict[str, str] | None = None):
+    def __init__(self, diagnostics: Iterable[Diagnostic] | Diagnostic | str, *,
+                 sources: dict[str, str] | None = None) -> None:
         if isinstance(diagnostics, str):
             diagnostics = [Diagnostic(diagnostics)]
         elif isinstance(diagnostics, Diagnostic):

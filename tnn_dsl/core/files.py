@@ -22,7 +22,7 @@ import os
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from .errors import Diagnostic, TnnError
 
@@ -190,7 +190,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fsync_dir(dest.parent)
 
 
-def save_figure(fig, path: str | os.PathLike, **savefig_kw) -> None:
+def save_figure(fig: Any, path: str | os.PathLike, **savefig_kw: Any) -> None:
     """``fig.savefig`` through :func:`atomic_path` (the format from ``path``'s suffix)."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or None, **savefig_kw)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -279,7 +279,7 @@ def _on_model_grid(net: Network, tab, t: np.ndarray, tj, U: np.ndarray, Y: np.nd
 # ---------------------------------------------------------------------------------------------
 
 
-def as_experiments(net: Network, data) -> list[Experiment]:
+def as_experiments(net: Network, data: Any) -> list[Experiment]:
     """Paths (one or many) and/or :class:`Experiment` objects → a list of ``Experiment`` for ``net``
     (paths are read with :func:`read_data`; ``None`` gives ``[]``). The one place the trainer, the
     sensitivity pass and saved models turn "data" arguments into experiments."""

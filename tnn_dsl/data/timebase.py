@@ -93,7 +93,8 @@ def _time(tab: _Table, time_col: str | None, time_unit: str | None, dt: float | 
                 break
         if j is None:  # a time column with a unit suffix: t_h, time_min, time [h]
             for jj, c in enumerate(lowered):
-                if jj not in used and _suffix_unit(c) is not None and re.split(r"[\s_\-\[(]", c)[0] in ("t", "time", "elapsed"):
+                if (jj not in used and _suffix_unit(c) is not None
+                        and re.split(r"[\s_\-\[(]", c)[0] in ("t", "time", "elapsed")):
                     j = jj
                     break
         if j is None:  # a time-stamp column of any name (pandas writes its index unnamed)

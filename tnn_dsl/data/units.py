@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 __all__ = ["to_kelvin", "from_kelvin", "unit_factor", "unit_scale_offset"]
 
 
-def to_kelvin(x, unit: str):
+def to_kelvin(x: Any, unit: str) -> Any:
     """Temperatures (any array shape) from ``unit`` (``degC``, ``K``, ``degF``) to kelvin."""
     if unit == "degC":
         return x + 273.15
@@ -16,7 +18,7 @@ def to_kelvin(x, unit: str):
     raise ValueError(f"unknown temperature unit {unit!r}")
 
 
-def from_kelvin(x, unit: str):
+def from_kelvin(x: Any, unit: str) -> Any:
     """Temperatures (any array shape) from kelvin to ``unit`` (``degC``, ``K``, ``degF``)."""
     if unit == "degC":
         return x - 273.15

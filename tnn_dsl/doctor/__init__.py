@@ -1,5 +1,11 @@
 """The model doctor: what the simulation gets wrong on measured data, its cause, the extended network.
 
+Owns: one run as named stages (``session``; entry point ``diagnose`` in ``diagnosis``), what a candidate is
+(``base``), the exactly-null candidates (``candidates``) and the structural ones (``structural``, their
+score columns in ``forcing``) as IR edits, the fitting engine (``engine``: simulation, residuals, forward-mode
+Jacobians, Levenberg–Marquardt), the score test and shortlist (``scoring``), proper fits (``fitting``), the
+held-out decision (``selection``), the extension as IR edits printed to ``.thn`` (``extension``), linear or
+MLP (``mlp_check``), causes named in words (``words``), results (``results``) and the HTML page (``report``).
 May import: every stage below it (``core`` … ``analysis``); not ``control``, ``studies`` or ``cli``.
 """
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..ir import (
     Network,
     Ref,
@@ -13,7 +15,8 @@ from ..ir import (
     walk,
 )
 
-__all__ = ["STRUCTURAL_KINDS", "MASS_FRACTION_BOUNDS", "Column", "Candidate", "Extended", "refs_in", "temps_in", "var_label", "fn_name"]
+__all__ = ["STRUCTURAL_KINDS", "MASS_FRACTION_BOUNDS", "Column", "Candidate", "Extended", "refs_in", "temps_in",
+           "element_value", "var_label", "fn_name"]
 
 STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass", "source_mass")
 
@@ -120,6 +123,12 @@ def var_label(kind: str, name: str) -> str:
 def fn_name(target: str) -> str:
     """The extended network's learned-function name for a target (an identifier)."""
     return "dx_" + re.sub(r"[^A-Za-z0-9_]", "_", target)
+
+
+def element_value(params: dict, c: Candidate) -> float:
+    """The fitted value (SI) of the one parameter a single-parameter candidate adds
+    (``c.element["param"]``: a missing link's G, a radiation area, a sensor offset or lag)."""
+    return float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
 
 
 def _unique_name(name: str, taken: set[str]) -> str:

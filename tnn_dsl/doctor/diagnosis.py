@@ -23,8 +23,9 @@ Steps (see docs/architecture.md, "Diagnosis"):
    as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (:mod:`tnn_dsl.analysis.residuals`).
 3. **Candidates** from the IR (:mod:`.candidates`), all exactly null, in ONE extended network, plus structural
-   ones (a sensor lag, a missing thermal mass on a link, a heat capacity behind a source) that are not. **Score test** at the fitted point: Jacobian ``J`` of the training
-   outputs w.r.t. every candidate column and every free column. Candidates enter as extra heat flows per
+   ones (a sensor lag, a missing thermal mass on a link, a heat capacity behind a source) that are not.
+   **Score test** at the fitted point: Jacobian ``J`` of the training outputs w.r.t. every candidate
+   column and every free column. Candidates enter as extra heat flows per
    node (``C·∂rhs_big/∂θ`` at the current trajectory, pointwise) pushed through ONE batched forward-mode
    derivative of the current network's simulation w.r.t. forcing inputs (``_with_forcing``), plus direct
    output terms; a sensor lag's column is ``−dT_node/dt``. The free directions are projected out
@@ -39,13 +40,15 @@ Steps (see docs/architecture.md, "Diagnosis"):
    fitted candidates whose held-out SSE is within noise of the best, the one with fewer parameters, then the
    more physical placement wins (a parameter of an element beats a heat load at a node, a parameter the
    user already declared uncertain beats one they did not; see ``_place``); runners-up are reported.
-5. **Extend**: the input text plus the accepted ``learn``/link/radiation/offset clauses, re-loaded to check
-   it is valid; the gain on held-out data. Repeat 3–5 (forward selection) until nothing pays.
+5. **Extend**: the accepted findings applied to the IR (``learn`` functions, links, radiation, sensor offsets and
+   lags, thermal masses, capacities behind sources, with their fitted values), printed as ``.thn`` by
+   :func:`tnn_dsl.lang.print_thn` and re-loaded to check it is valid; the gain on held-out data. Repeat 3–5
+   (forward selection) until nothing pays.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 from .results import Diagnosis, Finding
 from .session import _Session
@@ -53,7 +56,7 @@ from .session import _Session
 __all__ = ["diagnose", "Diagnosis", "Finding"]
 
 
-def diagnose(net_or_path, train, val=None, budget_s: float | None = None, backend: str = "jax",
+def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | None = None, backend: str = "jax",
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False) -> Diagnosis:

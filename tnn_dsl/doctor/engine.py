@@ -7,6 +7,7 @@ import math
 import re
 import time as _time
 from dataclasses import dataclass
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -14,7 +15,8 @@ from ..compiler import backend_of
 from ..ir import POSITIVE_ROLES, Input, Network, Param
 from .base import Candidate, Extended
 
-FIT_ITER = 80  # Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
+# Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
+FIT_ITER = 80
 
 
 FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
@@ -395,7 +397,9 @@ def _split_masks(experiments, val_experiments, frac: float = 0.7):
     return exps, np.concatenate(tm), np.concatenate(vm)
 
 
-def normalisation_stats(model, params, fn_vars, net, inputs, states, rows, dt: float = 1.0, state_names=None):
+def normalisation_stats(model: Any, params: dict[str, np.ndarray], fn_vars: dict[str, list], net: Network,
+                        inputs: np.ndarray, states: np.ndarray, rows: Any, dt: float = 1.0,
+                        state_names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """Each learned function's input normalisation from the training rows of the nominal run, as the
     trainer sets it (``x_mean`` the mid-range, ``x_scale`` the half-range, floors 0.5 K for temperatures),
     and its output scale: ``|nominal|`` for a parameter, the node's typical heat throughput ``C·rms(dT/dt)``

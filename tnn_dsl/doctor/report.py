@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import OutputKind, check_output, write_text_atomic
+from .results import Diagnosis
 
 __all__ = ["write_report"]
 
@@ -67,7 +68,7 @@ REPORT_DIR = OutputKind("report directory", is_dir=True, ours=_is_report_dir, ex
 """What ``tnnc diagnose --report DIR`` writes: ``DIR/index.html`` alone."""
 
 
-def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str:
+def write_report(d: Diagnosis, directory: str | os.PathLike, *, force: bool = False) -> str:
     """Write ``directory/index.html`` for a :class:`~tnn_dsl.doctor.diagnosis.Diagnosis`; returns its path.
 
     ``directory`` must be absent, empty or an earlier report, unless ``force`` (then only its
@@ -89,7 +90,8 @@ def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str
         "<th>max (K)</th></tr>",
         f"<tr><td>training rows</td><td>{_num(b['train_mae'])}</td><td>{_num(b['train_max'])}</td></tr>",
         f"<tr><td>held-out rows</td><td>{_num(b['val_mae'])}</td><td>{_num(b['val_max'])}</td></tr>",
-        f"<tr><td>extended, held-out</td><td>{_num(d.extended['val_mae'])}</td><td>{_num(d.extended['val_max'])}</td></tr>",
+        f"<tr><td>extended, held-out</td><td>{_num(d.extended['val_mae'])}</td>"
+        f"<td>{_num(d.extended['val_max'])}</td></tr>",
         "</table>",
         "<h3>Per sensor (held-out)</h3><table><tr><th>sensor</th><th>MAE</th><th>max</th><th>bias</th>"
         "<th>noise σ</th><th>white?</th></tr>",
@@ -98,7 +100,8 @@ def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str
         w = d.residuals.whiteness.get(s, {})
         parts.append(f"<tr><td>{e(s)}</td><td>{_num(st['mae'])}</td><td>{_num(st['max'])}</td>"
                      f"<td>{_num(st['bias'])}</td><td>{_num(d.residuals.sigma.get(s))}</td>"
-                     f"<td>{'yes' if w.get('white') else 'no'} (Ljung–Box p = {_num(w.get('ljung_box_p'), 2)})</td></tr>")
+                     f"<td>{'yes' if w.get('white') else 'no'} "
+                     f"(Ljung–Box p = {_num(w.get('ljung_box_p'), 2)})</td></tr>")
     parts.append("</table>")
     if b.get("free_params"):
         parts.append("<h3>Fitted free parameters (SI)</h3><table>")
@@ -116,7 +119,8 @@ def write_report(d, directory: str | os.PathLike, *, force: bool = False) -> str
             ev = f.evidence
             parts.append(
                 f"<tr><td>{f.round}</td><td>{f.rank}</td><td>{e(f.words)}</td><td><code>{e(f.clause)}</code></td>"
-                f"<td>{_num(f.val_mae_after)}</td><td>{_num(ev.get('p_value'), 2)}</td><td>{_num(ev.get('n_eff'), 4)}</td>"
+                f"<td>{_num(f.val_mae_after)}</td><td>{_num(ev.get('p_value'), 2)}</td>"
+                f"<td>{_num(ev.get('n_eff'), 4)}</td>"
                 f"<td class='{cls}'>{'accepted' if f.accepted else 'rejected: ' + e(ev.get('reason', ''))}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Score test (first round, best 20)</h2><table><tr><th>rank</th><th>candidate</th><th>k</th>"

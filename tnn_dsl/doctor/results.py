@@ -4,12 +4,23 @@ its JSON document and terminal summary."""
 
 from __future__ import annotations
 
+import html
+import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from ..analysis import residuals as R
 from ..core import to_jsonable
+from ..core.htmlview import html_list, html_table, pre, safe_repr_html, view
 
 __all__ = ["Finding", "Diagnosis"]
+
+
+def _caution(twins: str) -> str:
+    """The summary's caution for an accepted finding the data cannot tell apart from ``twins``."""
+    return ("caution: to first order the data cannot tell this apart from " + twins
+            + " — the named element is the best-scoring, most physical choice; the others"
+            " could compensate for it (not separately identifiable from these sensors)")
 
 
 @dataclass
@@ -82,40 +93,62 @@ class Diagnosis:
             "timings": self.timings,
         })
 
+    def residual_rows(self) -> list[dict[str, Any]]:
+        """Per sensor, the nominal model's residual: ``sensor``, ``white``, ``ljung_box_p``, ``sigma`` (K)."""
+        return [{"sensor": s, "white": bool(st.get("white")), "ljung_box_p": st.get("ljung_box_p", 1),
+                 "sigma": self.residuals.sigma[s]} for s, st in self.residuals.whiteness.items()]
+
+    def finding_rows(self) -> list[dict[str, Any]]:
+        """One row per finding (what :meth:`summary` and the notebook view show): ``round``, ``accepted``,
+        ``cause`` (in words), ``dependence`` (the variables), ``clause``, ``mae_before``/``mae_after`` (held
+        out, K), ``p_value`` and ``n_eff`` of the held-out test, ``reason`` and ``caution`` (the candidates an
+        accepted finding cannot be told apart from; empty if none)."""
+        rows = []
+        for f in self.findings:
+            ev = f.evidence
+            twins = ev.get("indistinguishable_from") if f.accepted else None
+            rows.append({
+                "round": f.round, "accepted": f.accepted, "cause": f.words, "dependence": list(f.depends_on),
+                "clause": f.clause, "mae_before": ev.get("val_mae_before", math.nan), "mae_after": f.val_mae_after,
+                "p_value": ev.get("p_value", math.nan), "n_eff": ev.get("n_eff", 0), "reason": ev.get("reason") or "",
+                "caution": "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})" for t in twins[:3]) if twins else "",
+            })
+        return rows
+
+    def mlp_text(self) -> str | None:
+        """The summary's "linear or MLP" answer (None when the MLP check did not run)."""
+        mc = self.extended.get("mlp_check")
+        if mc and "linear" in mc:
+            return (f"trained both (held-out MAE linear {mc['linear']['val_mae']:.4g} K, "
+                    f"MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}")
+        return mc["reason"] if mc else None
+
     def summary(self) -> str:
         """The terminal summary."""
         b = self.baseline
         lines = [f"model doctor: {self.network}",
                  f"  baseline (held-out): MAE {b['val_mae']:.4g} K, max {b['val_max']:.4g} K"
                  f"  (train MAE {b['train_mae']:.4g} K)"]
-        for s, st in self.residuals.whiteness.items():
-            lines.append(f"  residual {s}: {'white' if st.get('white') else 'NOT white'}"
-                         f" (Ljung–Box p = {st.get('ljung_box_p', 1):.2g}), noise σ ≈ {self.residuals.sigma[s]:.3g} K")
+        for r in self.residual_rows():
+            lines.append(f"  residual {r['sensor']}: {'white' if r['white'] else 'NOT white'}"
+                         f" (Ljung–Box p = {r['ljung_box_p']:.2g}), noise σ ≈ {r['sigma']:.3g} K")
         if self.scores:
             lines.append("  score test, best candidates:")
             for s in self.scores[:5]:
                 lines.append(f"    {s['rank']:>2}. {s['words']:<60} k={s['k']}  R²={s['r2']:.3f}  p={s['p']:.2g}")
-        for f in self.findings:
-            mark = "ACCEPTED" if f.accepted else "rejected"
-            lines.append(f"  [{mark}] round {f.round}: {f.words}")
-            lines.append(f"      clause: {f.clause}")
-            ev = f.evidence
-            lines.append(f"      held-out MAE {ev.get('val_mae_before', float('nan')):.4g} → {f.val_mae_after:.4g} K"
-                         f", held-out test p = {ev.get('p_value', float('nan')):.2g} (N_eff = {ev.get('n_eff', 0):.0f})"
-                         + (f"; {ev['reason']}" if ev.get("reason") else ""))
-            if f.accepted and ev.get("indistinguishable_from"):
-                tw = ev["indistinguishable_from"]
-                lines.append("      caution: to first order the data cannot tell this apart from "
-                             + "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})" for t in tw[:3])
-                             + " — the named element is the best-scoring, most physical choice; the others"
-                             " could compensate for it (not separately identifiable from these sensors)")
+        for r in self.finding_rows():
+            mark = "ACCEPTED" if r["accepted"] else "rejected"
+            lines.append(f"  [{mark}] round {r['round']}: {r['cause']}")
+            lines.append(f"      clause: {r['clause']}")
+            lines.append(f"      held-out MAE {r['mae_before']:.4g} → {r['mae_after']:.4g} K"
+                         f", held-out test p = {r['p_value']:.2g} (N_eff = {r['n_eff']:.0f})"
+                         + (f"; {r['reason']}" if r["reason"] else ""))
+            if r["caution"]:
+                lines.append("      " + _caution(r["caution"]))
         lines.append("  verdict: " + self.verdict)
-        mc = self.extended.get("mlp_check")
-        if mc and "linear" in mc:
-            lines.append(f"  linear or MLP: trained both (held-out MAE linear {mc['linear']['val_mae']:.4g} K, "
-                         f"MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}")
-        elif mc:
-            lines.append(f"  linear or MLP: {mc['reason']}")
+        mlp = self.mlp_text()
+        if mlp:
+            lines.append(f"  linear or MLP: {mlp}")
         if self.accepted:
             g = self.gain
             lines.append(f"  gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
@@ -124,3 +157,47 @@ class Diagnosis:
         if self.extended_file:
             lines.append(f"  extended network written to {self.extended_file}")
         return "\n".join(lines)
+
+    def _repr_html_(self) -> str:
+        """The notebook view: :meth:`summary` as tables (``<pre>`` of the summary should that fail)."""
+        return safe_repr_html(self._html, self.summary, f"Diagnosis({self.network!r})")
+
+    def _html(self) -> str:
+        b = self.baseline
+        parts = [html_table(["held-out MAE K", "held-out max K", "train MAE K"],
+                            [[b["val_mae"], b["val_max"], b["train_mae"]]], numeric=[True] * 3),
+                 html_table(["sensor", "residual", "Ljung–Box p", "noise σ K"],
+                            [[r["sensor"], "white" if r["white"] else "NOT white", r["ljung_box_p"], r["sigma"]]
+                             for r in self.residual_rows()], numeric=[False, False, True, True], digits=3)]
+        if self.scores:
+            parts.append(html_table(["#", "score test: best candidates", "k", "R²", "p"],
+                                    [[s["rank"], s["words"], s["k"], s["r2"], s["p"]] for s in self.scores[:5]],
+                                    numeric=[True, False, True, True, True], digits=3))
+        rows = self.finding_rows()
+        if rows:
+            parts.append(html_table(
+                ["round", "cause", "depends on", "held-out MAE before K", "after K", "p-value", "N_eff",
+                 "accepted", "clause", "reason"],
+                [[r["round"], r["cause"], ", ".join(r["dependence"]), r["mae_before"], r["mae_after"], r["p_value"],
+                  round(float(r["n_eff"])), "ACCEPTED" if r["accepted"] else "rejected", r["clause"], r["reason"]]
+                 for r in rows],
+                numeric=[True, False, False, True, True, True, True, False, False, False]))
+        lines = [f"verdict: {self.verdict}"]
+        mlp = self.mlp_text()
+        if mlp:
+            lines.append(f"linear or MLP: {mlp}")
+        if self.accepted:
+            g = self.gain
+            lines.append(f"gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
+                         f"(÷{g['val_mae_ratio']:.2f}), max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K")
+        lines.append(f"what is left: {self.left}")
+        parts.append(html_list(lines))
+        warnings = [f"{r['cause']}: {_caution(r['caution'])}" for r in rows if r["caution"]]
+        if warnings:
+            parts.append("<b>warnings</b>" + html_list(warnings))
+        clauses = list(self.extended.get("clauses") or [])
+        if clauses:
+            where = f" (written to {self.extended_file})" if self.extended_file else ""
+            parts.append(f"<b>{html.escape('extension' + where)}</b>"
+                         + pre("\n".join(clauses)))
+        return view(f"model doctor: {self.network}", *parts)

@@ -5,7 +5,6 @@ in order; the state they share lives on the session."""
 
 from __future__ import annotations
 
-import difflib
 import os
 import re
 import time as _time
@@ -29,7 +28,7 @@ from .engine import (
     _split_masks,
     _State,
 )
-from .extension import _check_text, _clause, _extend_text, _merged_clauses
+from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
 from .fitting import _fit_result, _fit_structural, _train_lr_test
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
@@ -360,7 +359,7 @@ class _Session:
             prm = f["params"]
             self.findings.append(Finding(
                 rank=rank, kind=c.kind, target=c.target, depends_on=list(c.depends_on),
-                clause=_clause(cf, prm, f["ext"], f["eng"]),
+                clause=finding_clause(self.net_x, cf, prm, f.get("net")),
                 val_mae_after=f["val_mae"], val_max_after=f["val_max"], accepted=f is chosen,
                 words=_words(cf, prm, f["ext"], f["eng"], f["eng"].model), round=rnd,
                 evidence={"score": f["score"]["public"]["score"], "score_p": f["score"]["public"]["p"],
@@ -393,23 +392,31 @@ class _Session:
     # -- the extension ---------------------------------------------------------------------------------
 
     def build_extension(self) -> None:
-        """The accepted findings as clauses and the extended text; the extended model's held-out residual."""
+        """The accepted findings applied to the IR (:func:`extend_network`, fitted values in the new parameters),
+        printed; the extended model's held-out residual."""
         t0 = _time.monotonic()
         self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
-        params = self.final_eng.params
-        self.clauses = _merged_clauses(self.acc_small, params, self.final_ext, self.final_eng)
-        self.ext_text, self.diff = _extend_text(self.text, self.clauses, self.acc_small, self.net, params,
-                                                self.final_ext, self.unused)
+        self.ext_net = extend_network(self.net_x, self.acc_small, self.final_eng.params, self.unused)
+        self.set_extension(self.ext_net)
         self.lap("extend", t0)
         self.y_fin, _ = self.final_eng.simulate()
         e_fin = np.where(self.final_eng.val_mask, self.final_eng.y - self.y_fin, np.nan)
         self.res_fin = R.summarise(e_fin[self.vrows], self.out_names)
         self.form = None
 
+    def set_extension(self, ext_net: Network) -> None:
+        """The extension's text, its diff from the original and its changed statements (``clauses``)."""
+        self.ext_net = ext_net
+        self.ext_text, self.diff = extension_text(self.net, ext_net, self.acc_small, self.path)
+        self.clauses = changed_lines(self.net, ext_net) if self.accepted else []
+        if not self.accepted:
+            self.diff = ""
+
     def compare_with_mlp(self) -> None:
         """Linear or MLP, as the evidence says: only where a structured residual is left and time allows."""
         res_fin = self.res_fin
-        if not (self.accepted and self.ext_text and self.mlp_check and any(" as linear(" in c for c in self.clauses)
+        targets = doctor_targets(self.acc_small)
+        if not (self.accepted and targets and self.mlp_check
                 and not all(w.get("white") for w in res_fin.whiteness.values())
                 and (self.deadline is None or _time.monotonic() + 2 * self.mlp_time < self.deadline)):
             return
@@ -423,24 +430,20 @@ class _Session:
             parts = [split_by_time(e, 0.7) for e in self.train_exps]
             tr_e, va_e = [a for a, _ in parts], [b for _, b in parts]
         try:
-            form = compare(self.ext_text, self.output or (self.path or "extended.thn"), tr_e, va_e,
-                           backend=self.backend, time_limit=self.mlp_time, say=self.say)
+            ext = _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
+            form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
         if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:
-            form.update(choice="linear", text=self.ext_text,
+            form.update(choice="linear", network=None,
                         reason=(f"the trained MLP ({form['mlp']['val_mae']:.4g} K held out) beats the trained "
                                 f"linear law but not the doctor's own linear fit ({res_fin.mae:.4g} K) by "
                                 f"{100 * MIN_GAIN:.0f} %"))
         if form is not None:
             self.say(f"  {form['reason']}")
             if form["choice"] == "mlp":
-                self.ext_text = form["text"]
-                self.diff = "".join(difflib.unified_diff(self.text.splitlines(True), self.ext_text.splitlines(True),
-                                                         "original", "extended"))
-                self.clauses = [ln for ln in self.ext_text.splitlines()
-                                if ln.startswith("learn ") and ln not in self.text]
-            form = {k: v for k, v in form.items() if k != "text"}
+                self.set_extension(form["network"])
+            form = {k: v for k, v in form.items() if k != "network"}
         self.form = form
         self.lap("mlp_check", t0)
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..analysis import residuals as R
 from ..ir import Network
-from .base import Candidate, Extended, var_label
+from .base import Candidate, Extended, element_value, var_label
 from .engine import _Engine
 
 
@@ -101,36 +101,42 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
                 return f"{c.target}{where} is wrong: ≈ {_fmt(base_v)} {unit} (was {_fmt(nominal)})"
             strengths = _strengths(terms, eng, c)
             dep = " and ".join(f"{lab} ({st})" for (lab, _, _), st in zip(rel, strengths))
-            inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r) / (1 + k * z0) if 1 + k * z0 else abs(r))}·({lab} − {_fmt(m if not lab.startswith('T(') else m - 273.15, 3)}{' °C' if lab.startswith('T(') else ''})"
+            inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r) / (1 + k * z0) if 1 + k * z0 else abs(r))}·"
+                             f"({lab} − {_fmt(m if not lab.startswith('T(') else m - 273.15, 3)}"
+                             f"{' °C' if lab.startswith('T(') else ''})"
                              for lab, r, m in rel)
             return (f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}")
         y_scale = _out_scale(params, c)
         off = y_scale * z0
         if not terms:
             return f"{c.target}{where} is wrong by {_fmt(off)} {unit}"
-        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})" for lab, s, m, _ in terms)
-        return f"{c.target}{where} depends on {', '.join(t[0] for t in terms)}: Δ{c.target} ≈ {_fmt(off)} {inner} {unit}"
+        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})"
+                         for lab, s, m, _ in terms)
+        return (f"{c.target}{where} depends on {', '.join(t[0] for t in terms)}: "
+                f"Δ{c.target} ≈ {_fmt(off)} {inner} {unit}")
     if c.kind in ("heat_load", "unused_column"):
         z0, terms = _linear_coeffs(c, params, ext)
         y_scale = _out_scale(params, c)
         node = c.target[2:-1]
         if not terms:
             return f"unmodelled constant heat load at {node}: Q ≈ {_fmt(y_scale * z0)} W"
-        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})" for lab, s, m, _ in terms)
+        inner = " ".join(f"{'+' if s >= 0 else '−'} {_fmt(abs(y_scale * s))}·({lab} − {_fmt(m, 3)})"
+                         for lab, s, m, _ in terms)
         what = "data column" if c.kind == "unused_column" else ""
-        return (f"unmodelled heat load at {node} depending on {what + ' ' if what else ''}{', '.join(t[0] for t in terms)}:"
-                f" Q[{node}] ≈ {_fmt(y_scale * z0)} {inner} W")
+        return (f"unmodelled heat load at {node} depending on {what + ' ' if what else ''}"
+                f"{', '.join(t[0] for t in terms)}: Q[{node}] ≈ {_fmt(y_scale * z0)} {inner} W")
     if c.kind == "missing_link":
-        g = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        return f"missing conduction path {c.element['a']}–{c.element['b']}: G ≈ {_fmt(g)} W/K (R ≈ {_fmt(1 / g) if g > 0 else '∞'} K/W)"
+        g = element_value(params, c)
+        return (f"missing conduction path {c.element['a']}–{c.element['b']}: G ≈ {_fmt(g)} W/K "
+                f"(R ≈ {_fmt(1 / g) if g > 0 else '∞'} K/W)")
     if c.kind == "radiation":
-        a = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        a = element_value(params, c)
         return f"missing radiation {c.element['a']}–{c.element['b']}: ε·A ≈ {_fmt(a)} m²"
     if c.kind == "sensor_offset":
-        o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        o = element_value(params, c)
         return f"sensor {c.target} reads {_fmt(o)} K {'high' if o > 0 else 'low'} (offset)"
     if c.kind == "sensor_lag":
-        tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
+        tau = element_value(params, c)
         return f"sensor {c.target} lags its node {c.element['node']}: first-order lag τ ≈ {_fmt(tau)} s"
     if c.kind == "thermal_mass":
         from .structural import mass_values
@@ -139,15 +145,16 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         v = mass_values(net, c, params)
         return (f"missing thermal mass between {el['a']} and {el['b']}: a node {el['node']} of C ≈ {_fmt(v['C'])} J/K"
                 f" splitting link {el['link']} ({el['a']}–{el['b']}, R ≈ {_fmt(v['R'])} K/W in total),"
-                f" {100 * v['f']:.0f} % of it on the {el['a']} side; its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
+                f" {100 * v['f']:.0f} % of it on the {el['a']} side;"
+                f" its own time constant C·f(1−f)·R ≈ {_fmt(v['tau'])} s")
     if c.kind == "source_mass":
         from .structural import source_mass_values
 
         el = c.element
         v = source_mass_values(net, c, params)
-        return (f"missing heat capacity behind source {el['source']}: it heats a node {el['node']} of C ≈ {_fmt(v['C'])}"
-                f" J/K joined to {el['at']} by R ≈ {_fmt(v['R'])} K/W (time constant C·R ≈ {_fmt(v['tau'])} s), not"
-                f" {el['at']} directly")
+        return (f"missing heat capacity behind source {el['source']}: it heats a node {el['node']} of C ≈"
+                f" {_fmt(v['C'])} J/K joined to {el['at']} by R ≈ {_fmt(v['R'])} K/W (time constant C·R ≈"
+                f" {_fmt(v['tau'])} s), not {el['at']} directly")
     return c.describe()
 
 
@@ -186,5 +193,6 @@ def _what_is_left(res: R.ResidualSummary) -> str:
             extra = (f"; largest correlation with {worst[0]} (r = {worst[1]['corr']:.2f})"
                      if worst and abs(worst[1].get("corr", 0)) > 0.2 else "")
             parts.append(f"{s}: structure it cannot explain (residual not white, Ljung–Box p = "
-                         f"{w.get('ljung_box_p', 0):.2g}, MAE {res.errors[s]['mae']:.3g} K, noise σ ≈ {sig:.3g} K{extra})")
+                         f"{w.get('ljung_box_p', 0):.2g}, MAE {res.errors[s]['mae']:.3g} K, "
+                         f"noise σ ≈ {sig:.3g} K{extra})")
     return "; ".join(parts)

@@ -30,14 +30,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from ..compiler import backend_of
 from ..core import Diagnostic, TnnError
 
-__all__ = ["ekf", "EKFResult", "open_loop", "tune_process_noise", "DEFAULT_PROCESS_NOISE", "DEFAULT_MEAS_NOISE", "DEFAULT_INIT_STD"]
+__all__ = ["ekf", "EKFResult", "open_loop", "tune_process_noise", "DEFAULT_PROCESS_NOISE", "DEFAULT_MEAS_NOISE",
+           "DEFAULT_INIT_STD"]
 
 DEFAULT_PROCESS_NOISE = 0.01
 """K/√s: process-noise intensity of every temperature state (a 1-s step adds 0.01 K of uncertainty)."""
@@ -116,7 +117,14 @@ class _Setup:
     def __init__(self, model, params, inputs, measurements, dt, use, process_noise, meas_noise, init_std,
                  augment, param_noise, x0):
         self.model = model
-        xp = model.xp
+        self._check_data(model, inputs, measurements, dt, use)
+        self._augment(model, params, augment, param_noise)
+        p0 = self._noise_levels(model, process_noise, meas_noise, init_std)
+        self._initial_state(model, params, x0, p0)
+
+    def _check_data(self, model, inputs, measurements, dt, use) -> None:
+        """The sensors used, the inputs ``(N, n_inputs)`` SI, the readings ``(N, n_outputs)`` K and ``dt`` s,
+        each checked (a :class:`TnnError` that says what was received and what is expected)."""
         self.ns = len(model.state_names)
         outs = list(model.output_names)
         if not outs:
@@ -127,7 +135,8 @@ class _Setup:
             raise TnnError(Diagnostic("no sensor to use", hint=f"name one or more of: {', '.join(outs)}"))
         for s in use:
             if s not in outs:
-                raise TnnError(Diagnostic(f"unknown sensor {s!r}", hint=f"the network's sensors are: {', '.join(outs)}"))
+                raise TnnError(Diagnostic(f"unknown sensor {s!r}",
+                                          hint=f"the network's sensors are: {', '.join(outs)}"))
         self.use = tuple(dict.fromkeys(use))
         self.use_idx = [outs.index(s) for s in self.use]
         self.inputs = np.asarray(inputs, dtype=np.float64)
@@ -148,7 +157,9 @@ class _Setup:
             raise TnnError(Diagnostic(f"the sensor(s) {', '.join(self.use)} have no reading at all",
                                       hint="check the sensor columns named in the network"))
 
-        # augmented parameters
+    def _augment(self, model, params, augment, param_noise) -> None:
+        """The augmented (estimated) parameters: their names, positivity and role, their starting values
+        ``theta0`` (log for positive ones) and their random-walk noise levels ``q_param``."""
         augment = list(augment or [])
         specs = model.param_specs
         self.aug = []
@@ -181,14 +192,24 @@ class _Setup:
                 if n not in given:
                     self.q_param[i] = pdef[i]
 
+    def _noise_levels(self, model, process_noise, meas_noise, init_std) -> np.ndarray:
+        """Process noise ``q`` (K/√s per state) and measurement noise ``r`` (K per used sensor); returns the
+        initial standard deviation per state (K)."""
         snames = list(model.state_names)
         self.q = _per_name(process_noise, snames, DEFAULT_PROCESS_NOISE, "process noise", "K/√s")
         self.r = _per_name(meas_noise, list(self.use), DEFAULT_MEAS_NOISE, "measurement noise", "K")
         if np.any(self.r <= 0):
-            raise TnnError(Diagnostic("measurement noise must be > 0 K", hint="a perfect sensor: use a small σ, e.g. 0.01"))
+            raise TnnError(Diagnostic("measurement noise must be > 0 K",
+                                      hint="a perfect sensor: use a small σ, e.g. 0.01"))
         p0 = _per_name(init_std, snames, DEFAULT_INIT_STD, "initial std", "K")
+        return p0
 
-        # initial state: steady state of the first inputs, used sensor nodes moved to the first reading
+    def _initial_state(self, model, params, x0, p0) -> None:
+        """The initial augmented state and covariance, and the discrete noise covariances ``Qd``, ``R``.
+        Without ``x0``: the steady state of the first inputs, with the used sensors' nodes moved to the first
+        reading."""
+        xp = model.xp
+        snames = list(model.state_names)
         if x0 is None:
             u0 = xp.asarray(self.inputs[0])
             x0 = np.asarray(model.to_numpy({"x": model.steady_state(params, u0)})["x"], dtype=np.float64)
@@ -280,12 +301,13 @@ def _update_predict(m, solve, step, meas, jac_step, jac_meas, use_idx, R, Qd, I,
     return xp_, Pp, xf, Pf, yf, m.where(ok, innov, float("nan") + 0.0 * yhat), nis_terms, ll
 
 
-def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str | None = None, *,
+def ekf(model: Any, params: Mapping[str, Any], inputs: Any, measurements: Any, dt: float,
+        use: Sequence[str] | str | None = None, *,
         process_noise: float | Mapping[str, float] | None = None,
         meas_noise: float | Mapping[str, float] | None = None,
         init_std: float | Mapping[str, float] | None = None,
         augment: Sequence[str] = (), param_noise: float | Mapping[str, float] | None = None,
-        x0=None, integrator: str = "rk4", substeps: int | None = None, t=None) -> EKFResult:
+        x0: Any = None, integrator: str = "rk4", substeps: int | None = None, t: Any = None) -> EKFResult:
     """Run an extended Kalman filter over a record.
 
     Parameters
@@ -350,7 +372,8 @@ def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str
     pvals = np.stack([np.exp(th[:, j]) if pos else th[:, j] for j, (_, pos, _) in enumerate(setup.aug)], axis=1) \
         if setup.na else np.zeros((N, 0))
     mask = np.isfinite(setup.y)
-    nis_mean = {s: float(np.mean(nis[mask[:, i], i])) if mask[:, i].any() else math.nan for i, s in enumerate(setup.use)}
+    nis_mean = {s: float(np.mean(nis[mask[:, i], i])) if mask[:, i].any() else math.nan
+                for i, s in enumerate(setup.use)}
     return EKFResult(
         t=np.arange(N) * setup.dt if t is None else np.asarray(t, dtype=np.float64),
         states=xs[:, :ns], std=sd[:, :ns], outputs=ys, innovations=inn,
@@ -362,7 +385,8 @@ def ekf(model, params, inputs, measurements, dt: float, use: Sequence[str] | str
     )
 
 
-def open_loop(model, params, inputs, dt: float, x0, integrator: str = "rk4", substeps: int | None = None):
+def open_loop(model: Any, params: Mapping[str, Any], inputs: Any, dt: float, x0: Any, integrator: str = "rk4",
+              substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The model's free run from ``x0 (n_states,)`` K → ``(states (N, n_states), outputs (N, n_out))`` K (numpy):
     what the filter is compared against."""
     import warnings
@@ -377,8 +401,10 @@ def open_loop(model, params, inputs, dt: float, x0, integrator: str = "rk4", sub
     return out["s"], out["y"]
 
 
-def tune_process_noise(model, params, inputs, measurements, dt: float, use=None,
-                       grid: Sequence[float] = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2), **options):
+def tune_process_noise(model: Any, params: Mapping[str, Any], inputs: Any, measurements: Any, dt: float,
+                       use: Sequence[str] | str | None = None,
+                       grid: Sequence[float] = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2),
+                       **options: Any) -> tuple[float, dict[float, float]]:
     """Choose one process-noise intensity ``q`` (K/√s, all temperature states) by maximising the innovation
     log-likelihood over ``grid`` (the prediction-error method of CTSM-style grey-box identification,
     restricted to one scalar). Tune on training data only. Returns ``(best q, {q: loglik})``."""

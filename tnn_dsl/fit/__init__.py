@@ -3,7 +3,8 @@
 Owns: the training options (``config``), the flat parameter vector and its transforms (``transforms``), windows
 of multiple shooting (``windows``), the trainer (``trainer``: loss, Adam, divergence guard, L-BFGS polish) and
 its entry points (``training``: ``train``, ``evaluate``), free runs and error metrics (``simulation``), model
-directories (``model_files``: JSON + safetensors, atomic writes). May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``.
+directories (``model_files``: JSON + safetensors, atomic writes).
+May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``.
 """
 
 from __future__ import annotations

@@ -123,7 +123,7 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
 
-def load_config(path: str | os.PathLike | None = None, **overrides) -> TrainConfig:
+def load_config(path: str | os.PathLike | None = None, **overrides: Any) -> TrainConfig:
     """A :class:`TrainConfig` from a YAML file (keys = option names, ``-`` or ``_``) and overrides
     (``None`` values ignored). Unknown keys are an error naming the known ones."""
     import yaml

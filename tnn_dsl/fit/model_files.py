@@ -10,15 +10,16 @@ A model directory ``MODEL/`` holds
 
 Directories are written to a temporary sibling, flushed to disk and swapped into place in one step, so
 a failed, interrupted or concurrent write never leaves the path without a complete model
-(:func:`save_model`); a directory that is not a model is never replaced. A model trained with one backend loads and predicts identically on the
-other: parameters are stored as float64 numpy arrays and converted by ``Model.from_numpy``.
+(:func:`save_model`); a directory that is not a model is never replaced. A model trained with one backend
+loads and predicts identically on the other: parameters are stored as float64 numpy arrays and converted
+by ``Model.from_numpy``.
 """
 
 from __future__ import annotations
 
 import errno
-import hashlib
 import json
+import math
 import os
 import platform
 import re
@@ -26,7 +27,7 @@ import secrets
 import shutil
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 
@@ -38,15 +39,24 @@ from ..core import (
     __version__,
     check_output,
     exchange_paths,
+    file_sha256,
     fsync_dir,
     fsync_file,
     temp_sibling,
     to_jsonable,
 )
+from ..core.htmlview import html_list, html_table, safe_repr_html, view
 from ..ir import Network, Span
 from .simulation import as_experiments, error_metrics, simulate
 
+if TYPE_CHECKING:
+    from ..compiler import Model
+
 FORMAT = "tnn_dsl-model"
+ROLE_UNIT = {"resistance": "K/W", "conductance": "W/K", "capacitance": "J/K", "time_constant": "s",
+             "heat_flow": "W", "offset": "K", "temperature": "K"}
+"""The SI unit a fitted value is shown in, by parameter role (``tnnc inspect``; other roles: the
+parameter's own unit)."""
 FORMAT_VERSION = 1
 REQUIRED_FILES = ("network.json", "params.safetensors", "meta.json")
 
@@ -54,15 +64,6 @@ REQUIRED_FILES = ("network.json", "params.safetensors", "meta.json")
 # ---------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def versions(backend: str | None = None) -> dict[str, str]:
@@ -328,7 +329,8 @@ def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
                        hint="another process is rewriting this model; try again") from None
         raise _MixedRead from None
     except UnicodeDecodeError as e:
-        raise _err(f"meta.json is not UTF-8 text: {e.reason}", meta_path, hint="the model directory is corrupted; re-train")
+        raise _err(f"meta.json is not UTF-8 text: {e.reason}", meta_path,
+                   hint="the model directory is corrupted; re-train")
     except json.JSONDecodeError as e:
         raise _err(f"meta.json is not valid JSON: {e.msg}", meta_path, line=e.lineno, col=e.colno,
                    hint="the model directory is corrupted; re-train or restore meta.json")
@@ -383,7 +385,7 @@ class TrainedModel:
     """
 
     def __init__(self, network: Network, params: dict[str, np.ndarray], meta: dict[str, Any] | None = None,
-                 path: str | os.PathLike | None = None):
+                 path: str | os.PathLike | None = None) -> None:
         self.network = network
         self.params = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.meta = dict(meta or {})
@@ -399,7 +401,7 @@ class TrainedModel:
         """The backend the model was trained with (any backend can load it)."""
         return str(self.meta.get("backend", "jax"))
 
-    def compiled(self, backend: str | None = None, dtype: str = "float64"):
+    def compiled(self, backend: str | None = None, dtype: str = "float64") -> Model:
         """The compiled :class:`Model` for ``backend`` (default: the training backend); cached."""
         from ..compiler import compile as compile_network
 
@@ -434,7 +436,7 @@ class TrainedModel:
         base.update({k: v for k, v in self.params.items() if k in base})
         return model.from_numpy(base)
 
-    def predict(self, data, backend: str | None = None, init: str = "auto",
+    def predict(self, data: Any, backend: str | None = None, init: str = "auto",
                 integrator: str | None = None) -> list[dict[str, Any]]:
         """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
 
@@ -460,7 +462,7 @@ class TrainedModel:
             })
         return out
 
-    def evaluate(self, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
+    def evaluate(self, data: Any, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
         """Per-sensor and overall MAE, max absolute error (thesis eq. 4.9), bias (mean of predicted −
         measured) and RMSE, in kelvin, over the non-missing samples of every experiment."""
 
@@ -477,6 +479,78 @@ class TrainedModel:
         """The nominal (as written) value of every constant parameter, SI."""
         return {p.name: float(p.value) for p in self.network.params if p.is_constant}
 
+    def parameter_table(self, all_params: bool = False) -> list[dict[str, Any]]:
+        """Fitted against nominal, one row per free constant (every constant with ``all_params``):
+        ``{name, role, unit, nominal, fitted, change_pct, free, bounds}`` (SI; temperatures in K)."""
+        rows = []
+        for p in self.network.params:
+            if not p.is_constant or p.name not in self.params:
+                continue
+            if not (p.free or all_params):
+                continue
+            fitted = float(np.asarray(self.params[p.name]).reshape(-1)[0])
+            nominal = float(p.value)
+            change = (fitted - nominal) / abs(nominal) * 100.0 if nominal != 0 else math.nan
+            rows.append({"name": p.name, "role": p.role, "unit": ROLE_UNIT.get(p.role, p.unit or "SI"),
+                         "nominal": nominal, "fitted": fitted, "change_pct": change, "free": bool(p.free),
+                         "bounds": [p.lower, p.upper]})
+        return rows
+
+    def metric_rows(self) -> list[dict[str, Any]]:
+        """``{part, mae, max_error}`` (K) for the ``train`` and ``validation`` metrics in ``meta``."""
+        m = self.meta.get("metrics", {})
+        return [{"part": part, "mae": m[part].get("mae"), "max_error": m[part].get("max_error")}
+                for part in ("train", "validation") if isinstance(m.get(part), dict)]
+
+    def _header(self) -> str:
+        meta = self.meta
+        return (f"network {self.network.name}, trained with {meta.get('backend', '?')} "
+                f"(rollout {meta.get('rollout', '?')}, stopped: {meta.get('stopped', '?')})")
+
+    def summary(self) -> str:
+        """The text summary (the first part of ``tnnc inspect``): training, metrics, fitted vs nominal."""
+        lines = [self._header()]
+        for r in self.metric_rows():
+            lines.append(f"  {r['part']:<10} MAE {r['mae'] or math.nan:.4g} K  max {r['max_error'] or math.nan:.4g} K")
+        rows = self.parameter_table()
+        if rows:
+            lines.append(f"\n{'parameter':<22} {'nominal':>26} {'fitted':>26} {'change':>9}")
+            for r in rows:
+                ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
+                lines.append(f"{r['name'][:22]:<22} {format_value(r['nominal'], r['role'], r['unit']):>26} "
+                             f"{format_value(r['fitted'], r['role'], r['unit']):>26} {ch:>9}")
+        lines += [f"warning: {w}" for w in self.meta.get("warnings", []) or []]
+        return "\n".join(lines)
+
+    def _repr_html_(self) -> str:
+        """The notebook view: :meth:`summary` as tables (``<pre>`` of the summary should that fail)."""
+        return safe_repr_html(self._html, self.summary, repr(self))
+
+    def _html(self) -> str:
+        parts = [html_list([self._header()] + ([f"loaded from {self.path}"] if self.path else []))]
+        metrics = self.metric_rows()
+        if metrics:
+            parts.append(html_table(["data", "MAE K", "max error K"],
+                                    [[r["part"], r["mae"], r["max_error"]] for r in metrics],
+                                    numeric=[False, True, True]))
+        rows = self.parameter_table()
+        if rows:
+            parts.append(html_table(
+                ["parameter", "nominal", "fitted", "change"],
+                [[r["name"], format_value(r["nominal"], r["role"], r["unit"]),
+                  format_value(r["fitted"], r["role"], r["unit"]),
+                  f"{r['change_pct']:+.1f} %" if math.isfinite(r["change_pct"]) else ""] for r in rows],
+                numeric=[False, True, True, True]))
+        parts.append(html_list(f"warning: {w}" for w in self.meta.get("warnings", []) or []))
+        return view(f"TrainedModel: {self.network.name} ({self.backend})", *parts)
+
+
+def format_value(v: float, role: str, unit: str) -> str:
+    """A fitted or nominal value with its unit as ``tnnc inspect`` shows it (temperatures in K and °C)."""
+    if role == "temperature" and unit == "K":
+        return f"{v:.6g} K ({v - 273.15:.4g} °C)"
+    return f"{v:.6g} {unit}"
+
 
 def data_records(paths: Iterable[str | os.PathLike | None]) -> list[dict[str, Any]]:
     """``[{path, sha256, bytes}]`` for the data files a model was trained on (for ``meta.json``)."""
@@ -490,4 +564,5 @@ def data_records(paths: Iterable[str | os.PathLike | None]) -> list[dict[str, An
     return recs
 
 
-__all__ = ["save_model", "load_model", "is_model_dir", "MODEL_DIR", "TrainedModel", "file_sha256", "versions", "data_records"]
+__all__ = ["save_model", "load_model", "is_model_dir", "MODEL_DIR", "TrainedModel", "file_sha256", "versions",
+           "data_records"]

@@ -5,13 +5,13 @@ Used by the trainer (validation), trained models (``predict``/``evaluate``) and 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from ..compiler import backend_of
 from ..core import Diagnostic, TnnError
-from ..data import as_experiments
+from ..data import Experiment, as_experiments
 from ..ir import Network
 
 __all__ = ["simulate", "error_metrics", "as_experiments", "initial_state", "simulate_experiment"]
@@ -76,7 +76,8 @@ def _sim_fn(model, integrator: str, dt: float, substeps):
     return fn
 
 
-def simulate(model, params, exp, init: str = "steady", integrator: str = "rk4", substeps=None,
+def simulate(model: Any, params: Mapping[str, Any], exp: Experiment, init: str = "steady",
+             integrator: str = "rk4", substeps: int | None = None,
              params_np: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Free run of ``model`` over experiment ``exp`` with backend ``params``.
 
@@ -129,7 +130,8 @@ def _stats(e: np.ndarray) -> dict[str, float]:
             "rmse": float(np.sqrt(np.mean(e * e))), "n": int(e.size)}
 
 
-def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how: str) -> tuple[np.ndarray, list[str]]:
+def initial_state(net: Network, model: Any, params: Mapping[str, Any], u0: np.ndarray, y0: np.ndarray | None,
+                  how: str) -> tuple[np.ndarray, list[str]]:
     """The initial state (n_states,) K and notes. ``how="steady"``: steady state of ``u0`` (n_inputs,) SI;
     ``"measured"``: that, with each sensed node (and its lag state) shifted so that the sensor reads
     ``y0`` (n_outputs,) K; nodes read by several sensors take the mean shift; NaN readings are skipped."""
@@ -139,7 +141,8 @@ def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how
     notes: list[str] = []
     if not np.all(np.isfinite(T0)):
         raise TnnError(Diagnostic("the steady state of the first inputs could not be computed (not finite)",
-                                  hint="check the network's parameters; a node with no path to a boundary has no steady state"))
+                                  hint="check the network's parameters; a node with no path to a boundary has no "
+                                       "steady state"))
     if y0 is None:
         return T0, notes
     y_model = B.numpy(model.outputs(params, B.asarray(T0), ub))
@@ -164,13 +167,14 @@ def initial_state(net, model, params, u0: np.ndarray, y0: np.ndarray | None, how
     for i, g in shifts.items():
         T[i] += float(np.mean(g))
     moved = sorted({model.state_names[i] for i in shifts})
-    notes.append(f"note: initial state: steady state of the first inputs, with {', '.join(moved) or 'no state'} moved to "
-                 f"the first measurements")
+    notes.append(f"note: initial state: steady state of the first inputs, with {', '.join(moved) or 'no state'} "
+                 f"moved to the first measurements")
     return T, notes
 
 
-def simulate_experiment(net, model, params, exp, integrator: str = "rk4", substeps: int | None = None,
-                        init: str = "steady"):
+def simulate_experiment(net: Network, model: Any, params: Mapping[str, Any], exp: Experiment,
+                        integrator: str = "rk4", substeps: int | None = None,
+                        init: str = "steady") -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Free run of one :class:`Experiment` → (states (N, n_states) K, outputs (N, n_outputs) K, notes)."""
     y0 = exp.outputs[0] if np.isfinite(exp.outputs[0]).any() else None
     T0, notes = initial_state(net, model, params, exp.inputs[0], y0, init)

@@ -6,10 +6,10 @@ How it works
   ``rollout="estimated"``, the initial state of every window) live in ONE flat float64 numpy vector
   ``z``. Each slot maps to its array by a transform: ``log`` for positive parameters, a scaled sigmoid
   for bounded ones, identity (scaled) otherwise — so every positive quantity stays positive.
-* The loss is written once against a tiny array namespace (:class:`~tnn_dsl.compiler.backends.adapter.Backend`) and the compiled model contract
-  (``rollout``, ``steady_state``); the backend gives its value and gradient (``jax.value_and_grad``
-  under ``jit``, or torch autograd). The optimisers run on numpy: Adam (with gradient clipping, a
-  divergence guard and early stopping on validation), then an L-BFGS polish (``scipy.optimize``).
+* The loss is written once against a tiny array namespace (:class:`~tnn_dsl.compiler.backends.adapter.Backend`)
+  and the compiled model contract (``rollout``, ``steady_state``); the backend gives its value and gradient
+  (``jax.value_and_grad`` under ``jit``, or torch autograd). The optimisers run on numpy: Adam (with gradient
+  clipping, a divergence guard and early stopping on validation), then an L-BFGS polish (``scipy.optimize``).
 * Loss (thesis eq. 4.8): mean squared error over the non-missing sensor samples (K²)
   + ``lam`` · mean over windows of the window's max absolute error (K)
   + Σ ``gamma_i`` · ((θ_i − θ_ref,i)/|θ_ref,i|)² over regularised physical parameters
@@ -129,7 +129,8 @@ class _Trainer:
     # -- parameters ----------------------------------------------------------------------
     def initial_params(self) -> dict[str, np.ndarray]:
         cfg, model = self.cfg, self.model
-        params = {k: np.asarray(v, dtype=np.float64) for k, v in model.to_numpy(model.init_params(seed=cfg.seed)).items()}
+        params = {k: np.asarray(v, dtype=np.float64)
+                  for k, v in model.to_numpy(model.init_params(seed=cfg.seed)).items()}
         sources: list[tuple[str, set[str] | None]] = []
         if cfg.init_from:
             sources.append((cfg.init_from, None))
@@ -443,8 +444,10 @@ class _Trainer:
             self.n_x0 = len(wins)
         self.wins = wins
         for (dt, L), ids in by_len.items():
-            U = np.stack([np.asarray(self.exps[wins[i].exp].inputs, dtype=float)[wins[i].start:wins[i].start + L] for i in ids])
-            Y = np.stack([np.asarray(self.exps[wins[i].exp].outputs, dtype=float)[wins[i].start:wins[i].start + L] for i in ids])
+            U = np.stack([np.asarray(self.exps[wins[i].exp].inputs, dtype=float)[wins[i].start:wins[i].start + L]
+                          for i in ids])
+            Y = np.stack([np.asarray(self.exps[wins[i].exp].outputs, dtype=float)[wins[i].start:wins[i].start + L]
+                          for i in ids])
             mask0, vals0 = _measured_init_arrays(mapping, n_states, Y[:, 0])
             if mode == "steady":
                 mask0[:] = False
@@ -748,7 +751,8 @@ class _Trainer:
         return np.array(z if fallback is None else fallback, copy=True)
 
     def record(self, epoch, loss, val, t0, phase, eta=math.nan):
-        best = min([r["val_mae"] for r in self.curve if math.isfinite(r["val_mae"])] + [val if math.isfinite(val) else math.inf])
+        best = min([r["val_mae"] for r in self.curve if math.isfinite(r["val_mae"])]
+                   + [val if math.isfinite(val) else math.inf])
         rec = {"epoch": int(epoch), "phase": phase, "loss": float(loss), "val_mae": float(val),
                "time": time.perf_counter() - t0}
         self.curve.append(rec)

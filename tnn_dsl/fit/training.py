@@ -13,6 +13,7 @@ import numpy as np
 
 from ..core import Diagnostic, TnnError
 from ..data import as_experiments
+from ..ir import Network
 from .config import TrainConfig, load_config
 from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
 from .trainer import _net_of, _Trainer
@@ -24,10 +25,11 @@ __all__ = ["TrainConfig", "train", "evaluate", "load_config"]
 # ---------------------------------------------------------------------------------------------
 
 
-def train(network, data, val=None, *, config: TrainConfig | dict | str | os.PathLike | None = None,
+def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
+          config: TrainConfig | dict | str | os.PathLike | None = None,
           out: str | os.PathLike | None = None, force: bool = False,
           callback: Callable[[dict], None] | None = None,
-          log: Callable[[str], None] | None = None, **options):
+          log: Callable[[str], None] | None = None, **options: Any) -> TrainedModel:
     """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
 
     Parameters
@@ -144,7 +146,8 @@ def _data_desc(exps) -> list[dict[str, Any]]:
              "t0": float(np.asarray(e.t)[0]), "notes": list(getattr(e, "notes", ()))} for e in exps]
 
 
-def evaluate(model, data, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
+def evaluate(model: TrainedModel | str | os.PathLike, data: Any, backend: str | None = None,
+             init: str = "auto") -> dict[str, Any]:
     """Errors of a trained model (a :class:`TrainedModel` or a model directory) on data: per-sensor and
     overall MAE, max error (thesis eq. 4.9), bias and RMSE in K. Free run from the steady state of the
     first inputs (``init="measured"``: sensor nodes from the first measurement)."""

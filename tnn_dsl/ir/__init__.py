@@ -1,7 +1,8 @@
 """The intermediate representation: the validated network, the single truth between the stages.
 
 Owns: the network model (``network``: pydantic elements, the flat parameter table, expressions and the
-expression walker, ``Network.graph()``), its emitters (``emit``: equations, IR JSON, Graphviz DOT; a drawing is :func:`tnn_dsl.plots.render_png`).
+expression walker, ``Network.graph()``), its emitters (``emit``: equations, IR JSON, Graphviz DOT; a drawing
+is :func:`tnn_dsl.plots.render_png`).
 May import: ``tnn_dsl.core``.
 """
 

@@ -249,7 +249,8 @@ class _Printer:
             return f"{e.fn}({', '.join(self.expr(a) for a in e.args)})"
         if isinstance(e, Table):
             pts = ", ".join(
-                f"{format_quantity(x, e.x_dim, ascii_only=self.ascii)}: {format_quantity(y, e.y_dim, ascii_only=self.ascii)}"
+                f"{format_quantity(x, e.x_dim, ascii_only=self.ascii)}: "
+                f"{format_quantity(y, e.y_dim, ascii_only=self.ascii)}"
                 for x, y in zip(e.xs, e.ys)
             )
             return f"table({self.expr(e.x)}; {pts})"
@@ -359,7 +360,14 @@ def equations(net: Network, *, ascii_only: bool = False) -> str:
     function's inputs, with how it relates to its nominal value) and the parameter table in SI.
     ``ascii_only=True`` writes ``*``, ``-`` and ``^`` instead of ``·``, ``−`` and superscripts."""
     pr = _Printer(net, ascii_only=ascii_only)
-    m, mi = pr.mul, pr.minus
+    terms, flows_def = _node_terms(pr, net, ascii_only)
+    lines = _equations_header(pr, net, ascii_only) + _state_lines(pr, net, terms)
+    lines += _equations_sections(pr, net, flows_def)
+    return "\n".join(lines) + "\n"
+
+
+def _equations_header(pr: _Printer, net: Network, ascii_only: bool) -> list[str]:
+    """The comment lines above the equations: name, states, inputs, units."""
     lines: list[str] = []
     head = f"# network {net.name}"
     if net.label:
@@ -376,8 +384,13 @@ def equations(net: Network, *, ascii_only: bool = False) -> str:
                       f"σ = {SIGMA:g} W/(m²·K⁴)" if net.radiations else
                       f"# temperatures in kelvin (the file's unit is {net.temperature_unit}); heat flows in W"))
     lines.append("")
+    return lines
 
-    # terms per node ------------------------------------------------------------------------
+
+def _node_terms(pr: _Printer, net: Network, ascii_only: bool) -> tuple[dict[str, list[str]], list[str]]:
+    """The heat-flow terms (W) into each thermal node, ``{node: [term]}``, and the component-flow definitions
+    (the physics part of flows that a learned function corrects, the fluids' outlet shares)."""
+    m, mi = pr.mul, pr.minus
     terms: dict[str, list[str]] = {n.name: [] for n in net.nodes}
     flows_def: list[str] = []
 
@@ -442,6 +455,13 @@ def equations(net: Network, *, ascii_only: bool = False) -> str:
             if t.kind == "heat_load":
                 add(t.name, f"Q[{t.name}]{pr.call(fn)}")
 
+    return terms, flows_def
+
+
+def _state_lines(pr: _Printer, net: Network, terms: dict[str, list[str]]) -> list[str]:
+    """One line per state: ``C·dT/dt = Σ terms`` per thermal node, then the lag state of each lagged sensor."""
+    m, mi = pr.mul, pr.minus
+    lines: list[str] = []
     for n in net.nodes:
         c = pr.param(n.capacitance)
         d = f"d{_temp_sym(n.name)}/dt"
@@ -455,7 +475,12 @@ def equations(net: Network, *, ascii_only: bool = False) -> str:
         lines.append(pr.t(f"{pr.param(s.lag)}{m}d{_sensor_sym(s.name)}/dt = {_temp_sym(s.node)} {mi} "
                           f"{_sensor_sym(s.name)}   # sensor {s.name}: first-order lag state"))
 
-    # outputs -------------------------------------------------------------------------------
+    return lines
+
+
+def _equations_sections(pr: _Printer, net: Network, flows_def: list[str]) -> list[str]:
+    """The sections below the equations: outputs (K), component flows, learned functions, parameters (SI)."""
+    lines: list[str] = []
     if net.sensors:
         lines.append("")
         lines.append("outputs (K)")
@@ -485,7 +510,7 @@ def equations(net: Network, *, ascii_only: bool = False) -> str:
         lines.append("parameters (SI)")
         for p in net.params:
             lines.append(pr.t(f"  {_param_line(pr, p)}"))
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ Conventions
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Callable, Iterator, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -110,7 +110,7 @@ for _m in (Unary, Binary, Call, Table):
     _m.model_rebuild()
 
 
-def walk(expr):
+def walk(expr: Expr) -> Iterator[Expr]:
     """Every node of an expression tree, parents before children (iterative: deep trees are fine)."""
     stack = [expr]
     while stack:
@@ -126,7 +126,7 @@ def walk(expr):
             stack.append(e.x)
 
 
-def map_children(expr, fn):
+def map_children(expr: Expr, fn: Callable[[Expr], Expr]) -> Expr:
     """A copy of ``expr`` with ``fn`` applied to each direct child expression (the same node for a leaf):
     the one recursive step of every expression rewrite (``map_children(e, rewrite)`` inside ``rewrite``)."""
     if isinstance(expr, Unary):
@@ -403,7 +403,7 @@ class Network(BaseModel):
 
     # -- views -----------------------------------------------------------------------------
 
-    def graph(self):
+    def graph(self) -> Any:
         """A ``networkx.MultiGraph``: vertices are nodes (``kind="node"``) and boundaries
         (``kind="boundary"``); edges are links, radiation, Peltier elements and fluids (a fluid is an
         edge from its node to a vertex ``"<fluid>.inlet"`` of kind ``"fluid_inlet"``). Edge data:
@@ -437,8 +437,8 @@ class Network(BaseModel):
 
 
 __all__ = [
-    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk", "map_children",
-    "ParamRole", "POSITIVE_ROLES", "Param", "Input", "ThermalNode", "Boundary", "Link", "Radiation",
+    "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk",
+    "map_children", "ParamRole", "POSITIVE_ROLES", "Param", "Input", "ThermalNode", "Boundary", "Link", "Radiation",
     "Peltier", "Fluid", "Source", "Sensor", "LearnTarget", "LearnInput", "LearnKind", "LearnFunction",
     "Network",
 ]

@@ -233,7 +233,8 @@ class _Builder:
     def single(self, st: _St, tag: str) -> _Clause | None:
         cs = [c for c in st.clauses if c.tag == tag]
         if len(cs) > 1:
-            self.err(f"`{tag}` is given twice in this {st.kind}", cs[1].span, related=[("first given here", cs[0].span)])
+            self.err(f"`{tag}` is given twice in this {st.kind}", cs[1].span,
+                     related=[("first given here", cs[0].span)])
         return cs[0] if cs else None
 
     # -- files ----------------------------------------------------------------------------
@@ -342,14 +343,15 @@ class _Builder:
     def st_node(self, st, scope, chain):
         d = st.data
         name = scope.decl(d["name"])
-        p = self.slot(scope.decl(f"C_{d['name']}"), scope.expr(d["expr"]), "capacitance", f"node {name}", st.span, d["free"])
+        p = self.slot(scope.decl(_slot_name("C", d["name"])), scope.expr(d["expr"]), "capacitance", f"node {name}",
+                      st.span, d["free"])
         self.nodes.append(ThermalNode(name=name, capacitance=p, label=self.label_of(st), span=st.span))
 
     def st_boundary(self, st, scope, chain):
         d = st.data
         name = scope.decl(d["name"])
-        p = self.slot(scope.decl(f"T_{d['name']}"), scope.expr(d["expr"]), "temperature", f"boundary {name}", st.span,
-                      temp_slot=True)
+        p = self.slot(scope.decl(_slot_name("T", d["name"])), scope.expr(d["expr"]), "temperature",
+                      f"boundary {name}", st.span, temp_slot=True)
         self.boundaries.append(Boundary(name=name, temperature=p, label=self.label_of(st), span=st.span))
 
     def st_link(self, st, scope, chain):
@@ -379,7 +381,8 @@ class _Builder:
         col = self.single(st, "column")
         lag_p = off_p = None
         if lag is not None:
-            lag_p = self.slot(f"{name}.lag", scope.expr(lag.value), "time_constant", f"sensor {name}", lag.span, lag.free)
+            lag_p = self.slot(f"{name}.lag", scope.expr(lag.value), "time_constant", f"sensor {name}", lag.span,
+                              lag.free)
         if off is not None:
             off_p = self.slot(f"{name}.offset", scope.expr(off.value), "offset", f"sensor {name}", off.span, off.free)
         self.sensors.append(Sensor(name=name, node=node, column=col.value if col else name, lag=lag_p, offset=off_p,
@@ -452,7 +455,8 @@ class _Builder:
         for sub in st.data["body"]:
             if sub.kind in ("network", "units", "include", "input"):
                 self.err(f"`{sub.kind}` inside a subnet", sub.span,
-                         hint="a subnet holds nodes, boundaries, links, components, sources, sensors, params, learn and use")
+                         hint="a subnet holds nodes, boundaries, links, components, sources, sensors, params, learn "
+                              "and use")
         seen: dict[str, Span] = {}
         for p, pspan in st.data["params"]:
             if p in seen:
@@ -550,10 +554,12 @@ class _Builder:
         allowed = _LEARN_OPTIONS[kind]
         for _tag, oname, oval, ospan in d["opts"]:
             if oname not in ("hidden", "activation", "degree", "knots", "frozen", "init_from", "replace"):
-                self.err(f"unknown option `{oname}` for `{kind}`", ospan, hint="options of `" + kind + "`: " + ", ".join(allowed))
+                self.err(f"unknown option `{oname}` for `{kind}`", ospan,
+                         hint="options of `" + kind + "`: " + ", ".join(allowed))
                 continue
             if oname not in allowed:
-                self.err(f"`{oname}` is not an option of `{kind}`", ospan, hint="options of `" + kind + "`: " + ", ".join(allowed))
+                self.err(f"`{oname}` is not an option of `{kind}`", ospan,
+                         hint="options of `" + kind + "`: " + ", ".join(allowed))
                 continue
             if oname in opts:
                 self.err(f"option `{oname}` is given twice", ospan)
@@ -625,7 +631,8 @@ class _Builder:
             return None
         out = []
         for q in items:
-            if q.unit is not None or not float(q.number).is_integer() or q.number < (0 if scalar_only else 1) or q.number > 100000:
+            if (q.unit is not None or not float(q.number).is_integer() or q.number < (0 if scalar_only else 1)
+                    or q.number > 100000):
                 self.err(f"`{what}` must be {'a whole number' if scalar_only else 'whole numbers of at least 1'}, "
                          f"got `{q.text}`", q.span)
                 return None
@@ -662,6 +669,15 @@ class _Builder:
             boundaries=self.boundaries, links=self.links, radiations=self.radiations, peltiers=self.peltiers,
             fluids=self.fluids, sources=self.sources_, sensors=self.sensors, learned=learned,
         )
+
+
+def _slot_name(prefix: str, element: str) -> str:
+    """The automatic name of a node's capacity (``prefix`` ``C``) or a boundary's temperature (``T``): ``C_hx1``.
+    For a dotted element (``r1.air``, as a subnet instance names it) the prefix goes before its last part,
+    ``r1.C_air``: the name the instance gives it, so a flat file that spells out an instance's names (what
+    :func:`tnn_dsl.lang.printer.print_thn` writes) reads back with the same parameter names."""
+    head, dot, tail = element.rpartition(".")
+    return f"{head}.{prefix}_{tail}" if dot else f"{prefix}_{element}"
 
 
 def _function_name(targets, taken: set[str]) -> str:

@@ -199,7 +199,8 @@ class _ToStatements(Transformer):
         if name == "T":
             if len(args) == 1 and isinstance(args[0], Ref):
                 return Temp(node=args[0].name, span=span)
-            if len(args) == 1 and isinstance(args[0], Num) and args[0].unit is None and float(args[0].value).is_integer():
+            if (len(args) == 1 and isinstance(args[0], Num) and args[0].unit is None
+                    and float(args[0].value).is_integer()):
                 return Temp(node=str(int(args[0].value)), span=span)
             self.diags.append(Diagnostic("`T(...)` takes one node name", span,
                                          hint="write `T(hx1)` or `T3` for the temperature of node 3"))
@@ -230,8 +231,8 @@ class _ToStatements(Transformer):
         name = str(ch[0])
         span = self._span(meta)
         if name != "table":
-            self.diags.append(Diagnostic(f"`;` inside the arguments of `{name}`: only `table(x; x0: y0, ...)` has points",
-                                         span, hint="separate function arguments with `,`"))
+            self.diags.append(Diagnostic(f"`;` inside the arguments of `{name}`: only `table(x; x0: y0, ...)` "
+                                         "has points", span, hint="separate function arguments with `,`"))
             return Num(value=0.0, span=span)
         x = self._e(ch[1])
         pts = ch[2:]
@@ -245,8 +246,8 @@ class _ToStatements(Transformer):
             elif not dim_eq(xdim, nx.dim) or not dim_eq(ydim, ny.dim):
                 bad = qx if not dim_eq(xdim, nx.dim) else qy
                 self.diags.append(Diagnostic(
-                    f"table point `{bad.text}` is in `{format_dim(nx.dim if bad is qx else ny.dim)}` but the first point "
-                    f"is in `{format_dim(xdim if bad is qx else ydim)}`", bad.span,
+                    f"table point `{bad.text}` is in `{format_dim(nx.dim if bad is qx else ny.dim)}` but the first "
+                    f"point is in `{format_dim(xdim if bad is qx else ydim)}`", bad.span,
                     hint="all x values share one unit dimension, and all y values another"))
                 ok = False
             xs.append(nx.value)

@@ -177,7 +177,8 @@ def _syntax_diagnostic(err: UnexpectedInput, filename: str, lines: list[str]) ->
             close = ")" if ch == "(" else "]"
             return Diagnostic(f"`{ch}` is never closed", Span(file=filename, line=oline, col=ocol, end_line=oline,
                                                              end_col=ocol + 1),
-                              hint=f"add the matching `{close}`; a statement continues over lines while a bracket is open")
+                              hint=f"add the matching `{close}`; a statement continues over lines while a bracket "
+                                   "is open")
     label = _match_catalogue(err, first_word, word_index)
     found = _describe_token(tok)
     if label is not None:
@@ -199,7 +200,8 @@ def _catalogue_states() -> list[tuple[int, str, tuple[str, str | None]]]:
                 _raw_parse(ex)
             except UnexpectedInput as ut:
                 if isinstance(ut.state, int):
-                    ln = ex.split("\n")[(ut.line or 1) - 1] if isinstance(getattr(ut, "line", None), int) and ut.line > 0 else ex
+                    ln = (ex.split("\n")[(ut.line or 1) - 1]
+                          if isinstance(getattr(ut, "line", None), int) and ut.line > 0 else ex)
                     col = ut.column if isinstance(getattr(ut, "column", None), int) and ut.column > 0 else len(ln) + 1
                     ttype = getattr(getattr(ut, "token", None), "type", "")
                     out.append((ut.state, (ln.split() or [""])[0], len(ln[: col - 1].split()), ttype, label))

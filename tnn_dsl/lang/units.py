@@ -49,7 +49,7 @@ DIMENSIONLESS: dict[str, float] = {}
 class UnitError(ValueError):
     """A unit the registry does not know, or cannot convert. ``hint`` says what to write instead."""
 
-    def __init__(self, message: str, hint: str | None = None):
+    def __init__(self, message: str, hint: str | None = None) -> None:
         super().__init__(message)
         self.message = message
         self.hint = hint

@@ -103,7 +103,8 @@ class _V:
         dup_nodes = {n for n in first if False}
         for i in net.inputs:
             if i.name in values:
-                self.err(f"input `{i.name}` is defined twice", i.span, related=[("first defined here", values[i.name].span)])
+                self.err(f"input `{i.name}` is defined twice", i.span,
+                         related=[("first defined here", values[i.name].span)])
             else:
                 values[i.name] = i
         self.inputs = {i.name: i for i in net.inputs}
@@ -224,7 +225,8 @@ class _V:
             xd = self.dim(e.x)
             if xd is not None and not dim_eq(xd, e.x_dim):
                 self.err(f"the table's variable is {describe_dim(xd)} but its points are in "
-                         f"`{format_dim(e.x_dim)}`", e.x.span, hint="the x values of the points need the variable's unit")
+                         f"`{format_dim(e.x_dim)}`", e.x.span,
+                         hint="the x values of the points need the variable's unit")
             return e.y_dim
         return None
 
@@ -257,8 +259,10 @@ class _V:
                 continue
             d = self.param_dim(p.name)
             expected_unit = None
-            key = p.name.rsplit(".", 1)[-1] if "." in p.name and p.owner and not p.owner.startswith(("link", "source")) else None
-            if p.role in _ROLE_UNIT and not (key in _COMPONENT_UNIT and p.owner and p.owner.startswith(("peltier", "fluid", "radiation"))):
+            key = (p.name.rsplit(".", 1)[-1]
+                   if "." in p.name and p.owner and not p.owner.startswith(("link", "source")) else None)
+            if p.role in _ROLE_UNIT and not (key in _COMPONENT_UNIT and p.owner
+                                             and p.owner.startswith(("peltier", "fluid", "radiation"))):
                 expected_unit = _ROLE_UNIT[p.role]
             elif key in _COMPONENT_UNIT:
                 expected_unit = _COMPONENT_UNIT[key]
@@ -270,7 +274,8 @@ class _V:
             # constants
             if isinstance(p.expr, Num):
                 v = p.expr.value
-                positive = p.role in ("resistance", "conductance", "capacitance", "time_constant") or key in _POSITIVE_KEYS
+                positive = (p.role in ("resistance", "conductance", "capacitance", "time_constant")
+                            or key in _POSITIVE_KEYS)
                 if positive and v <= 0:
                     self.err(f"{self._what(p)} must be positive, got {_fmt(p)}", p.expr.span or p.span,
                              hint="a zero or negative value has no physical meaning here")

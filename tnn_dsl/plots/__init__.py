@@ -9,15 +9,16 @@ Modules: ``figure`` (the shared helpers), ``series`` (time series: simulation, p
 ``functions`` (learned functions over their inputs), ``study`` (the thesis case study), ``sensitivity`` (the
 ranked sensitivity bars), ``doctor`` (the model doctor's report), ``drawing``
 (a picture of a network: Graphviz, else matplotlib).
-May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.data`` (unit conversions); results arrive as arrays or duck-typed objects.
+May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.data`` (unit conversions); results arrive as arrays or
+duck-typed objects.
 """
 
 from __future__ import annotations
 
 from .doctor import before_after, residual_dependence, whiteness
+from .drawing import network, render_png
 from .figure import new_figure, time_axis
 from .functions import learned_function
-from .drawing import network, render_png
 from .sensitivity import sensitivity_bars
 from .series import filter_estimate, predictions, simulation
 from .study import ood_growth, validation_runs

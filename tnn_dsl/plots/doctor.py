@@ -13,7 +13,7 @@ from .figure import new_figure
 __all__ = ["before_after", "whiteness", "residual_dependence"]
 
 
-def before_after(plots: dict, j: int, extended: bool = True, axes: Sequence[Any] | None = None):
+def before_after(plots: dict, j: int, extended: bool = True, axes: Sequence[Any] | None = None) -> Any:
     """Sensor ``j`` over every sample of a diagnosis (``Diagnosis.plots``): measured, the fitted nominal model
     and (``extended``) the extension on top; their residuals below; held-out rows shaded."""
     s = plots["output_names"][j]
@@ -43,7 +43,7 @@ def before_after(plots: dict, j: int, extended: bool = True, axes: Sequence[Any]
     return fig
 
 
-def whiteness(sensor: str, w: dict, axes: Sequence[Any] | None = None):
+def whiteness(sensor: str, w: dict, axes: Sequence[Any] | None = None) -> Any:
     """The residual's autocorrelation with its band (Ljung–Box) and its cumulated periodogram with the
     Kolmogorov–Smirnov band, from :func:`tnn_dsl.analysis.residuals.whiteness`'s result ``w``."""
     fig, ax = new_figure(1, 2, figsize=(10, 3.2), axes=axes)
@@ -67,7 +67,7 @@ def whiteness(sensor: str, w: dict, axes: Sequence[Any] | None = None):
     return fig
 
 
-def residual_dependence(sensor: str, deps: dict):
+def residual_dependence(sensor: str, deps: dict) -> Any | None:
     """The mean held-out residual (K) in bins of each variable (``None`` when there is none to show)."""
     items = [(v, dd) for v, dd in deps.items() if dd.get("centers")]
     if not items:

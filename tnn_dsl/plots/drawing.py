@@ -32,7 +32,7 @@ def render_png(net: Network, path: str, *, dpi: int = 150) -> str:
     return "matplotlib"
 
 
-def network(net: Network, ax: Any | None = None):
+def network(net: Network, ax: Any | None = None) -> Any:
     """The network drawn with matplotlib and networkx: nodes (circles), boundaries (squares), fluid inlets,
     links labelled with their values, components; learned parts in red."""
     import networkx as nx

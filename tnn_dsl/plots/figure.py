@@ -13,7 +13,7 @@ UNIT_LABEL = {"degC": "°C", "K": "K", "degF": "°F"}
 
 
 def new_figure(nrows: int = 1, ncols: int = 1, figsize: tuple[float, float] = (8.0, 4.0),
-               axes: Sequence[Any] | None = None, **subplot_kw) -> tuple[Any, np.ndarray]:
+               axes: Sequence[Any] | None = None, **subplot_kw: Any) -> tuple[Any, np.ndarray]:
     """``(figure, axes (nrows, ncols))``: a new :class:`~matplotlib.figure.Figure` with a grid of axes, or the
     figure of the caller's ``axes`` (a sequence of at least ``nrows·ncols`` axes, used in order)."""
     if axes is not None:

@@ -12,7 +12,7 @@ __all__ = ["learned_function"]
 
 
 def learned_function(summary: dict, values: Callable[[np.ndarray], np.ndarray], n: int = 101,
-                     axes: Sequence[Any] | None = None):
+                     axes: Sequence[Any] | None = None) -> Any:
     """Each target of one learned function against each of its inputs over the input's training range, the
     other inputs at mid-range.
 

@@ -14,7 +14,7 @@ GROUP_COLORS = {"peltier": "tab:red", "link": "tab:blue", "fluid": "tab:cyan", "
                 "source": "tab:orange", "radiation": "tab:purple", "sensor": "tab:olive", "parameter": "tab:green"}
 
 
-def sensitivity_bars(report, top: int | None = 25, ax: Any | None = None):
+def sensitivity_bars(report: Any, top: int | None = 25, ax: Any | None = None) -> Any:
     """A horizontal bar chart of a ``SensitivityReport``'s ranked steady-state sensitivities |Δy/Δα|, coloured
     by element group; the ``top`` largest (all: ``None``)."""
     from matplotlib.patches import Rectangle

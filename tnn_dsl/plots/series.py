@@ -10,6 +10,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..data import from_kelvin, unit_scale_offset
+from ..ir import Network
 from .figure import UNIT_LABEL, new_figure, time_axis
 
 __all__ = ["simulation", "predictions", "filter_estimate"]
@@ -30,7 +31,7 @@ def _inputs_panel(ax, net, t: np.ndarray, inputs: np.ndarray) -> None:
     ax.grid(alpha=0.3)
 
 
-def simulation(net, exp, y: np.ndarray, label: str, axes: Sequence[Any] | None = None):
+def simulation(net: Network, exp: Any, y: np.ndarray, label: str, axes: Sequence[Any] | None = None) -> Any:
     """One panel per sensor (measured, where the file has it, and simulated ``y (N, n_sensors)`` K) and one of
     the inputs, over ``exp.t``. ``axes``: ``n_sensors + 1`` axes to draw into."""
     unit = net.temperature_unit
@@ -54,7 +55,8 @@ def simulation(net, exp, y: np.ndarray, label: str, axes: Sequence[Any] | None =
     return fig
 
 
-def predictions(net, preds: Sequence[dict], axes: Sequence[Any] | None = None, max_panels: int = 12):
+def predictions(net: Network, preds: Sequence[dict], axes: Sequence[Any] | None = None,
+                max_panels: int = 12) -> Any:
     """For each (experiment, sensor) of ``preds`` (``TrainedModel.predict`` output; at most ``max_panels``):
     measured and predicted in the network's unit, and the error (K) below. ``axes``: two per pair."""
     unit = net.temperature_unit
@@ -81,8 +83,8 @@ def predictions(net, preds: Sequence[dict], axes: Sequence[Any] | None = None, m
     return fig
 
 
-def filter_estimate(net, exp, res, y_open: np.ndarray, dropped: np.ndarray, label: str,
-                    axes: Sequence[Any] | None = None):
+def filter_estimate(net: Network, exp: Any, res: Any, y_open: np.ndarray, dropped: np.ndarray, label: str,
+                    axes: Sequence[Any] | None = None) -> Any:
     """Per sensor: measured, the filter's estimate with ±2σ of the sensed node, and the open loop; whether the
     filter used the sensor; dropouts shaded. ``res`` is an ``EKFResult``; ``axes``: one per sensor."""
     unit = net.temperature_unit

@@ -10,7 +10,7 @@ from .figure import new_figure
 __all__ = ["ood_growth", "validation_runs"]
 
 
-def ood_growth(results: dict, ax: Any | None = None):
+def ood_growth(results: dict, ax: Any | None = None) -> Any | None:
     """Validation MAE and MAE per input widening for every model of a study's ``results`` (``run_study``);
     ``None`` when the study has no out-of-distribution sets."""
     m = results["models"]
@@ -35,7 +35,7 @@ def ood_growth(results: dict, ax: Any | None = None):
     return fig
 
 
-def validation_runs(preds: dict[str, dict], axes: Sequence[Any] | None = None):
+def validation_runs(preds: dict[str, dict], axes: Sequence[Any] | None = None) -> Any:
     """``T_out`` through the validation run (top) and each model's error (bottom); ``preds``: model name →
     its ``TrainedModel.predict`` record on the validation file."""
     fig, ax = new_figure(2, 1, figsize=(10, 6), axes=axes, sharex=axes is None)

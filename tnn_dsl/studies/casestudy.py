@@ -30,7 +30,7 @@ import json
 import os
 from importlib import resources
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -291,7 +291,7 @@ def generate_case_study(
     force: bool = False,
     durations: tuple[float, float, float] | None = None,
     truth_path: str | os.PathLike | None = None,
-    progress=None,
+    progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Write the case-study data sets to ``out_dir`` (see the module docstring); → a summary dict::
 

@@ -56,7 +56,7 @@ def find_candidate(cands: list[Candidate], kind: str, target: str, depends_on: s
 def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None, target: str | None = None,
           depends_on: str | None = None, strength: float = 0.3, *, n_train: int = 2400, n_val: int = 1200,
           dt: float = 1.0, noise: float = 0.0, seed: int = 0, backend: str = "jax",
-          hold=(60, 300)) -> Planted:
+          hold: tuple[int, int] = (60, 300)) -> Planted:
     """Simulate ``net`` with one planted effect (``kind=None``: the nominal network, a null data set).
 
     ``strength`` is the effect's size in the candidate's own coordinates: a relative change of the
@@ -64,7 +64,8 @@ def plant(net: Network, bounds: dict[str, tuple[float, float]], kind: str | None
     heat load (in units of the function's output scale), W/K for a missing link, m² (ε·A) for radiation,
     K for a sensor offset, seconds for a sensor lag (``kind="sensor_lag"``, ``target`` the sensor), J/K for a
     thermal mass, seconds for a heat capacity behind a source (``kind="source_mass"``, ``target`` the source: its
-    time constant C_h·R_h, with C_h a quarter of the heated node's capacity). Returns training and validation :class:`Experiment` objects (different seeds).
+    time constant C_h·R_h, with C_h a quarter of the heated node's capacity). Returns training and validation
+    :class:`Experiment` objects (different seeds).
     """
     from ..compiler import compile as _compile
     from ..doctor import normalisation_stats

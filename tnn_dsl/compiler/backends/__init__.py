@@ -11,6 +11,8 @@ Backends: ``"jax"`` (``jax.numpy``; importing it enables ``jax_enable_x64``), ``
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 BACKENDS = ("jax", "torch", "numpy")
@@ -31,27 +33,91 @@ def _interp_segments(xs, ys):
     return lo, hi, slope, float(ys[0])
 
 
-class NumpyXP:
-    """The numpy namespace (no autodiff)."""
+ELEMENTWISE = ("exp", "log", "sqrt", "abs", "expm1", "tanh")
+"""Elementwise functions every namespace takes from its array module unchanged."""
 
-    name = "numpy"
+
+class ArrayNamespace:
+    """What every namespace shares: its ``name``, its float ``dtype`` and the :data:`ELEMENTWISE` functions of its
+    array module ``_module`` (numpy, jax.numpy or torch), set once per subclass unless the subclass defines them.
+    Subclasses add what differs between modules (``stack``, ``concat``, ``where``, ``softplus`` …)."""
+
+    name = ""
+    _module: Any = None
+    _from_module: tuple[str, ...] = ELEMENTWISE
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls._module is None:
+            return
+        for op in cls._from_module:
+            if not hasattr(cls, op):
+                setattr(cls, op, staticmethod(getattr(cls._module, op)))
 
     def __init__(self, dtype: str = "float64"):
         if dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
         self.dtype_name = dtype
-        self.dtype = np.float64 if dtype == "float64" else np.float32
+        self.dtype = getattr(self._module, dtype)
 
-    # elementwise
-    exp = staticmethod(np.exp)
-    log = staticmethod(np.log)
-    sqrt = staticmethod(np.sqrt)
-    abs = staticmethod(np.abs)
-    expm1 = staticmethod(np.expm1)
-    tanh = staticmethod(np.tanh)
-    minimum = staticmethod(np.minimum)
-    maximum = staticmethod(np.maximum)
-    where = staticmethod(np.where)
+    def silu(self, x):
+        return x * self.sigmoid(x)
+
+    def interp(self, x, xs, ys):
+        """Piecewise-linear interpolation of the table (xs, ys) at ``x`` (any shape), constant beyond
+        the ends. ``xs``, ``ys`` are numbers (not differentiated)."""
+        return interp_with(self, x, *_interp_segments(xs, ys))
+
+    @staticmethod
+    def to_numpy(x):
+        return np.asarray(x)
+
+
+class NumpyLike(ArrayNamespace):
+    """The body of the numpy and JAX namespaces (``jax.numpy`` mirrors numpy's names)."""
+
+    _from_module = ELEMENTWISE + ("minimum", "maximum", "where", "matmul", "zeros_like")
+
+    def stack(self, xs, axis=0):
+        return self._module.stack(self._module.broadcast_arrays(*xs), axis=axis)
+
+    def concat(self, xs, axis=0):
+        return self._module.concatenate(xs, axis=axis)
+
+    def sum(self, x, axis=None):
+        return self._module.sum(x, axis=axis)
+
+    def broadcast_to(self, x, shape):
+        return self._module.broadcast_to(x, shape)
+
+    def broadcast_all(self, *xs):
+        return self._module.broadcast_arrays(*xs)
+
+    def moveaxis(self, x, src, dst):
+        return self._module.moveaxis(x, src, dst)
+
+    def zeros(self, shape):
+        return self._module.zeros(shape, dtype=self.dtype)
+
+    def ones(self, shape):
+        return self._module.ones(shape, dtype=self.dtype)
+
+    def asarray(self, x, dtype=None):
+        return self._module.asarray(x, dtype=self.dtype if dtype is None else dtype)
+
+    def shape(self, x):
+        return tuple(self._module.shape(x))
+
+    def solve(self, a, b):
+        """Solve ``a x = b`` for ``b`` of shape (..., n)."""
+        return self._module.linalg.solve(a, b[..., None])[..., 0]
+
+
+class NumpyXP(NumpyLike):
+    """The numpy namespace (no autodiff)."""
+
+    name = "numpy"
+    _module = np
 
     @staticmethod
     def softplus(x):
@@ -65,69 +131,9 @@ class NumpyXP:
     def relu(x):
         return np.maximum(x, 0.0)
 
-    def silu(self, x):
-        return x * self.sigmoid(x)
-
-    # structure
-    matmul = staticmethod(np.matmul)
-
-    @staticmethod
-    def stack(xs, axis=0):
-        return np.stack(np.broadcast_arrays(*xs), axis=axis)
-
-    @staticmethod
-    def concat(xs, axis=0):
-        return np.concatenate(xs, axis=axis)
-
-    @staticmethod
-    def sum(x, axis=None):
-        return np.sum(x, axis=axis)
-
-    @staticmethod
-    def broadcast_to(x, shape):
-        return np.broadcast_to(x, shape)
-
-    @staticmethod
-    def broadcast_all(*xs):
-        return np.broadcast_arrays(*xs)
-
-    @staticmethod
-    def moveaxis(x, src, dst):
-        return np.moveaxis(x, src, dst)
-
-    def zeros(self, shape):
-        return np.zeros(shape, dtype=self.dtype)
-
-    def ones(self, shape):
-        return np.ones(shape, dtype=self.dtype)
-
-    @staticmethod
-    def zeros_like(x):
-        return np.zeros_like(x)
-
-    def asarray(self, x, dtype=None):
-        return np.asarray(x, dtype=self.dtype if dtype is None else dtype)
-
-    @staticmethod
-    def shape(x):
-        return tuple(np.shape(x))
-
-    @staticmethod
-    def solve(a, b):
-        """Solve ``a x = b`` for ``b`` of shape (..., n)."""
-        return np.linalg.solve(a, b[..., None])[..., 0]
-
     @staticmethod
     def stop_gradient(x):
         return x
-
-    def interp(self, x, xs, ys):
-        """Piecewise-linear interpolation of the table (xs, ys) at ``x`` (any shape), constant beyond
-        the ends. ``xs``, ``ys`` are numbers (not differentiated)."""
-        return interp_with(self, x, *_interp_segments(xs, ys))
-
-    def to_numpy(self, x):
-        return np.asarray(x)
 
 
 def interp_with(xp, x, lo, hi, slope, y0):
@@ -141,7 +147,7 @@ def interp_with(xp, x, lo, hi, slope, y0):
     return y0 + xp.sum((clipped - lo_a) * s_a, axis=-1)
 
 
-def get_xp(backend: str, dtype: str = "float64"):
+def get_xp(backend: str, dtype: str = "float64") -> Any:
     """The array namespace for ``backend`` (``"jax" | "torch" | "numpy"``) and ``dtype``."""
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
@@ -158,4 +164,4 @@ def get_xp(backend: str, dtype: str = "float64"):
     raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-__all__ = ["get_xp", "BACKENDS", "DTYPES", "NumpyXP", "interp_with"]
+__all__ = ["get_xp", "BACKENDS", "DTYPES", "ELEMENTWISE", "ArrayNamespace", "NumpyLike", "NumpyXP", "interp_with"]

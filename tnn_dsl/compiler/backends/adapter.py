@@ -39,7 +39,7 @@ class Backend:
     """The array conversions, the few operations above the model's namespace, and the autodiff
     transforms of one backend. ``Backend("jax")``, ``Backend("torch", "float32")``."""
 
-    def __init__(self, name: str, dtype: str = "float64"):
+    def __init__(self, name: str, dtype: str = "float64") -> None:
         if name not in BACKENDS:
             raise ValueError(f"no autodiff backend {name!r}; use one of {', '.join(BACKENDS)}")
         if dtype not in ("float64", "float32"):
@@ -64,7 +64,7 @@ class Backend:
 
     # -- conversions ------------------------------------------------------------------------------
 
-    def asarray(self, x) -> Any:
+    def asarray(self, x: Any) -> Any:
         """A backend array from a numpy array, a list or a number (floats in the adapter's dtype)."""
         if self.name == "torch" and isinstance(x, self.torch.Tensor):
             return x.to(self.dtype) if x.is_floating_point() else x
@@ -74,7 +74,7 @@ class Backend:
         t = self.torch.from_numpy(np.asarray(x, order="C"))  # (ascontiguousarray would make 0-d arrays 1-d)
         return t.to(self.dtype) if x.dtype.kind == "f" else t
 
-    def tree(self, d):
+    def tree(self, d: Any) -> Any:
         """:meth:`asarray` over nested dicts, lists and tuples."""
         if isinstance(d, dict):
             return {k: self.tree(v) for k, v in d.items()}
@@ -83,7 +83,7 @@ class Backend:
         return self.asarray(d)
 
     @staticmethod
-    def numpy(x) -> np.ndarray:
+    def numpy(x: Any) -> np.ndarray:
         """A float64 numpy array from a backend array (detached from any graph)."""
         if hasattr(x, "detach"):
             x = x.detach().cpu()
@@ -95,28 +95,28 @@ class Backend:
 
     # -- operations not in the model's namespace ----------------------------------------------------
 
-    def exp(self, x):
+    def exp(self, x: Any) -> Any:
         return self.xp.exp(x)
 
-    def sigmoid(self, x):
+    def sigmoid(self, x: Any) -> Any:
         return self.jax.nn.sigmoid(x) if self.name == "jax" else self.torch.sigmoid(x)
 
-    def where(self, c, a, b):
+    def where(self, c: Any, a: Any, b: Any) -> Any:
         return self.xp.where(c, a, b)
 
-    def abs(self, x):
+    def abs(self, x: Any) -> Any:
         return self.xp.abs(x)
 
-    def sum(self, x):
+    def sum(self, x: Any) -> Any:
         return self.xp.sum(x)
 
-    def amax(self, x, axes):
+    def amax(self, x: Any, axes: int | tuple[int, ...]) -> Any:
         return self.xp.max(x, axis=axes) if self.name == "jax" else self.torch.amax(x, dim=axes)
 
-    def clip_min(self, x, lo: float):
+    def clip_min(self, x: Any, lo: float) -> Any:
         return self.xp.clip(x, lo) if self.name == "jax" else self.torch.clamp(x, min=lo)
 
-    def solve(self, a, b):
+    def solve(self, a: Any, b: Any) -> Any:
         return self.xp.linalg.solve(a, b)
 
     # -- transforms ---------------------------------------------------------------------------------
@@ -176,13 +176,13 @@ class Backend:
 
         return g
 
-    def jvp(self, f: Callable, primals: tuple, tangents: tuple):
+    def jvp(self, f: Callable, primals: tuple, tangents: tuple) -> tuple[Any, Any]:
         """``(f(*primals), ∂f·tangents)`` in forward mode."""
         if self.name == "jax":
             return self.jax.jvp(f, tuple(primals), tuple(tangents))
         return self.torch.func.jvp(f, tuple(primals), tuple(tangents))
 
-    def batched_jvp(self, f: Callable, primals: tuple, tangents: tuple):
+    def batched_jvp(self, f: Callable, primals: tuple, tangents: tuple) -> Any:
         """The forward derivatives of ``f`` at ``primals`` along a batch of directions: every array of
         ``tangents`` has a leading axis ``m`` (one direction each) → outputs with that leading axis (a
         tuple output gives a tuple). torch falls back to one ``jvp`` per direction where ``f`` cannot be
@@ -203,7 +203,7 @@ class Backend:
                 return tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
             return torch.stack(outs)
 
-    def jacobian(self, fn: Callable, x) -> np.ndarray:
+    def jacobian(self, fn: Callable, x: Any) -> np.ndarray:
         """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector): numpy
         array of shape ``fn(x).shape + (len(x),)``. torch: ``jacfwd``, else one ``jvp`` per column, else
         reverse mode (for ops without forward rules)."""
@@ -251,7 +251,7 @@ class Backend:
 
         return jac
 
-    def scan(self, body: Callable, carry, xs: tuple):
+    def scan(self, body: Callable, carry: Any, xs: tuple) -> tuple[Any, Any]:
         """``jax.lax.scan(body, carry, xs)``: ``body(carry, x_k) -> (carry, y_k)`` over the leading axis of
         every array in ``xs``; returns ``(carry, ys)`` with the ``y_k`` stacked (a tuple of arrays for a
         tuple ``y_k``). torch: a Python loop."""
@@ -267,6 +267,6 @@ class Backend:
         return carry, torch.stack(outs)
 
 
-def backend_of(model) -> Backend:
+def backend_of(model: Any) -> Backend:
     """The adapter for a compiled model's backend and dtype."""
     return Backend(model.backend, getattr(model, "dtype", "float64"))

@@ -6,22 +6,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import _interp_segments, interp_with
+from . import ArrayNamespace, _interp_segments, interp_with
 
 
-class TorchXP:
+class TorchXP(ArrayNamespace):
     name = "torch"
+    _module = torch
 
-    def __init__(self, dtype: str = "float64"):
-        self.dtype_name = dtype
-        self.dtype = torch.float64 if dtype == "float64" else torch.float32
-
-    exp = staticmethod(torch.exp)
-    log = staticmethod(torch.log)
-    sqrt = staticmethod(torch.sqrt)
-    abs = staticmethod(torch.abs)
-    expm1 = staticmethod(torch.expm1)
-    tanh = staticmethod(torch.tanh)
     sigmoid = staticmethod(torch.sigmoid)
     relu = staticmethod(torch.relu)
 
