@@ -27,8 +27,8 @@ from tnn_dsl.compiler.model import compile as _compile
 from tnn_dsl.data import Experiment
 from tnn_dsl.doctor.base import MASS_FRACTION_BOUNDS
 from tnn_dsl.doctor.candidates import build_extended
-from tnn_dsl.doctor.forcing import mass_forcing, mass_grid
 from tnn_dsl.doctor.extension import extend_network, extension_text
+from tnn_dsl.doctor.forcing import mass_forcing, mass_grid
 from tnn_dsl.doctor.structural import apply_structural, structural_candidates
 from tnn_dsl.lang import print_thn
 from tnn_dsl.studies.planted import step_inputs
@@ -281,7 +281,7 @@ def _check_tclab(S, case, d, out):
     f = d.accepted[0]
     assert f.kind == "thermal_mass" and "m_h1_amb" in f.clause and "missing thermal mass between h1 and amb" in f.words
     text = out.read_text(encoding="utf-8")
-    assert "\nnode m_h1_amb " in text and "\n# tclab_board (" in text and "missing thermal mass" in text
+    assert "\nnode m_h1_amb " in text and text.startswith("# tclab_board (") and "missing thermal mass" in text
     reloaded = tnn_dsl.loads(text, str(out))
     cm = reloaded.param("C_m_h1_amb").value
     assert 1.0 < cm < 9.0  # the planted 3 J/K

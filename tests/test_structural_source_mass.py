@@ -19,8 +19,8 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.compiler.model import compile as _compile
-from tnn_dsl.doctor.forcing import source_lag_forcing, source_tau_grid
 from tnn_dsl.doctor.extension import extend_network
+from tnn_dsl.doctor.forcing import source_lag_forcing, source_tau_grid
 from tnn_dsl.doctor.structural import (
     apply_structural,
     source_mass_values,
@@ -121,7 +121,7 @@ def test_lines_and_moved_source_reload_to_the_same_simulation():
     lines = print_thn(extend_network(edited, [c], p)).splitlines()
     node = next(ln for ln in lines if ln.startswith("node m_Q_heat "))
     assert "C = 0.5 kWh/K" in node and "free" in node  # the heated node's unit
-    assert "R m_Q_heat -- ti = 1 K/kW  free" in lines  # the file's resistance unit
+    assert "R m_Q_heat -- ti = 1 K/kW  free  as R_m_Q_heat" in lines  # the file's resistance unit
     assert "source m_Q_heat = Ph  as Q_heat" in lines  # the source moved to the new node
     new = tnn_dsl.loads("\n".join(lines) + "\n", "extended.thn")
     U = step_inputs(np.random.default_rng(2), 200, {"Ta": (K0 - 5, K0 + 10), "Ps": (0, 600), "Ph": (0, 4000)},

@@ -27,13 +27,14 @@ if TYPE_CHECKING:
     from .doctor import Diagnosis, diagnose
     from .estimation import EKFResult, ekf, tune_process_noise
     from .fit import TrainConfig, TrainedModel, evaluate, load_model, train
-    from .lang import load, loads
+    from .lang import load, loads, print_thn
     from .studies import StudyConfig, generate_case_study, run_study
 
 _LAZY: dict[str, str] = {
     # name -> the stage subpackage that exports it
     "load": ".lang",
     "loads": ".lang",
+    "print_thn": ".lang",
     "compile": ".compiler",
     "Model": ".compiler",
     "ParamSpec": ".compiler",
@@ -75,7 +76,7 @@ def __dir__() -> list[str]:
 
 __all__ = [
     "Network", "TnnError", "DataError", "ModelFileError", "Diagnostic", "__version__",
-    "load", "loads", "compile", "Model", "ParamSpec", "TorchCompileWarning", "read_data", "Experiment",
+    "load", "loads", "print_thn", "compile", "Model", "ParamSpec", "TorchCompileWarning", "read_data", "Experiment",
     "split_by_time", "train", "evaluate", "TrainConfig", "load_model", "TrainedModel", "sensitivity",
     "excitation", "diagnose", "Diagnosis", "ekf", "EKFResult", "tune_process_noise", "MPC", "closed_loop",
     "generate_case_study", "run_study", "StudyConfig",

@@ -1,174 +1,196 @@
-"""The extension: accepted findings as `learn` clauses (merged per target and per input set) and the extended
-`.thn` text, checked by parsing it."""
+"""The extension: the accepted findings applied to the IR — ``learn`` functions merged per target and per input set,
+new links and radiation, sensor offsets and lags, thermal masses, capacities behind sources, inputs for the data
+columns they read — with the fitted values in the new parameters, printed as ``.thn`` by
+:func:`tnn_dsl.lang.print_thn` and checked by parsing it."""
 
 from __future__ import annotations
 
-import re
+import difflib
+import os
 
-import numpy as np
+from ..ir import LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation
+from ..lang import parse_quantity, print_thn, unit_scale
+from .base import STRUCTURAL_KINDS, Candidate, _unique_name
+from .structural import _scalar as _value
 
-from ..ir import Network
-from .base import Candidate, Extended
-from .engine import _Engine
-from .words import _var_text
+__all__ = ["extend_network", "finding_clause", "extension_text", "doctor_targets", "changed_lines"]
+
+_DEPENDENCE_KINDS = ("param_dependence", "wrong_constant", "heat_load", "unused_column")
 
 
-def _clause(c: Candidate, params, ext: Extended, eng: _Engine) -> str:
-    net = ext.network
-    if c.kind in ("param_dependence", "wrong_constant"):
-        if not c.vars:
-            return f"learn {c.target} as const"
-        return f"learn {c.target} as linear({', '.join(_var_text(net, k, v) for k, v in c.vars)})"
-    if c.kind in ("heat_load", "unused_column"):
-        if not c.vars:
-            return f"learn {c.target} as const"
-        return f"learn {c.target} as linear({', '.join(_var_text(net, k, v) for k, v in c.vars)})"
-    if c.kind == "missing_link":
-        g = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        a, b = (_var_text(net, "node", c.element["a"]), c.element["b"])
-        b = _var_text(net, "node", b) if b in net.node_names else b
-        return f"G {c.element['a']} -- {c.element['b']} = {max(g, 1e-9):.4g} W/K  free"
-    if c.kind == "radiation":
-        a = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        return (f"radiation {c.element['a']} -- {c.element['b']}  area = {max(a, 1e-9):.4g} m^2 free"
-                f"  emissivity = 1")
-    if c.kind == "sensor_offset":
-        o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        return f"offset {o:.4g} K free"
+def _num(value_si: float, unit: str | None, digits: int) -> Num:
+    """``value_si`` as a literal in ``unit`` (``None``: a plain number) rounded to ``digits`` significant digits
+    there (``0.0123 W/K``, ``3.2 kWh/K``): what a person would write, not the fit's last digits."""
+    if unit is None:
+        return Num(value=float(f"{value_si:.{digits}g}"))
+    scale, offset = unit_scale(unit)
+    value, dim = parse_quantity(float(f"{(value_si - offset) / scale:.{digits}g}"), unit)
+    return Num(value=value, dim=dim, unit=unit)
+
+
+def _plain_unit(net: Network, pname: str | None, fallback: str) -> str:
+    """The unit the file writes parameter ``pname`` in, if it is a plain factor (``kWh/K``, ``K/kW``), else
+    ``fallback`` (SI)."""
+    try:
+        unit = net.param(pname).unit if pname else None
+        if unit and unit_scale(unit)[1] == 0.0 and unit_scale(unit)[0] > 0:
+            return unit
+    except (KeyError, ValueError):
+        pass
+    return fallback
+
+
+def _set(net: Network, name: str, num: Num, **update) -> Network:
+    """``net`` with constant ``name`` set to ``num`` (and ``update`` applied: label, bounds ...)."""
+    params = [p.model_copy(update={"expr": num, "dim": dict(num.dim), "unit": num.unit, **update})
+              if p.name == name else p for p in net.params]
+    return net.model_copy(update={"params": params})
+
+
+def _fitted_structural(net: Network, c: Candidate, params: dict) -> Network:
+    """A structural edit already in ``net`` (:func:`~tnn_dsl.doctor.structural.apply_structural`) with its fitted
+    values: the lag (s), the mass's capacity (in its neighbour's capacity unit) and share, the capacity behind
+    a source and its resistance (in the file's units). One-sided bounds of the fit are dropped (the language has
+    none)."""
+    el = c.element
     if c.kind == "sensor_lag":
-        tau = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        return f"lag {tau:.4g} s free"
-    if c.kind == "thermal_mass":  # the new node and the two links (the .thn extension has the parameters too)
-        from .structural import mass_lines
+        return _set(net, el["param"], _num(_value(params, el["param"], net), "s", 4), lower=None, upper=None)
+    if c.kind == "thermal_mass":
+        cap_of = {n.name: n.capacitance for n in net.nodes}
+        unit = _plain_unit(net, cap_of.get(el["a"]), "J/K")
+        net = _set(net, el["param"], _num(_value(params, el["param"], net), unit, 6), lower=None, upper=None)
+        f = net.param(el["frac"])
+        net = _set(net, el["frac"], _num(_value(params, el["frac"], net), None, 4), lower=f.lower, upper=f.upper)
+        total = net.param(el["value"])
+        return _set(net, el["value"], total.expr, label=f"total of the links {el['a']}–{el['node']}–{el['b']}")
+    if c.kind == "source_mass":
+        cap_of = {n.name: n.capacitance for n in net.nodes}
+        unit_c = _plain_unit(net, cap_of.get(el["at"]), "J/K")
+        r_link = next((lk.value for lk in net.links if lk.form == "R" and lk.name != el["link"]
+                       and net.param(lk.value).unit), None)
+        unit_r = _plain_unit(net, r_link, "K/W")
+        net = _set(net, el["param"], _num(_value(params, el["param"], net), unit_c, 6), lower=None, upper=None)
+        return _set(net, el["res"], _num(_value(params, el["res"], net), unit_r, 6), lower=None, upper=None)
+    raise ValueError(f"not a structural candidate kind: {c.kind}")
 
-        return "; ".join(mass_lines(net, c, params)[2:])
-    if c.kind == "source_mass":  # the new node and its link (the source's line moves to the new node)
-        from .structural import source_mass_lines
 
-        return "; ".join(source_mass_lines(net, c, params))
-    return ""
-
-
-def _merged_clauses(accepted: list[Candidate], params, ext: Extended, eng: _Engine) -> list[str]:
-    """One clause per target: dependence candidates on the same target merge into one function with
-    several inputs (``learn R as linear(u1, T(hx1))``); targets with the same inputs share one clause."""
-    by_target: dict[str, list[Candidate]] = {}
-    order: list[str] = []
-    out: list[str] = []
-    for c in accepted:
-        if c.kind in ("param_dependence", "wrong_constant", "heat_load", "unused_column"):
-            if c.target not in by_target:
-                order.append(c.target)
-            by_target.setdefault(c.target, []).append(c)
+def _merged_learned(net: Network, cands: list[Candidate]) -> list[LearnFunction]:
+    """The learned functions of ``net`` and one new ``learn`` per group of dependence candidates: candidates on
+    the same target merge into one function of all their variables (``learn R as linear(u1, hx1)``), targets
+    with the same variables share one function, a target without variables is ``const``. A learned constant of
+    ``net`` whose targets now depend on something keeps its other targets."""
+    by_target: dict[str, list[tuple[str, str]]] = {}
+    for c in cands:
+        vars_ = by_target.setdefault(c.target, [])
+        vars_ += [v for v in c.vars if v not in vars_]
     groups: dict[tuple, list[str]] = {}
-    gorder: list[tuple] = []
-    net = ext.network
-    for tgt in order:
-        vars_: list[tuple[str, str]] = []
-        for c in by_target[tgt]:
-            for v in c.vars:
-                if v not in vars_:
-                    vars_.append(v)
-        key = tuple(vars_)
-        if key not in groups:
-            gorder.append(key)
-        groups.setdefault(key, []).append(tgt)
-    for key in gorder:
-        tg = ", ".join(groups[key])
-        if key:
-            out.append(f"learn {tg} as linear({', '.join(_var_text(net, k, v) for k, v in key)})")
-        else:
-            out.append(f"learn {tg} as const")
+    for target, vars_ in by_target.items():
+        groups.setdefault(tuple(vars_), []).append(target)
+    moved: dict[str, set[str]] = {}
+    for c in cands:
+        if c.element.get("learned"):
+            moved.setdefault(c.element["learned"], set()).add(c.target)
+    learned = []
+    for fn in net.learned:
+        keep = [t for t in fn.targets if t.name not in moved.get(fn.name, set())]
+        if keep:
+            learned.append(fn.model_copy(update={"targets": keep}) if len(keep) < len(fn.targets) else fn)
+    taken = {fn.name for fn in learned} | set(net.param_names)
+    for key, targets in groups.items():
+        first = "".join(ch if ch.isalnum() else "_" for ch in targets[0]).strip("_")
+        out = [LearnTarget(kind="heat_load", name=t[2:-1]) if t.startswith("Q[") and t.endswith("]")
+               else LearnTarget(kind="param", name=t) for t in targets]
+        learned.append(LearnFunction(name=_unique_name(f"fn_{first}", taken), kind="linear" if key else "const",
+                                     targets=out, inputs=[LearnInput(kind=k, name=v) for k, v in key]))
+    return learned
+
+
+def _with_element(net: Network, c: Candidate, params: dict, taken: set[str]) -> Network:
+    """``net`` with a new conductance (W/K), radiation (its area in m², emissivity 1) or sensor offset (K), free,
+    at its fitted value."""
+    el = c.element
+    if c.kind == "missing_link":
+        g = _num(max(_value(params, el["param"], net), 1e-9), "W/K", 4)
+        name = _unique_name(f"G_{el['a']}_{el['b']}", taken)
+        p = Param(name=name, expr=g, dim=dict(g.dim), unit=g.unit, role="conductance", free=True,
+                  owner=f"link {name}")
+        link = Link(name=name, a=el["a"], b=el["b"], form="G", value=name)
+        return net.model_copy(update={"params": [*net.params, p], "links": [*net.links, link]})
+    if c.kind == "radiation":
+        area = _num(max(_value(params, el["param"], net), 1e-9), "m^2", 4)
+        name = _unique_name(f"rad_{el['a']}_{el['b']}", taken)
+        owner = f"radiation {name}"
+        new = [Param(name=f"{name}.area", expr=area, dim=dict(area.dim), unit=area.unit, role="component", free=True,
+                     owner=owner),
+               Param(name=f"{name}.emissivity", expr=Num(value=1.0), role="component", owner=owner),
+               Param(name=f"{name}.view_factor", expr=Num(value=1.0), role="component", owner=owner)]
+        rad = Radiation(name=name, a=el["a"], b=el["b"], area=f"{name}.area", emissivity=f"{name}.emissivity",
+                        view_factor=f"{name}.view_factor")
+        return net.model_copy(update={"params": [*net.params, *new], "radiations": [*net.radiations, rad]})
+    if c.kind == "sensor_offset":
+        off = _num(_value(params, el["param"], net), "K", 4)
+        p = Param(name=el["param"], expr=off, dim=dict(off.dim), unit="K", role="offset", free=True,
+                  owner=f"sensor {c.target}")
+        sensors = [s.model_copy(update={"offset": el["param"]}) if s.name == c.target else s for s in net.sensors]
+        return net.model_copy(update={"params": [*net.params, p], "sensors": sensors})
+    return net
+
+
+def extend_network(base: Network, accepted: list[Candidate], params: dict,
+                   unused: list[tuple[str, str]] = ()) -> Network:
+    """The extended network: ``base`` (the user's network, with the inputs of the unused data columns and the
+    accepted structural edits already built in, as the doctor fits it) with every accepted finding applied and
+    the fitted values (``params``: the engine's parameter dict, SI) in its new parameters. Of the ``unused``
+    columns' inputs (name, column), only those an accepted finding reads are kept."""
+    net = base
     for c in accepted:
-        if c.kind in ("missing_link", "radiation"):
-            out.append(_clause(c, params, ext, eng))
+        if c.kind in STRUCTURAL_KINDS:
+            net = _fitted_structural(net, c, params)
+    dependences = [c for c in accepted if c.kind in _DEPENDENCE_KINDS]
+    net = net.model_copy(update={"learned": _merged_learned(net, dependences)})
+    taken = set(net.param_names) | {p.split(".")[0] for p in net.param_names} | set(net.node_names)
+    taken |= set(net.boundary_names) | {e.name for e in (*net.links, *net.radiations, *net.sensors)}
     for c in accepted:
-        if c.kind == "thermal_mass":  # the split link's value, the share f, the new node, the two new links
-            from .structural import mass_lines
-
-            out += mass_lines(net, c, params)
-    for c in accepted:
-        if c.kind == "source_mass":  # the new node and its link; the source's own line is moved in the text
-            from .structural import source_mass_lines
-
-            out += source_mass_lines(net, c, params)
-    return out
+        net = _with_element(net, c, params, taken)
+    used = {v for c in accepted for k, v in c.vars if k == "input"}
+    drop = {name for name, _ in unused} - used
+    return net.model_copy(update={"inputs": [i for i in net.inputs if i.name not in drop]}, deep=True)
 
 
-def _extend_text(text: str, clauses: list[str], accepted: list[Candidate], net: Network, params, ext, unused):
-    """The input text plus the chosen clauses (and sensor offsets edited in place); a unified diff."""
-    import difflib
-
-    if not accepted:
-        return text, ""
-    lines = text.splitlines()
-    for c in accepted:
-        if c.kind not in ("sensor_offset", "sensor_lag"):
-            continue
-        s = next(s for s in net.sensors if s.name == c.target)
-        o = float(np.asarray(params[c.element["param"]]).reshape(-1)[0])
-        if s.span is not None and 1 <= s.span.line <= len(lines):
-            ln = lines[s.span.line - 1]
-            m = re.search(r"\bcolumn\b", ln)
-            ins = f"offset {o:.4g} K free  " if c.kind == "sensor_offset" else f"lag {o:.4g} s free  "
-            lines[s.span.line - 1] = (ln[: m.start()] + ins + ln[m.start():]) if m else ln.rstrip() + "  " + ins.strip()
-    # a thermal mass replaces its link: the original line is commented out (its value is a `param` line now)
-    for c in accepted:
-        if c.kind != "thermal_mass":
-            continue
-        link = next((l for l in net.links if l.name == c.element["link"]), None)
-        if link is None or link.span is None:
-            continue
-        for ln in range(link.span.line, link.span.end_line + 1):
-            if 1 <= ln <= len(lines):
-                lines[ln - 1] = (f"# (split by `tnnc diagnose` at the new thermal mass {c.element['node']}, see below) "
-                                 + lines[ln - 1])
-    # a capacity behind a source: the source's line now heats the new node (or, if the line has another form,
-    # it is commented out and written again below)
-    moved_src: list[str] = []
-    for c in accepted:
-        if c.kind != "source_mass":
-            continue
-        from .structural import source_line_moved
-
-        src = next((sr for sr in net.sources if sr.name == c.element["source"]), None)
-        if src is None or src.span is None or not 1 <= src.span.line <= len(lines):
-            continue
-        new_line = source_line_moved(lines[src.span.line - 1], c) if src.span.line == src.span.end_line else None
-        if new_line is not None:
-            lines[src.span.line - 1] = new_line
-        else:
-            for ln in range(src.span.line, src.span.end_line + 1):
-                lines[ln - 1] = f"# (moved by `tnnc diagnose` to the new node {c.element['node']}, see below) " + lines[ln - 1]
-            moved_src.append(f"source {c.element['node']} = {c.element['value']}")
-    # a learned constant of the original network that now depends on something: its clause is replaced
-    # (the dependent targets get their own clause; the others stay constant)
-    for fname in dict.fromkeys(c.element.get("learned") for c in accepted if c.element.get("learned")):
-        fn = next((f for f in net.learned if f.name == fname), None)
-        if fn is None or fn.span is None:
-            continue
-        moved = {c.target for c in accepted if c.element.get("learned") == fname}
-        for ln in range(fn.span.line, fn.span.end_line + 1):
-            if 1 <= ln <= len(lines):
-                lines[ln - 1] = "# (replaced by `tnnc diagnose`, see below) " + lines[ln - 1]
-        rest = [t.name for t in fn.targets if t.name not in moved]
-        if rest:
-            clauses = [f"learn {', '.join(rest)} as {fn.kind}"] + list(clauses)
-    used_inputs = {v for c in accepted for k, v in c.vars if k == "input"}
-    add = ["", "# ---- added by `tnnc diagnose` -------------------------------------------------"]
-    for name, col in unused:
-        if name in used_inputs:
-            add.append(f'input {name} : [1]  column "{col}"')
-    for c in accepted:
-        add.append(f"# {c.describe()}")
-    add += clauses + moved_src
-    new = "\n".join(lines).rstrip("\n") + "\n" + "\n".join(add) + "\n"
-    diff = "".join(difflib.unified_diff(text.splitlines(True), new.splitlines(True), "original", "extended"))
-    return new, diff
+def doctor_targets(accepted: list[Candidate]) -> set[str]:
+    """The targets of the ``learn`` functions the extension adds (``R_hp1``, ``Q[hx2]``): the keys of
+    :meth:`Network.learned_targets` the MLP comparison may turn into MLPs."""
+    return {c.target for c in accepted if c.kind in _DEPENDENCE_KINDS}
 
 
-def _check_text(text: str, filename: str) -> None:
-    """Re-load the extension to make sure it is a valid ``.thn`` (a failure here is a bug: say so)."""
+def changed_lines(before: Network, after: Network) -> list[str]:
+    """The statements of ``after``, printed, that ``before`` printed does not have (new or changed lines)."""
+    old = set(print_thn(before).splitlines())
+    return [ln for ln in print_thn(after).splitlines() if ln and ln not in old]
+
+
+def finding_clause(base: Network, c: Candidate, params: dict, edited: Network | None = None) -> str:
+    """A finding's ``.thn`` change: the statements its extension adds or changes, ``; ``-joined (``base``: the
+    network it was fitted on; ``edited``: a structural candidate's own network)."""
+    after = extend_network(edited if edited is not None else base, [c], params)
+    return "; ".join(changed_lines(base, after))
+
+
+def extension_text(original: Network, extended: Network, accepted: list[Candidate],
+                   source: str | None = None) -> tuple[str, str]:
+    """The extension's ``.thn`` text (a comment naming the accepted findings, then the printed network) and a
+    unified diff from the printed original to the printed extension (only the change shows)."""
+    head = [f"# {original.name}" + (f" ({os.path.basename(source)})" if source else "")
+            + " extended by `tnnc diagnose` with the accepted findings:"]
+    head += [f"#   {c.describe()}" for c in accepted]
+    printed = print_thn(extended)
+    diff = "".join(difflib.unified_diff(print_thn(original).splitlines(True), printed.splitlines(True),
+                                        "original", "extended"))
+    return "\n".join(head) + "\n" + printed, diff
+
+
+def _check_text(text: str, filename: str) -> Network:
+    """Re-load the extension to make sure it is a valid ``.thn`` (a failure here is a bug: say so); returns it."""
     from ..lang import loads
 
-    loads(text, filename=filename)
+    return loads(text, filename=filename)

@@ -4,8 +4,9 @@
 The forward selection fits each dependence as ``linear(v…)`` (cheap, exactly null at zero, a score test).
 When the extended model's held-out residual is still not white, the law may be curved in its variables.
 The evidence is then a fit, not a guess: the extension is trained twice with the shared trainer
-(``tnn_dsl.train``, same data, same options, same time limit) — once as written, once with every
-``linear(…)`` clause of the doctor's block turned into ``mlp(…; hidden = [8], activation = tanh)`` — and the
+(``tnn_dsl.train``, same data, same options, same time limit) — once as written, once with every ``linear``
+function the doctor added turned into ``mlp(…; hidden = [8], activation = tanh)`` (:func:`mlp_variant`, an IR
+edit; the user's own ``learn`` clauses are left alone) — and the
 MLP is kept only if it pays on the held-out data by the doctor's own test (Diebold–Mariano on the
 held-out squared errors with a charge for the extra parameters, p < ``P_ACCEPT``, and a held-out MAE gain of
 at least ``MIN_GAIN``).
@@ -16,29 +17,30 @@ the doctor's own Levenberg–Marquardt fit.
 
 from __future__ import annotations
 
-import re
 import time
 from typing import Callable
 
 import numpy as np
 
 from ..analysis import held_out_test
+from ..ir import Network
 from .selection import MIN_GAIN, P_ACCEPT
 
-MARK = "# ---- added by `tnnc diagnose`"
 HIDDEN = 8
 
 
-def mlp_text(text: str) -> tuple[str, int]:
-    """``text`` with every ``linear(…)`` clause after the doctor's marker line turned into an MLP with one
-    hidden layer of ``HIDDEN`` tanh units. Returns ``(new text, number of clauses changed)``."""
-    i = text.find(MARK)
-    if i < 0:
-        return text, 0
-    head, tail = text[:i], text[i:]
-    pat = re.compile(r"^(learn\s+.+?\s+as\s+)linear\(([^;()]*)\)\s*$", re.M)
-    new, n = pat.subn(lambda m: f"{m.group(1)}mlp({m.group(2)}; hidden = [{HIDDEN}], activation = tanh)", tail)
-    return head + new, n
+def mlp_variant(net: Network, targets: set[str]) -> tuple[Network, int]:
+    """``net`` with every ``linear`` learned function whose targets are all in ``targets`` (keys of
+    :meth:`Network.learned_targets`: ``R_hp1``, ``Q[hx2]``; the doctor's own functions) turned into an MLP with
+    one hidden layer of ``HIDDEN`` tanh units. Returns ``(new network, number of functions changed)``."""
+    learned, n = [], 0
+    for fn in net.learned:
+        keys = {f"Q[{t.name}]" if t.kind == "heat_load" else t.name for t in fn.targets}
+        if fn.kind == "linear" and keys <= targets:
+            fn = fn.model_copy(update={"kind": "mlp", "hidden": [HIDDEN], "activation": "tanh"})
+            n += 1
+        learned.append(fn)
+    return net.model_copy(update={"learned": learned}), n
 
 
 def _held_out_errors(trained, vals) -> np.ndarray:
@@ -55,26 +57,24 @@ def _n_params(trained) -> int:
     return int(sum(int(np.prod(s.shape)) for s in model.param_specs.values() if s.trainable))
 
 
-def compare(text: str, filename: str, train, val, *, backend: str = "jax", time_limit: float = 60.0,
+def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax", time_limit: float = 60.0,
             say: Callable[[str], None] = lambda s: None) -> dict | None:
-    """Train the extension ``text`` as written (linear clauses) and with its clauses as MLPs on ``train``
-    (Experiments), measure both on ``val`` (Experiments; free runs). Returns None when there is no linear
-    clause to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max, K; trainable parameter
-    count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"), ``reason``, ``text`` (the
-    chosen variant's ``.thn`` text), ``n_clauses``."""
+    """Train the extension ``net`` as it is (the doctor's linear functions, of ``targets``) and with those as MLPs
+    (:func:`mlp_variant`) on ``train`` (Experiments), measure both on ``val`` (Experiments; free runs). Returns
+    None when there is no linear function to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max,
+    K; trainable parameter count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"),
+    ``reason``, ``network`` (the chosen variant), ``n_clauses``."""
     from ..fit import train as train_model
-    from ..lang import loads
 
-    text_mlp, n = mlp_text(text)
+    net_mlp, n = mlp_variant(net, targets)
     if n == 0:
         return None
     out: dict = {"n_clauses": n}
     errors = {}
-    for form, src in (("linear", text), ("mlp", text_mlp)):
+    for form, variant in (("linear", net), ("mlp", net_mlp)):
         t0 = time.monotonic()
         say(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
-        net = loads(src, filename=filename)
-        trained = train_model(net, train, val, backend=backend, time_limit=time_limit, seed=0)
+        trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0)
         e = _held_out_errors(trained, val)
         errors[form] = e
         out[form] = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
@@ -86,10 +86,10 @@ def compare(text: str, filename: str, train, val, *, backend: str = "jax", time_
     gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
     out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
     if p < P_ACCEPT and gain >= MIN_GAIN:
-        out.update(choice="mlp", text=text_mlp,
+        out.update(choice="mlp", network=net_mlp,
                    reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")
     else:
         why = (f"p = {p:.2g} ≥ {P_ACCEPT}" if p >= P_ACCEPT
                else f"gain {100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %")
-        out.update(choice="linear", text=text, reason=f"the MLP does not pay on held-out data ({why})")
+        out.update(choice="linear", network=net, reason=f"the MLP does not pay on held-out data ({why})")
     return out

@@ -1,10 +1,8 @@
 """Structural candidates, not exactly null: a sensor lag, a missing thermal mass on a link, a heat capacity behind a
-source. Each is an IR edit of its own network (:func:`apply_structural`) with its starting values, and its
-``.thn`` lines once fitted."""
+source. Each is an IR edit of its own network (:func:`apply_structural`) with its starting values; once fitted,
+:func:`tnn_dsl.doctor.extension.extend_network` writes the fitted values into it and the printer writes it."""
 
 from __future__ import annotations
-
-import re
 
 import numpy as np
 
@@ -19,7 +17,7 @@ from ..ir import (
 )
 from .base import MASS_FRACTION_BOUNDS, STRUCTURAL_KINDS, Candidate, Column, _unique_name, refs_in
 
-__all__ = ["structural_candidates", "apply_structural", "mass_values", "mass_lines", "source_mass_values", "source_mass_lines", "source_line_moved"]
+__all__ = ["structural_candidates", "apply_structural", "mass_values", "source_mass_values"]
 
 
 def _btemp(net: Network, boundary: str) -> str | None:
@@ -219,20 +217,6 @@ def apply_structural(net: Network, cand: Candidate, value: float, lower: float |
     raise ValueError(f"not a structural candidate kind: {cand.kind}")
 
 
-def _in_unit(value_si: float, unit: str | None, fallback: str) -> str:
-    """``value_si`` written as a ``.thn`` quantity in ``unit`` (the unit the file wrote), else in ``fallback`` (SI)."""
-    from ..lang import unit_scale
-
-    if unit:
-        try:
-            scale, offset = unit_scale(unit)
-            if offset == 0.0 and scale > 0:
-                return f"{value_si / scale:.6g} {unit}"
-        except Exception:  # noqa: BLE001 - an unusual unit text: write SI
-            pass
-    return f"{value_si:.6g} {fallback}"
-
-
 def _scalar(params: dict, name: str, net: Network) -> float:
     if name in params:
         return float(np.asarray(params[name]).reshape(-1)[0])
@@ -251,81 +235,9 @@ def mass_values(net: Network, cand: Candidate, params: dict) -> dict:
     return {"C": c, "f": f, "R": r, "tau": c * f * (1.0 - f) * r}
 
 
-def mass_lines(net: Network, cand: Candidate, params: dict) -> list[str]:
-    """The ``.thn`` statements of a fitted thermal mass (``net`` holds the edit, ``params`` its values): the split
-    link's value as a ``param`` (same name, the file's unit, ``free`` as it was), the share ``f`` (free), the new
-    node (``C`` in the unit of its neighbour's capacity, free) and the two links replacing the original one.
-    The caller comments the original link line out."""
-    el = cand.element
-    a, b, m, form = el["a"], el["b"], el["node"], el["form"]
-    pv = net.param(el["value"])
-    vals = mass_values(net, cand, params)
-    fallback = "K/W" if form == "R" else "W/K"
-    v = _scalar(params, pv.name, net)
-    free = ""
-    if pv.free:
-        free = "  free"
-        if pv.lower is not None and pv.upper is not None:
-            free += f" in [{_in_unit(pv.lower, pv.unit, fallback)}, {_in_unit(pv.upper, pv.unit, fallback)}]"
-    cap_unit = None
-    for n in net.nodes:
-        if n.name == a:
-            cap_unit = net.param(n.capacitance).unit
-    fl = el["frac"]
-    f_lo, f_hi = MASS_FRACTION_BOUNDS
-    l1, l2 = el["links"]
-    if form == "R":
-        e1, e2 = f"{fl} * {pv.name}", f"(1 - {fl}) * {pv.name}"
-    else:
-        e1, e2 = f"{pv.name} / {fl}", f"{pv.name} / (1 - {fl})"
-    return [
-        f"param {pv.name} = {_in_unit(v, pv.unit, fallback)}{free}  \"total of the links {a}–{m}–{b}\"",
-        f"param {fl} = {vals['f']:.4g}  free in [{f_lo:g}, {f_hi:g}]  \"share of {pv.name} on the {a} side\"",
-        f"node {m} \"thermal mass found by tnnc diagnose\"  C = {_in_unit(vals['C'], cap_unit, 'J/K')}  free",
-        f"{form} {a} -- {m} = {e1}  as {l1}",
-        f"{form} {m} -- {b} = {e2}  as {l2}",
-    ]
-
-
 def source_mass_values(net: Network, cand: Candidate, params: dict) -> dict:
     """A fitted capacity behind a source in SI: ``C`` (J/K), ``R`` (K/W) and ``tau = C·R`` (s)."""
     el = cand.element
     c = _scalar(params, el["param"], net)
     r = _scalar(params, el["res"], net)
     return {"C": c, "R": r, "tau": c * r}
-
-
-def source_mass_lines(net: Network, cand: Candidate, params: dict) -> list[str]:
-    """The ``.thn`` statements of a fitted capacity behind a source (``net`` holds the edit): the new node (``C``
-    in the unit of the heated node's capacity) and its resistance to that node (in the file's resistance unit
-    where it has one). The source's own line is edited by :func:`source_line_moved`."""
-    el = cand.element
-    v = source_mass_values(net, cand, params)
-    cap_unit = None
-    for nd in net.nodes:
-        if nd.name == el["at"]:
-            cap_unit = net.param(nd.capacitance).unit
-    r_unit = None
-    for l in net.links:
-        if l.form == "R" and l.name != el["link"]:
-            try:
-                r_unit = net.param(l.value).unit or r_unit
-            except KeyError:
-                pass
-            if r_unit:
-                break
-    return [
-        f"node {el['node']} \"heat capacity behind source {el['source']}, found by tnnc diagnose\"  "
-        f"C = {_in_unit(v['C'], cap_unit, 'J/K')}  free",
-        f"R {el['node']} -- {el['at']} = {_in_unit(v['R'], r_unit, 'K/W')}  free  as {el['res']}",
-    ]
-
-
-def source_line_moved(line: str, cand: Candidate) -> str | None:
-    """The ``source <node> = …`` line of ``cand``'s source with the heated node replaced by the new node (None
-    if the line does not have that form)."""
-    el = cand.element
-    pat = re.compile(r"^(\s*source\s+)" + re.escape(el["at"]) + r"(\s*=)")
-    if not pat.search(line):
-        return None
-    return pat.sub(lambda m: m.group(1) + el["node"] + m.group(2), line, count=1)
