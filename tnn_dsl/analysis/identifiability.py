@@ -26,8 +26,15 @@ RESOLUTION = 1e-9
 tolerance is 1e-10 K) and are reported as exactly 0 — e.g. capacities, which do not enter the steady state."""
 
 
+class _Record:
+    """A plain result record: its fields as JSON-ready values (``inf`` as text)."""
+
+    def to_dict(self) -> dict:
+        return to_jsonable(self.__dict__, inf_as_text=True)
+
+
 @dataclass
-class WeakDirection:
+class WeakDirection(_Record):
     """A combination of relative parameter changes the data hardly see: an eigenvector of the Fisher
     information with standard error ``std_error`` (relative, 1/sqrt(eigenvalue)). ``weights`` are the
     relative changes (largest |w| = 1), only those with |w| ≥ 0.05."""
@@ -37,12 +44,9 @@ class WeakDirection:
     std_error: float
     description: str
 
-    def to_dict(self) -> dict:
-        return to_jsonable(self.__dict__, inf_as_text=True)
-
 
 @dataclass
-class CorrelatedPair:
+class CorrelatedPair(_Record):
     """Two parameters whose estimates correlate with ``|correlation| > 0.95``.
 
     ``direct``: the pair by itself cannot be separated — their sensitivities are almost proportional
@@ -60,9 +64,6 @@ class CorrelatedPair:
     explanation: str
     combination: str
     combination_std_error: float
-
-    def to_dict(self) -> dict:
-        return to_jsonable(self.__dict__, inf_as_text=True)
 
 
 @dataclass

@@ -41,17 +41,7 @@ All edited networks are built as IR directly (the validation pass would refuse a
 
 from __future__ import annotations
 
-from ..ir import (
-    LearnFunction,
-    LearnInput,
-    LearnTarget,
-    Link,
-    Network,
-    Num,
-    Param,
-    Radiation,
-    Ref,
-)
+from ..ir import LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref
 from .base import _AREA_DIM, _DEP_ROLES, _GK_DIM, _K_DIM, Candidate, Column, Extended, _unique_name, refs_in, var_label
 
 __all__ = ["build_extended"]

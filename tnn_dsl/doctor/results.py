@@ -145,18 +145,24 @@ class Diagnosis:
                          + (f"; {r['reason']}" if r["reason"] else ""))
             if r["caution"]:
                 lines.append("      " + _caution(r["caution"]))
-        lines.append("  verdict: " + self.verdict)
-        mlp = self.mlp_text()
-        if mlp:
-            lines.append(f"  linear or MLP: {mlp}")
-        if self.accepted:
-            g = self.gain
-            lines.append(f"  gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
-                         f"(÷{g['val_mae_ratio']:.2f}), max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K")
-        lines.append("  what is left: " + self.left)
+        lines += ["  " + ln for ln in self.verdict_lines()]
         if self.extended_file:
             lines.append(f"  extended network written to {self.extended_file}")
         return "\n".join(lines)
+
+    def verdict_lines(self) -> list[str]:
+        """The verdict, the linear-or-MLP choice, the gain and what is left, one line each (summary and notebook
+        view)."""
+        lines = [f"verdict: {self.verdict}"]
+        mlp = self.mlp_text()
+        if mlp:
+            lines.append(f"linear or MLP: {mlp}")
+        if self.accepted:
+            g = self.gain
+            lines.append(f"gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
+                         f"(÷{g['val_mae_ratio']:.2f}), max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K")
+        lines.append(f"what is left: {self.left}")
+        return lines
 
     def _repr_html_(self) -> str:
         """The notebook view: :meth:`summary` as tables (``<pre>`` of the summary should that fail)."""
@@ -182,15 +188,7 @@ class Diagnosis:
                   round(float(r["n_eff"])), "ACCEPTED" if r["accepted"] else "rejected", r["clause"], r["reason"]]
                  for r in rows],
                 numeric=[True, False, False, True, True, True, True, False, False, False]))
-        lines = [f"verdict: {self.verdict}"]
-        mlp = self.mlp_text()
-        if mlp:
-            lines.append(f"linear or MLP: {mlp}")
-        if self.accepted:
-            g = self.gain
-            lines.append(f"gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
-                         f"(÷{g['val_mae_ratio']:.2f}), max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K")
-        lines.append(f"what is left: {self.left}")
+        lines = self.verdict_lines()
         parts.append(html_list(lines))
         warnings = [f"{r['cause']}: {_caution(r['caution'])}" for r in rows if r["caution"]]
         if warnings:

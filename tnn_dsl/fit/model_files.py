@@ -301,6 +301,15 @@ class _MixedRead(Exception):
     """The files read belong to two writes (a concurrent save swapped the directory in between)."""
 
 
+def _vanished(path: Path, final: bool) -> Exception:
+    """A file of the model directory disappeared while it was read: another writer is swapping the directory in.
+    The last try says so (a :class:`ModelFileError`); earlier tries read again (:class:`_MixedRead`)."""
+    if final:
+        return _err(f"{path}: {path.name} vanished while it was read", None,
+                    hint="another process is rewriting this model; try again")
+    return _MixedRead()
+
+
 def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
     from safetensors import safe_open
     from safetensors.numpy import load_file
@@ -324,10 +333,7 @@ def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        if final:
-            raise _err(f"{meta_path}: meta.json vanished while it was read", None,
-                       hint="another process is rewriting this model; try again") from None
-        raise _MixedRead from None
+        raise _vanished(meta_path, final) from None
     except UnicodeDecodeError as e:
         raise _err(f"meta.json is not UTF-8 text: {e.reason}", meta_path,
                    hint="the model directory is corrupted; re-train")
@@ -345,10 +351,7 @@ def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
     try:
         network = Network.from_json(net_path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        if final:
-            raise _err(f"{net_path}: network.json vanished while it was read", None,
-                       hint="another process is rewriting this model; try again") from None
-        raise _MixedRead from None
+        raise _vanished(net_path, final) from None
     except Exception as e:  # noqa: BLE001 - pydantic/json errors: all mean a corrupted file
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise _err(f"network.json cannot be read: {first}", net_path, hint="the model directory is corrupted; re-train")
@@ -359,10 +362,7 @@ def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
             header = fh.metadata() or {}
         params = {k: np.asarray(v, dtype=np.float64) for k, v in load_file(str(p_path)).items()}
     except FileNotFoundError:
-        if final:
-            raise _err(f"{p_path}: params.safetensors vanished while it was read", None,
-                       hint="another process is rewriting this model; try again") from None
-        raise _MixedRead from None
+        raise _vanished(p_path, final) from None
     except Exception as e:  # noqa: BLE001 - safetensors raises several types for a damaged file
         raise _err(f"{p_path}: params.safetensors cannot be read: {e}", None,
                    hint="the model directory is corrupted; re-train or restore params.safetensors")
