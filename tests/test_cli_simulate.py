@@ -65,11 +65,16 @@ def test_simulate_init_measured(tmp_path, backend, capsys):
     t = np.arange(200.0)
     net, out = rc_net(tmp_path), tmp_path / "o.csv"
     data = rc_data(tmp_path, n=200, t_step=10_000, t_measured=20 + 10 * np.exp(-t / 50.0))
-    assert main(["simulate", net, "--data", data, "-o", str(out), "--backend", backend]) == 0
+    assert main(["simulate", net, "--data", data, "-o", str(out), "--backend", backend, "--init", "steady"]) == 0
     err = capsys.readouterr().err
-    assert "--init measured" in err  # the steady start is 10 K off the first measurement: say so
+    assert "warning: the data do not start at rest" in err and "--init estimate" in err  # 10 K off: say so
     np.testing.assert_allclose(pd.read_csv(out)["Tn"], 20.0, atol=1e-9)
     assert main(["simulate", net, "--data", data, "-o", str(out), "--backend", backend, "--init", "measured"]) == 0
+    np.testing.assert_allclose(pd.read_csv(out)["Tn"], 20 + 10 * np.exp(-t / 50.0), atol=1e-6)
+    # the default estimates the initial state from a burn-in (a tenth of the file), says so, and finds the start
+    assert main(["simulate", net, "--data", data, "-o", str(out), "--backend", backend]) == 0
+    err = capsys.readouterr().err
+    assert "initial state estimated from the first 20 samples (20 s), not scored" in err
     np.testing.assert_allclose(pd.read_csv(out)["Tn"], 20 + 10 * np.exp(-t / 50.0), atol=1e-6)
 
 
@@ -156,7 +161,8 @@ def test_simulate_a_model_directory_uses_its_parameters(tmp_path, backend, capsy
     params[gname] = np.asarray(4.0)  # fitted: G = 4 W/K instead of 2 → τ = 25 s, rise 2.5 K
     save_model(tmp_path / "model", net, params, {"backend": "jax"})
     out = tmp_path / "o.csv"
-    rc = main(["simulate", str(tmp_path / "model"), "--data", rc_data(tmp_path), "-o", str(out), "--backend", backend])
+    rc = main(["simulate", str(tmp_path / "model"), "--data", rc_data(tmp_path), "-o", str(out), "--backend", backend,
+               "--init", "steady"])
     assert rc == 0, capsys.readouterr().err
     t = pd.read_csv(out)["time_s"].to_numpy()
     want = 20 + 2.5 * (1 - np.exp(-np.clip(t - 10, 0, None) / 25.0))

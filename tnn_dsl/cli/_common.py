@@ -50,6 +50,21 @@ def add_integration(p, default: str | None = "rk4", default_help: str | None = N
                    help="integrator sub-steps per data step (default: chosen from the fastest time constant)")
 
 
+INIT_CHOICES = ("estimate", "filter", "steady", "measured")
+
+
+def add_init(p) -> None:
+    """``--init estimate|filter|steady|measured`` (default estimate) and ``--burn-in SECONDS``: how a free run
+    starts (see :mod:`tnn_dsl.fit.initial`)."""
+    p.add_argument("--init", choices=INIT_CHOICES, default="estimate",
+                   help="initial state: estimate (default: fitted to a burn-in at the file's start, not scored; a "
+                        "training file continues from its fitted state), filter (EKF over the burn-in), steady "
+                        "(steady state of the first inputs) or measured (that, with sensed nodes at the first "
+                        "readings)")
+    p.add_argument("--burn-in", type=float, default=None, metavar="SECONDS", dest="burn_in",
+                   help="burn-in for --init estimate/filter (default: a tenth of the file, at least 10 samples)")
+
+
 def add_time_columns(p) -> None:
     """``--time-col``, ``--dt`` and ``--time-unit``: how a data file's time is read."""
     p.add_argument("--time-col", default=None, metavar="NAME", help="the time column (default: detected)")

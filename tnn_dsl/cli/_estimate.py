@@ -98,7 +98,7 @@ def run(args) -> int:
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
     check_outputs(args, [(args.output, CSV, "-o"), (args.plot, IMAGE, "--plot")], inputs=[args.net, args.data])
-    net, model, params, label = _load(args.net, args.backend, args.seed)
+    net, model, params, label, _ = _load(args.net, args.backend, args.seed)
     integrator = args.integrator
     if integrator is None and os.path.isdir(args.net):
         from ..fit import load_model

@@ -1,9 +1,10 @@
 """``tnnc evaluate MODEL DATA... [--json FILE] [--plot PNG]``: errors of a trained model on data.
 
-Each data file is simulated as a free run (from the steady state of its first inputs; ``--init measured``
-starts the sensor nodes at the first measurement) and compared with the measurements: per sensor the
-mean absolute error, the max absolute error (thesis eq. 4.9), the bias (mean predicted − measured) and
-the RMSE, all in K. ``--plot`` draws measured vs predicted per sensor with the error below.
+Each data file is simulated as a free run and compared with the measurements after its burn-in: per sensor the
+mean absolute error, the max absolute error (thesis eq. 4.9), the bias (mean predicted − measured) and the RMSE, all
+in K. The run starts by the initial-state rule ``--init`` (default ``estimate``: fitted to the readings of a burn-in
+at the file's start, which is not scored and whose length is printed; a file the model was trained on continues
+from its fitted state). ``--plot`` draws measured vs predicted per sensor with the error below.
 """
 
 from __future__ import annotations
@@ -12,7 +13,15 @@ import json
 import math
 import sys
 
-from ._common import add_backend, add_command, add_force_flag, add_time_columns, check_outputs, write_json
+from ._common import (
+    add_backend,
+    add_command,
+    add_force_flag,
+    add_init,
+    add_time_columns,
+    check_outputs,
+    write_json,
+)
 
 
 def register(subparsers) -> None:
@@ -22,9 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("model", metavar="MODEL", help="a model directory written by `tnnc train`")
     p.add_argument("data", nargs="+", metavar="DATA", help="data files (CSV or Parquet)")
     add_backend(p, default=None)
-    p.add_argument("--init", choices=("auto", "steady", "measured"), default="auto",
-                   help="initial state: steady state of the first inputs, or sensor nodes from the first "
-                        "measurement (default auto: measured for data starting mid-file)")
+    add_init(p)
     p.add_argument("--json", default=None, metavar="FILE", help="write the metrics as JSON ('-' for stdout)")
     p.add_argument("--plot", default=None, metavar="PNG", help="plot measured vs predicted, with the error below")
     add_time_columns(p)
@@ -41,7 +48,10 @@ def run(args) -> int:
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.model, *args.data])
     tm = load_model(args.model)
     exps = read_data(tm.network, args.data, time_col=args.time_col, dt=args.dt, time_unit=args.time_unit)
-    preds = tm.predict(exps, backend=args.backend, init=args.init)
+    preds = tm.predict(exps, backend=args.backend, init=args.init, burn_in_s=args.burn_in)
+    for p in preds:
+        for n in p["notes"]:
+            print(f"{p['name']}: {n}", file=sys.stderr)
     sensors = [s.name for s in tm.network.sensors]
     metrics = error_metrics(preds, sensors)
     metrics["model"] = args.model

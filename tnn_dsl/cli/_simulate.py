@@ -4,11 +4,13 @@
 their nominal values) or a model directory written by ``tnnc train`` (its fitted parameters).
 
 The inputs are read from the data file's columns (the ``column "..."`` of each ``input``), on the
-file's step or ``--dt``. The initial state is, with ``--init steady`` (the default), the steady state of
-the first inputs (thesis §4.5: what the case-study data starts from); with ``--init measured``, that steady
-state with every node that has a sensor moved so that its sensor reads the first measured value (its lag
-state too), for runs that do not start at rest (the TCLab cool-down file). When the file has the sensor
-columns and the two differ by more than 1 K at t = 0, a note suggests ``--init measured``.
+file's step or ``--dt``. The initial state follows one rule (``--init``, :mod:`tnn_dsl.fit.initial`): with
+``estimate`` (the default) it is fitted to the sensor readings of a burn-in at the file's start (``--burn-in``
+seconds, else a tenth of the file; its length is printed), or, for a file a model was trained on, it is the state
+fitted in training, so the run continues exactly; ``filter`` runs an extended Kalman filter over the burn-in;
+``steady`` is the steady state of the first inputs (thesis §4.5: what the case-study data starts from), with a
+warning when a sensor starts more than 1 K away; ``measured`` moves every sensed node of that steady state (and its
+lag state) to the first reading. A file without sensor columns starts at the steady state.
 
 ``OUT.csv`` holds ``time_s`` and one column per sensor (the sensor's name) in the network's temperature
 unit; ``--states`` adds every state (``T_<node>``; ``<sensor>_lag`` for a lagged sensor). ``--plot`` draws
@@ -24,7 +26,15 @@ import numpy as np
 
 from .. import plots
 from ..core import CSV, IMAGE, Diagnostic, TnnError, save_figure
-from ._common import add_backend, add_command, add_force_flag, add_integration, add_time_columns, check_outputs
+from ._common import (
+    add_backend,
+    add_command,
+    add_force_flag,
+    add_init,
+    add_integration,
+    add_time_columns,
+    check_outputs,
+)
 
 
 def register(subparsers) -> None:
@@ -37,8 +47,7 @@ def register(subparsers) -> None:
                    help="torch backend: compile each integration step with torch.compile (pays off on long runs)")
     add_integration(p)
     add_time_columns(p)
-    p.add_argument("--init", choices=("steady", "measured"), default="steady",
-                   help="initial state: steady state of the first inputs (default), or moved to the first measurements")
+    add_init(p)
     p.add_argument("--states", action="store_true", help="also write every state (node temperatures)")
     p.add_argument("--plot", default=None, metavar="OUT.png", help="plot measured vs simulated")
     p.add_argument("--seed", type=int, default=0, help="seed for initialising learned functions of a .thn (default 0)")
@@ -50,29 +59,29 @@ def register(subparsers) -> None:
 
 
 def _load(net_arg: str, backend: str, seed: int):
-    """→ (network, compiled model, backend params, label)."""
+    """→ (network, compiled model, backend params, label, stored initial states of a model's training files)."""
     if os.path.isdir(net_arg):
         from ..fit import load_model
 
         tm = load_model(net_arg)
         model = tm.compiled(backend)
-        return tm.network, model, tm.backend_params(backend), f"model {net_arg}"
+        return tm.network, model, tm.backend_params(backend), f"model {net_arg}", tm.stored_initial_states()
     from ..compiler import compile as compile_network
     from ..lang import load
 
     net = load(net_arg)
     model = compile_network(net, backend=backend, dtype="float64")
-    return net, model, model.init_params(seed=seed), net_arg
+    return net, model, model.init_params(seed=seed), net_arg, None
 
 
 def run(args) -> int:
     from ..data import read_data, write_csv
-    from ..fit import simulate_experiment
+    from ..fit import free_run
 
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
     check_outputs(args, [(args.output, CSV, "-o"), (args.plot, IMAGE, "--plot")], inputs=[args.net, args.data])
-    net, model, params, label = _load(args.net, args.backend, args.seed)
+    net, model, params, label, stored = _load(args.net, args.backend, args.seed)
     if args.torch_compile:
         if args.backend != "torch":
             raise TnnError(Diagnostic("--torch-compile applies to the torch backend only",
@@ -82,8 +91,10 @@ def run(args) -> int:
                        require_outputs=False)
     for n in exp.notes:
         print(f"note: {n}", file=sys.stderr)
-    states, y, notes = simulate_experiment(net, model, params, exp, args.integrator, args.substeps, args.init)
-    for n in notes:
+    run = free_run(model, params, exp, args.init, integrator=args.integrator, substeps=args.substeps,
+                   burn_in_s=args.burn_in, stored=stored)
+    states, y = run.states, run.y
+    for n in run.init.notes:
         print(n, file=sys.stderr)
     if not np.all(np.isfinite(y)):
         k = int(np.argmax(~np.all(np.isfinite(y), axis=1)))
@@ -103,11 +114,13 @@ def run(args) -> int:
     unit = {"degC": "°C", "K": "K", "degF": "°F"}[net.temperature_unit]
     print(f"simulated {label} on {exp.path}: {exp.n_steps} steps of {exp.dt:g} s ({args.backend}, {args.integrator})")
     measured = np.isfinite(exp.outputs)
+    measured[: run.burn_in] = False  # the burn-in the initial state was estimated on is not scored
+    after = f", after the {run.burn_in}-sample burn-in" if run.burn_in else ""
     for k, s in enumerate(net.sensors):
         if measured[:, k].any():
             err = y[measured[:, k], k] - exp.outputs[measured[:, k], k]
             print(f"  {s.name}: MAE {np.mean(np.abs(err)):.3f} K, max {np.max(np.abs(err)):.3f} K "
-                  f"(vs column {exp.output_columns[k]!r})")
+                  f"(vs column {exp.output_columns[k]!r}{after})")
     print(f"wrote {args.output} (temperatures in {unit})")
     if args.plot:
         save_figure(plots.simulation(net, exp, y, label), args.plot, dpi=110)

@@ -47,7 +47,10 @@ _OPTIONS = [
      "early stopping after N epochs without a better validation MAE, from half of --epochs on (default 80)"),
     ("--val-every", "val_every", int, "validate every N epochs, 0 = automatic (default 0)"),
     ("--val-fraction", "val_fraction", float, "without --val: hold out this last fraction of each file"),
-    ("--init", "init", str, "initial state of free runs: auto | steady | measured (default auto)"),
+    ("--init", "init", str, "initial state of every free run: estimate | filter | steady | measured (default "
+                            "estimate: fitted with the parameters; on validation files to a burn-in, not scored)"),
+    ("--burn-in", "burn_in", float, "burn-in (s) of validation files for --init estimate/filter (default: a "
+                                    "tenth of the file)"),
     ("--init-from", "init_from", str, "initialise from another model directory (same names and shapes)"),
     ("--max-restarts", "max_restarts", int, "divergence guard: restarts with a smaller step (default 6)"),
     ("--time-limit", "time_limit", float, "stop Adam after this many seconds (best state kept)"),

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,7 +15,7 @@ from ..core import Diagnostic, TnnError
 ROLLOUTS = ("auto", "free", "steady", "measured", "estimated")
 
 
-INITS = ("auto", "steady", "measured")
+INITS = ("estimate", "filter", "steady", "measured", "auto")
 
 
 @dataclass
@@ -72,9 +73,13 @@ class TrainConfig:
     so the schedule — and the model picked — is the same on every machine and backend)."""
     val_fraction: float = 0.0
     """Without validation files: hold out the last fraction of each training file."""
-    init: str = "auto"
-    """Initial state of free runs (validation, prediction): ``steady``, ``measured`` or ``auto``
-    (``measured`` for a part that starts mid-file, else ``steady``)."""
+    init: str = "estimate"
+    """Initial state of every free run (:mod:`tnn_dsl.fit.initial`): ``estimate`` (fitted with the parameters in
+    single shooting; on validation files fitted to a burn-in at their start, which is not scored), ``filter``
+    (an EKF over the burn-in), ``steady`` or ``measured``. ``auto`` is read as ``estimate``."""
+    burn_in: float | None = None
+    """Burn-in (s) at the start of a validation file for ``estimate``/``filter``; ``None``: a tenth of the file
+    (at least 10 samples)."""
     freeze: list[str] = field(default_factory=list)
     """Parameter names or learned-function names kept fixed."""
     init_from: str | None = None
@@ -100,6 +105,9 @@ class TrainConfig:
             problems.append(f"rollout must be one of {', '.join(ROLLOUTS)}, not {self.rollout!r}")
         if self.init not in INITS:
             problems.append(f"init must be one of {', '.join(INITS)}, not {self.init!r}")
+        if self.burn_in is not None and not (isinstance(self.burn_in, (int, float)) and math.isfinite(self.burn_in)
+                                             and self.burn_in >= 0):
+            problems.append(f"burn_in must be a non-negative number of seconds, not {self.burn_in!r}")
         if self.integrator not in ("euler", "rk4", "expeuler"):
             problems.append(f"integrator must be euler, rk4 or expeuler, not {self.integrator!r}")
         for name in (("window",) if self.window is not None else ()) + ("lr",):

@@ -47,7 +47,7 @@ from ..core import (
 )
 from ..core.htmlview import html_list, html_table, safe_repr_html, view
 from ..ir import Network, Span
-from .simulation import as_experiments, error_metrics, simulate
+from .simulation import as_experiments, error_metrics, free_run
 
 if TYPE_CHECKING:
     from ..compiler import Model
@@ -436,37 +436,52 @@ class TrainedModel:
         base.update({k: v for k, v in self.params.items() if k in base})
         return model.from_numpy(base)
 
-    def predict(self, data: Any, backend: str | None = None, init: str = "auto",
-                integrator: str | None = None) -> list[dict[str, Any]]:
+    def predict(self, data: Any, backend: str | None = None, init: str = "estimate",
+                integrator: str | None = None, burn_in_s: float | None = None) -> list[dict[str, Any]]:
         """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
 
-        ``init``: ``"steady"`` (the steady state of the first inputs, thesis §4.5), ``"measured"``
-        (sensor nodes from the first measurements, the rest from the steady state) or ``"auto"``
-        (``measured`` for data that starts mid-file, i.e. ``t[0] > 0``, else ``steady``).
-        Returns one dict per experiment: ``name``, ``t`` (N,) s, ``y`` (N, n_sensors) K predicted,
-        ``measured`` (N, n_sensors) K (NaN where missing), ``states`` (N, n_states) K, ``sensors``,
-        ``state_names``."""
+        ``init``: the initial-state rule (:mod:`tnn_dsl.fit.initial`): ``"estimate"`` (fitted to a burn-in at
+        the start of each file, ``burn_in_s`` seconds or a tenth of the file; a training file continues from its
+        stored fitted state), ``"filter"``, ``"steady"`` or ``"measured"``. Returns one dict per experiment:
+        ``name``, ``t`` (N,) s, ``y`` (N, n_sensors) K predicted, ``measured`` (N, n_sensors) K (NaN where
+        missing), ``states`` (N, n_states) K, ``burn_in`` (samples not scored), ``init`` (the rule applied),
+        ``notes``, ``sensors``, ``state_names``."""
 
         backend = backend or self.backend
         model = self.compiled(backend)
         params = self.backend_params(backend)
         integ = integrator or self.meta.get("config", {}).get("integrator", "rk4")
         substeps = self.meta.get("config", {}).get("substeps")
+        stored = self.stored_initial_states()
         out = []
         for exp in as_experiments(self.network, data):
-            states, y = simulate(model, params, exp, init=init, integrator=integ, substeps=substeps)
+            run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
+                           stored=stored)
             out.append({
-                "name": exp.name, "t": np.asarray(exp.t), "y": y, "measured": np.asarray(exp.outputs, dtype=float),
-                "states": states, "sensors": list(model.output_names), "state_names": list(model.state_names),
+                "name": exp.name, "t": np.asarray(exp.t), "y": run.y, "measured": np.asarray(exp.outputs, dtype=float),
+                "states": run.states, "sensors": list(model.output_names), "state_names": list(model.state_names),
                 "inputs": np.asarray(exp.inputs, dtype=float), "input_names": list(model.input_names),
+                "burn_in": run.burn_in, "init": run.init.rule, "notes": list(run.init.notes),
             })
         return out
 
-    def evaluate(self, data: Any, backend: str | None = None, init: str = "auto") -> dict[str, Any]:
-        """Per-sensor and overall MAE, max absolute error (thesis eq. 4.9), bias (mean of predicted −
-        measured) and RMSE, in kelvin, over the non-missing samples of every experiment."""
+    def stored_initial_states(self) -> dict[str, list[float]]:
+        """``{fingerprint: T0 (n_states,) K}``: the initial states fitted for the training files (state order of
+        the compiled model); a file with the same step and samples continues from its own."""
+        names = [n.name for n in self.network.nodes] + [f"{s.name}.lag" for s in self.network.sensors if s.lag]
+        out = {}
+        for rec in self.meta.get("initial_states") or []:
+            T0 = rec.get("T0") or {}
+            if isinstance(T0, dict) and all(n in T0 for n in names):
+                out[str(rec.get("fingerprint"))] = [float(T0[n]) for n in names]
+        return out
 
-        preds = self.predict(data, backend=backend, init=init)
+    def evaluate(self, data: Any, backend: str | None = None, init: str = "estimate",
+                 burn_in_s: float | None = None) -> dict[str, Any]:
+        """Per-sensor and overall MAE, max absolute error (thesis eq. 4.9), bias (mean of predicted −
+        measured) and RMSE, in kelvin, over the non-missing samples of every experiment after its burn-in."""
+
+        preds = self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s)
         return error_metrics(preds, [s.name for s in self.network.sensors])
 
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:

@@ -39,14 +39,20 @@ from ..compiler import Backend
 from ..core import Diagnostic, TnnError
 from ..ir import Network
 from .config import TrainConfig
+from .initial import check_rule, fingerprint, measured_arrays, sensed_states
 from .model_files import load_model
-from .simulation import _measured_init_arrays, _measured_state, _resolve_init, simulate
+from .simulation import free_run, simulate
 from .transforms import _from_z, _make_slot, _NumpyOps, _sigmoid_to_tanh, _Slot, _tanh_to_sigmoid, _to_z
 from .windows import _Window, _windows, auto_window
 
 
 class _Stop(Exception):
     pass
+
+
+SINGLE_SHOOTING_MAX_STEPS = 8000
+"""``rollout=auto``: files up to this many samples are fitted in one free run from a fitted initial state (single
+shooting); longer ones in windows (multiple shooting)."""
 
 
 def _net_of(network) -> Network:
@@ -190,8 +196,14 @@ class _Trainer:
         bp = nom.from_numpy(npar)
         runs = []
         for e in self.exps:
-            states, y = simulate(nom, bp, e, init=self.cfg.init, integrator=self.cfg.integrator,
-                                 substeps=self.cfg.substeps, params_np=npar)
+            # the nominal run sets normalisations and the windows' first guesses: started as measured (an estimate
+            # of the unsensed states with the nominal model would fit its errors into them), except for single
+            # shooting, whose one initial state per file starts at the burn-in estimate
+            init = check_rule(self.cfg.init)
+            if init in ("estimate", "filter") and not self.plan_rollout()[2]:
+                init = "measured"
+            states, y = simulate(nom, bp, e, init=init, integrator=self.cfg.integrator, substeps=self.cfg.substeps,
+                                 burn_in_s=self.cfg.burn_in)
             if not np.all(np.isfinite(states)):
                 raise TnnError(Diagnostic(
                     f"the nominal model does not simulate on {e.name}: its temperatures become non-finite",
@@ -403,26 +415,53 @@ class _Trainer:
         p = self.params_from_z(np.asarray(z, dtype=float), _NumpyOps)
         return {k: np.asarray(v, dtype=np.float64) for k, v in p.items()}
 
-    def build_batches(self, runs) -> None:
-        """Groups of equal-length rollouts (arrays) and their static description."""
+    def fitted_initial_states(self, z: np.ndarray) -> list[dict[str, Any]]:
+        """The fitted initial state of each training file whose first window starts at its first sample (single
+        shooting, multiple shooting): ``[{"name", "fingerprint", "T0": {state: K}}]``, stored with the model."""
+        if not self.n_x0:
+            return []
+        names = list(self.model.state_names)
+        X0 = self.x0_guess + np.asarray(z[self.n_param_z:], dtype=float).reshape((self.n_x0, len(names)))
+        out = []
+        for w_i, w in enumerate(self.wins):
+            if w.start == 0 and np.all(np.isfinite(X0[w_i])):
+                e = self.exps[w.exp]
+                out.append({"name": e.name, "fingerprint": fingerprint(e),
+                            "T0": {n: float(v) for n, v in zip(names, X0[w_i])}})
+        return out
+
+    def plan_rollout(self) -> tuple[str, float, bool]:
+        """``(mode, window s, single shooting)``: ``rollout=auto`` is one free run per file for files of at most
+        :data:`SINGLE_SHOOTING_MAX_STEPS` samples (or three windows), else multiple shooting; a free run with the
+        ``estimate`` or ``filter`` rule fits each file's initial state with the parameters (single shooting: one
+        window per file with its initial state free, mode ``estimated``)."""
         cfg = self.cfg
         mode = cfg.rollout
         window = auto_window(self.exps) if cfg.window is None else float(cfg.window)
-        self.window = window
         if mode == "auto":
             longest = max(e.n_steps for e in self.exps)
             dt = min(float(e.dt) for e in self.exps)
-            mode = "free" if longest <= 3 * (window / dt + 1) else "estimated"
+            short = longest <= 3 * (window / dt + 1) or longest <= SINGLE_SHOOTING_MAX_STEPS
+            mode = "free" if short else "estimated"
+        if mode == "free" and check_rule(cfg.init) in ("estimate", "filter"):
+            return "estimated", 2.0 * max(e.n_steps * float(e.dt) for e in self.exps), True
+        return mode, window, False
+
+    def build_batches(self, runs) -> None:
+        """Groups of equal-length rollouts (arrays) and their static description."""
+        cfg = self.cfg
+        mode, window, self.single_shooting = self.plan_rollout()
+        self.window = auto_window(self.exps) if cfg.window is None else float(cfg.window)
+        init = check_rule(cfg.init)
         self.mode = mode
         n_states = len(self.model.state_names)
-        mapping = _measured_state(self.model, self.net, self.params0)
+        mapping = sensed_states(self.model, self.net, self.params0)
         self.groups: list[dict[str, Any]] = []
         self.n_x0 = 0
         if mode == "free":
             for e_i, e in enumerate(self.exps):
                 Y = np.asarray(e.outputs, dtype=float)[None]
-                init = _resolve_init(cfg.init, e)
-                mask0, vals0 = _measured_init_arrays(mapping, n_states, Y[:, 0])
+                mask0, vals0 = measured_arrays(mapping, n_states, Y[:, 0])
                 if init != "measured":
                     mask0[:] = False
                 self.groups.append({"dt": float(e.dt), "init": "measured", "windows": [_Window(e_i, 0, e.n_steps)],
@@ -437,8 +476,10 @@ class _Trainer:
             guess = np.zeros((len(wins), n_states))
             for w_i, w in enumerate(wins):
                 guess[w_i] = runs[w.exp][w.start]
+                if self.single_shooting:  # the nominal run started at the burn-in estimate: keep it
+                    continue
                 y0 = np.asarray(self.exps[w.exp].outputs, dtype=float)[w.start]
-                m, v = _measured_init_arrays(mapping, n_states, y0)
+                m, v = measured_arrays(mapping, n_states, y0)
                 guess[w_i] = np.where(m, v, guess[w_i])
             self.x0_guess = guess
             self.n_x0 = len(wins)
@@ -448,7 +489,7 @@ class _Trainer:
                           for i in ids])
             Y = np.stack([np.asarray(self.exps[wins[i].exp].outputs, dtype=float)[wins[i].start:wins[i].start + L]
                           for i in ids])
-            mask0, vals0 = _measured_init_arrays(mapping, n_states, Y[:, 0])
+            mask0, vals0 = measured_arrays(mapping, n_states, Y[:, 0])
             if mode == "steady":
                 mask0[:] = False
             self.groups.append({"dt": dt, "init": "estimated" if mode == "estimated" else "measured",
@@ -539,10 +580,14 @@ class _Trainer:
         bp = self.model.from_numpy(pn)
         abs_sum, n = 0.0, 0
         for e in exps:
-            _, y = simulate(self.model, bp, e, init=self.cfg.init, integrator=self.cfg.integrator,
-                            substeps=self.cfg.substeps, params_np=pn)
-            err = y - np.asarray(e.outputs, dtype=float)
-            m = np.isfinite(np.asarray(e.outputs, dtype=float))
+            try:
+                run = free_run(self.model, bp, e, self.cfg.init, integrator=self.cfg.integrator,
+                               substeps=self.cfg.substeps, burn_in_s=self.cfg.burn_in)
+            except TnnError:  # no steady state or no initial state at these parameters
+                return math.inf
+            y = run.y[run.burn_in:]
+            err = y - np.asarray(e.outputs, dtype=float)[run.burn_in:]
+            m = np.isfinite(np.asarray(e.outputs, dtype=float)[run.burn_in:])
             if not np.all(np.isfinite(y[m])):
                 return math.inf
             abs_sum += float(np.abs(err[m]).sum())

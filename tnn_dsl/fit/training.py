@@ -88,7 +88,8 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     tr.build_batches(runs)
     z = tr.run()
     final = tr.numpy_params(z)
-    trained = TrainedModel(net, final, meta={}, path=None)
+    initial_states = tr.fitted_initial_states(z)
+    trained = TrainedModel(net, final, meta={"initial_states": initial_states}, path=None)
     trained._models[(cfg.backend, cfg.dtype)] = model
     metrics: dict[str, Any] = {}
     metrics["train"] = _metrics_or_nan(trained, exps, cfg)
@@ -110,8 +111,10 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "fitted": fitted,
         "curve": tr.curve,
         "config": cfg.to_dict(),
-        "rollout": tr.mode,
-        "window_s": None if tr.mode == "free" else tr.window,
+        "rollout": "free" if tr.single_shooting else tr.mode,
+        "window_s": None if tr.mode == "free" or tr.single_shooting else tr.window,
+        "init": cfg.init,
+        "initial_states": initial_states,
         "stopped": tr.stopped,
         "warnings": tr.warnings,
         "train_seconds": time.perf_counter() - t_start,
@@ -136,7 +139,7 @@ def _input_paths(network, data, val) -> list:
 
 def _metrics_or_nan(trained, exps, cfg):
     try:
-        return trained.evaluate(exps, backend=cfg.backend, init=cfg.init)
+        return trained.evaluate(exps, backend=cfg.backend, init=cfg.init, burn_in_s=cfg.burn_in)
     except FloatingPointError:
         return {"mae": math.nan}
 
@@ -147,10 +150,10 @@ def _data_desc(exps) -> list[dict[str, Any]]:
 
 
 def evaluate(model: TrainedModel | str | os.PathLike, data: Any, backend: str | None = None,
-             init: str = "auto") -> dict[str, Any]:
+             init: str = "estimate", burn_in_s: float | None = None) -> dict[str, Any]:
     """Errors of a trained model (a :class:`TrainedModel` or a model directory) on data: per-sensor and
-    overall MAE, max error (thesis eq. 4.9), bias and RMSE in K. Free run from the steady state of the
-    first inputs (``init="measured"``: sensor nodes from the first measurement)."""
+    overall MAE, max error (thesis eq. 4.9), bias and RMSE in K, of a free run started by the initial-state
+    rule ``init`` (:mod:`tnn_dsl.fit.initial`; the burn-in it is estimated on is not scored)."""
 
     tm = model if isinstance(model, TrainedModel) else load_model(model)
-    return tm.evaluate(data, backend=backend, init=init)
+    return tm.evaluate(data, backend=backend, init=init, burn_in_s=burn_in_s)

@@ -1,0 +1,320 @@
+"""Initial states: where every free run starts, by one documented rule.
+
+A free run (training with single shooting, validation, ``evaluate``, ``simulate``) needs the state of every node at
+the first sample. Measured data rarely start at rest: a building with a 15 h time constant, a board switched on
+cold. So the state is estimated from the data, never assumed, unless the user asks otherwise:
+
+``estimate`` (the default)
+    The initial state is fitted to the measurements of a *burn-in* at the start of the file: a maximum a
+    posteriori estimate with the parameters fixed (Gauss–Newton on the forward-mode Jacobian of the rollout with
+    respect to the initial state; residuals weighted by each sensor's noise from first differences; a prior
+    around the ``measured`` state, tight for sensed states — their first reading — and weak for the others, so
+    the burn-in decides what it sees and leaves what it cannot see where the network puts it). The burn-in is
+    excluded from every score. In training with single shooting the initial state of each training file is a
+    parameter fitted with the rest, and the trained model stores it, so a training file simulated again
+    continues exactly (no burn-in).
+``filter``
+    An extended Kalman filter runs over the burn-in (:func:`tnn_dsl.estimation.ekf`, from the ``measured``
+    state); the free run starts from the filtered state at the burn-in's last sample.
+``steady``
+    The steady state of the first inputs (thesis §4.5); a warning when a sensor starts more than 1 K away.
+``measured``
+    That steady state with every sensed node (and its lag state) moved so that its sensor reads the first
+    measurement.
+
+The burn-in is ``burn_in`` seconds if given, else :func:`default_burn_in` (a tenth of the file, at least 10
+samples, at most half the file).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..compiler import backend_of
+from ..core import Diagnostic, TnnError
+from ..data import Experiment
+from ..ir import Network
+
+INIT_RULES = ("estimate", "filter", "steady", "measured")
+"""The rules for the initial state of a free run (see the module docstring)."""
+
+FAR_FROM_STEADY_K = 1.0
+"""A sensor this far (K) from its steady-state reading at the first sample makes ``steady`` warn."""
+
+SENSED_PRIOR_K = 0.1
+"""Prior standard deviation (K) of a sensed state's initial value around its first reading (the reading is
+nearly the state: the burn-in may refine it, not replace it)."""
+
+UNSENSED_PRIOR_K = 10.0
+"""Prior standard deviation (K) of an unsensed state's initial value around the ``measured`` state: weak, so the
+burn-in decides what it can see, and what it cannot see stays where the rest of the network puts it."""
+
+MIN_NOISE_K = 0.01
+"""Smallest measurement noise (K) assumed when weighting the burn-in's residuals."""
+
+MAX_GN_ITER = 20
+
+
+@dataclass
+class InitialState:
+    """Where a free run starts.
+
+    ``T`` (n_states,) K is the state at sample ``at`` (0 for every rule but ``filter``); samples before
+    ``burn_in`` are not scored; ``rule`` is the rule applied (``stored`` for a training file's own fitted
+    state); ``notes`` are lines for the user (warnings start with ``warning:``)."""
+
+    T: np.ndarray
+    at: int
+    burn_in: int
+    rule: str
+    notes: list[str] = field(default_factory=list)
+    prefix_outputs: np.ndarray | None = None
+    """``filter``: the filtered outputs (at, n_outputs) K before the free run starts."""
+
+
+def check_rule(init: str) -> str:
+    """``init`` if it is a rule (``auto`` is read as ``estimate``), else a :class:`TnnError`."""
+    if init == "auto":
+        return "estimate"
+    if init not in INIT_RULES:
+        raise TnnError(Diagnostic(f"unknown initial-state rule {init!r}",
+                                  hint=f"use one of: {', '.join(INIT_RULES)}"))
+    return init
+
+
+def default_burn_in(n_samples: int) -> int:
+    """Samples of burn-in at the start of an ``n_samples`` file: a tenth, at least 10, at most half."""
+    return int(min(max(10, round(0.1 * n_samples)), n_samples // 2))
+
+
+def burn_in_samples(exp: Experiment, burn_in_s: float | None) -> int:
+    """The burn-in of ``exp`` in samples: ``burn_in_s`` seconds (rounded, at most half the file), else the
+    default."""
+    n = int(np.asarray(exp.inputs).shape[0])
+    if burn_in_s is None:
+        return default_burn_in(n)
+    if not (math.isfinite(burn_in_s) and burn_in_s >= 0):
+        raise TnnError(Diagnostic(f"burn-in must be a non-negative number of seconds, got {burn_in_s!r}",
+                                  hint="e.g. --burn-in 600"))
+    return int(min(round(burn_in_s / float(exp.dt)), n // 2))
+
+
+def fingerprint(exp: Experiment) -> str:
+    """A hash of an experiment's sample step, inputs and outputs: the key under which a trained model stores the
+    fitted initial state of a training file (found again whatever the file is called)."""
+    h = hashlib.sha256()
+    h.update(np.float64(exp.dt).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(exp.inputs, dtype=np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(exp.outputs, dtype=np.float64)).tobytes())
+    return h.hexdigest()
+
+
+def measured_state(net: Network, model: Any, params: Mapping[str, Any], u0: np.ndarray,
+                   y0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The steady state of ``u0`` (n_inputs,) SI and the ``measured`` state (each sensed node and its lag state
+    moved by the mean gap between the first reading ``y0`` (n_outputs,) K and the steady reading), both
+    (n_states,) K; returns ``(steady, measured)``."""
+    B = backend_of(model)
+    ub = B.asarray(np.asarray(u0, dtype=np.float64))
+    T0 = B.numpy(model.steady_state(params, ub))
+    if not np.all(np.isfinite(T0)):
+        raise TnnError(Diagnostic("the steady state of the first inputs could not be computed (not finite)",
+                                  hint="check the network's parameters; a node with no path to a boundary has no "
+                                       "steady state"))
+    if y0 is None or not np.isfinite(y0).any():
+        return T0, T0.copy()
+    gap = np.asarray(y0, dtype=float) - B.numpy(model.outputs(params, B.asarray(T0), ub))
+    idx = {n: i for i, n in enumerate(model.state_names)}
+    shifts: dict[int, list[float]] = {}
+    for k, s in enumerate(net.sensors):
+        if np.isfinite(gap[k]):
+            for name in (s.node, f"{s.name}.lag"):
+                if name in idx:
+                    shifts.setdefault(idx[name], []).append(float(gap[k]))
+    T = T0.copy()
+    for i, g in shifts.items():
+        T[i] += float(np.mean(g))
+    return T0, T
+
+
+def sensed_states(model: Any, net: Network, params_np: Mapping[str, np.ndarray] | None) -> list[tuple[int, int, float]]:
+    """``[(state index, output index, offset K)]``: the states a first measurement sets directly (a sensor's node
+    and its lag state, less the sensor's offset), for batched windows (:func:`measured_arrays`)."""
+    names = list(model.state_names)
+    out = []
+    seen = set()
+    for j, s in enumerate(net.sensors):
+        off = 0.0
+        if s.offset and params_np is not None and s.offset in params_np:
+            off = float(np.asarray(params_np[s.offset]).reshape(()))
+        for t in [s.node] + ([f"{s.name}.lag"] if s.lag else []):
+            if t in names and t not in seen:
+                seen.add(t)
+                out.append((names.index(t), j, off))
+    return out
+
+
+def measured_arrays(mapping: list[tuple[int, int, float]], n_states: int,
+                    y0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``mask (..., n_states) bool`` and ``values (..., n_states)`` K from first readings ``y0 (..., n_out)``: the
+    states :func:`sensed_states` sets (NaN readings leave them to the steady state)."""
+    y0 = np.asarray(y0, dtype=float)
+    mask = np.zeros(y0.shape[:-1] + (n_states,), dtype=bool)
+    vals = np.zeros(y0.shape[:-1] + (n_states,), dtype=float)
+    for i, j, off in mapping:
+        ok = np.isfinite(y0[..., j])
+        mask[..., i] = ok
+        vals[..., i] = np.where(ok, y0[..., j] - off, 0.0)
+    return mask, vals
+
+
+def _steady_warning(model: Any, params: Mapping[str, Any], T0: np.ndarray, u0: np.ndarray,
+                    y0: np.ndarray | None) -> list[str]:
+    if y0 is None:
+        return []
+    B = backend_of(model)
+    gap = np.asarray(y0, dtype=float) - B.numpy(model.outputs(params, B.asarray(T0), B.asarray(u0)))
+    if not np.isfinite(gap).any() or np.nanmax(np.abs(gap)) <= FAR_FROM_STEADY_K:
+        return []
+    k = int(np.nanargmax(np.abs(gap)))
+    return [f"warning: the data do not start at rest: at the steady state of the first inputs "
+            f"{model.output_names[k]} would read {abs(gap[k]):.2f} K {'below' if gap[k] > 0 else 'above'} its first "
+            f"measurement; use --init estimate (the default) or --init measured"]
+
+
+class _BurnInFit:
+    """Least squares of the outputs over a burn-in with respect to the initial state (params fixed); the
+    rollout and its Jacobian are compiled once per model, integrator, step and burn-in length."""
+
+    _cache: dict[tuple, tuple[Any, Any, Any]] = {}
+
+    def __init__(self, model: Any, dt: float, n: int, integrator: str, substeps: int | None):
+        key = (id(model), repr(float(dt)), int(n), integrator, substeps)
+        hit = self._cache.get(key)
+        if hit is not None and hit[0] is model:
+            self.fy, self.fJ = hit[1], hit[2]
+            return
+        B = backend_of(model)
+
+        def outputs(params, U, T0):
+            return model.rollout(params, T0, U, float(dt), integrator=integrator, substeps=substeps)[1]
+
+        if B.name == "jax":
+            jax = B.jax
+            self.fy = jax.jit(outputs)
+            self.fJ = jax.jit(lambda p, U, T0: jax.jacfwd(lambda T: outputs(p, U, T))(T0))
+        else:
+            self.fy = B.no_grad(outputs)
+            self.fJ = lambda p, U, T0: B.asarray(B.jacobian(lambda T: outputs(p, U, T), B.numpy(T0)))
+        if len(self._cache) > 64:
+            self._cache.clear()
+        self._cache[key] = (model, self.fy, self.fJ)
+
+    def solve(self, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, prior: np.ndarray,
+              prior_std: np.ndarray) -> tuple[np.ndarray, float]:
+        """The initial state (n_states,) K minimising ``Σ ((ŷ − y)/σ_y)² + Σ ((T0 − prior)/prior_std)²`` over the
+        burn-in (``U`` (n, n_in), ``Y`` (n, n_out) K with NaN where missing; ``σ_y`` per sensor from the
+        readings' first differences); returns it and the burn-in's RMS error (K)."""
+        B = backend_of(model)
+        Ub = B.asarray(np.asarray(U, dtype=np.float64))
+        mask = np.isfinite(Y)
+        sig = _noise_std(Y)  # (n_out,)
+        W = np.broadcast_to(1.0 / sig, Y.shape)[mask]
+        x = np.asarray(prior, dtype=np.float64).copy()
+        P = 1.0 / np.asarray(prior_std, dtype=np.float64)
+        rms = math.inf
+        for _ in range(MAX_GN_ITER):
+            y = B.numpy(self.fy(params, Ub, B.asarray(x)))
+            if not np.all(np.isfinite(y[mask])):
+                break
+            J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
+            r = (y - Y)[mask]
+            rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+            A = np.vstack([J[mask] * W[:, None], np.diag(P)])
+            b = np.concatenate([-r * W, -P * (x - prior)])
+            dx = np.linalg.lstsq(A, b, rcond=None)[0]
+            step = float(np.max(np.abs(dx))) if dx.size else 0.0
+            if step > 50.0:  # a trust region for strongly nonlinear networks (K)
+                dx *= 50.0 / step
+            x = x + dx
+            if step < 1e-7:
+                break
+        return x, rms
+
+
+def _noise_std(Y: np.ndarray) -> np.ndarray:
+    """Measurement noise (K) per sensor from first differences of its readings (``std(Δy)/√2``; at least
+    :data:`MIN_NOISE_K`)."""
+    out = np.full(Y.shape[1], MIN_NOISE_K)
+    for j in range(Y.shape[1]):
+        d = np.diff(Y[:, j])
+        d = d[np.isfinite(d)]
+        if d.size >= 2:
+            out[j] = max(float(np.std(d)) / math.sqrt(2.0), MIN_NOISE_K)
+    return out
+
+
+def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Experiment, rule: str = "estimate",
+                  *, burn_in_s: float | None = None, integrator: str = "rk4", substeps: int | None = None,
+                  stored: Mapping[str, Sequence[float]] | None = None) -> InitialState:
+    """The initial state of a free run of ``model`` (backend ``params``) over ``exp`` by ``rule`` (see the
+    module docstring). ``stored``: ``{fingerprint: T0 (n_states,) K}`` of a trained model's training files;
+    a match is used as it is (no burn-in)."""
+    rule = check_rule(rule)
+    U = np.asarray(exp.inputs, dtype=np.float64)
+    Y = np.asarray(exp.outputs, dtype=np.float64)
+    y0 = Y[0] if np.isfinite(Y[0]).any() else None
+    if stored:
+        hit = stored.get(fingerprint(exp))
+        if hit is not None and len(hit) == len(model.state_names):
+            return InitialState(np.asarray(hit, dtype=np.float64), 0, 0, "stored",
+                                ["note: initial state: as fitted when this file was trained on"])
+    steady, measured = measured_state(net, model, params, U[0], y0)
+    if rule == "steady":
+        return InitialState(steady, 0, 0, rule, _steady_warning(model, params, steady, U[0], y0))
+    if rule == "measured":
+        return InitialState(measured, 0, 0, rule)
+    b = burn_in_samples(exp, burn_in_s)
+    if b < 2 or not np.isfinite(Y[:b]).any():
+        if y0 is None:
+            return InitialState(steady, 0, 0, "steady",
+                                ["note: no sensor reading at the start; initial state: the steady state of the first "
+                                 "inputs"])
+        return InitialState(measured, 0, 0, "measured",
+                            ["note: the file is too short for a burn-in; initial state: the steady state with the "
+                             "sensed nodes at their first readings"])
+    span = f"{b} samples ({b * float(exp.dt):g} s)"
+    if rule == "filter":
+        return _filtered(model, params, exp, b, measured, integrator, span)
+    fit = _BurnInFit(model, float(exp.dt), b, integrator, substeps)
+    sensed = np.zeros(len(model.state_names), dtype=bool)
+    for i, j, _ in sensed_states(model, net, None):
+        sensed[i] = bool(np.isfinite(Y[0, j]))
+    prior_std = np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K)
+    T0, rms = fit.solve(model, params, U[:b], Y[:b], measured, prior_std)
+    if not np.all(np.isfinite(T0)):
+        raise TnnError(Diagnostic("the initial state could not be estimated from the burn-in (not finite)",
+                                  hint="try --init measured, or a longer --burn-in"))
+    return InitialState(T0, 0, b, "estimate",
+                        [f"note: initial state estimated from the first {span}, not scored (RMS there {rms:.3g} K)"])
+
+
+def _filtered(model: Any, params: Mapping[str, Any], exp: Experiment, b: int, x0: np.ndarray, integrator: str,
+              span: str) -> InitialState:
+    from ..estimation import ekf
+
+    res = ekf(model, params, np.asarray(exp.inputs)[:b], np.asarray(exp.outputs)[:b], float(exp.dt), x0=x0,
+              integrator=integrator)
+    T = np.asarray(res.states[b - 1], dtype=np.float64)
+    return InitialState(T, b - 1, b, "filter",
+                        [f"note: initial state filtered (EKF) over the first {span}, not scored"],
+                        prefix_outputs=np.asarray(res.outputs[: b - 1], dtype=np.float64))
+
+
+__all__ = ["INIT_RULES", "InitialState", "initial_state", "check_rule", "default_burn_in", "burn_in_samples",
+           "fingerprint", "measured_state", "sensed_states", "measured_arrays"]
