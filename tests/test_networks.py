@@ -102,7 +102,7 @@ def test_tclab_lag_adds_lags_and_radiation():
     assert em.free and em.expr.value == pytest.approx(0.9)
     for s in net.sensors:
         lag = net.param(s.lag)
-        assert lag.free and lag.expr.value == 20.0 and (lag.lower, lag.upper) == (1.0, 120.0)
+        assert lag.free and lag.expr.value == 20.0 and (lag.lower, lag.upper) == (1.0, 600.0)
 
 
 @pytest.mark.parametrize("rel,data", [

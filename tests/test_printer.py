@@ -65,6 +65,8 @@ input Tx : [degC]
 input Tin : temperature
 param k = 2 free
 param e = 0.5 free in [0.1, 0.9]  "dimensionless, bounded"
+param Tday = 20 degC free in [10 degC, 30 degC] per experiment  "ambient of each data file"
+param Pday = 0 W free per experiment
 param neg = -5 degC
 param minus = -(5 degC)
 param d = 2 - (3 - u) - -u / (4 * u) * 2^-1 + (-2)^2 - (2 m)^2 / 1 m^2 + exp(-u)^(1 + u)^2
@@ -93,6 +95,8 @@ source 3 = 2 W
 sensor s1 "first" = x  lag 20 s  offset 0.5 K free in [-1 K, 1 K]  column "S 1"
 sensor s2 = 3  offset 0 K
 sensor s3 = T3
+sensor s4 = x  offset 0 K free per experiment  lag 5 s free in [1 s, 9 s] per experiment
+G x -- 9 = 1 W/K  as Gday  per experiment free
 learn R_3_amb as linear(T(3), T(T3), u, k)
 learn Q[x] as table(Tx; knots = [0 degC, 50 degC])
 learn Q[3] as table(T(3); knots = [280, 300])
@@ -162,8 +166,12 @@ def test_corners_round_trip():
     assert isinstance(minus, Unary) and minus.arg.value == pytest.approx(278.15)  # `-(5 degC)`, negated
     for line in ("param neg = -5 degC", "param minus = -(5 degC)", "node x \"x node\"  C = 2.9 kWh/K",
                  "R 3 -- amb = 2 K/W\n", "R 3 -- amb = 3 K/W\n", "as R_3_amb_2b", "boundary 9 = 300 K",
-                 "learn Q[T3], R_3_amb_2 as poly("):
+                 "learn Q[T3], R_3_amb_2 as poly(",
+                 'param Tday = 20 degC  free in [10 degC, 30 degC] per experiment  "ambient of each data file"',
+                 "param Pday = 0 W  free per experiment\n", "offset 0 K  free per experiment",
+                 "lag 5 s  free in [1 s, 9 s] per experiment", "G x -- 9 = 1 W/K  free per experiment  as Gday"):
         assert line in text
+    assert {p.name for p in back.params if p.per_experiment} == {"Tday", "Pday", "s4.lag", "s4.offset", "Gday"}
     # `T3` in a learn argument list is the node called T3 where there is one; node 3 is then `T(3)`
     assert "learn R_3_amb as linear(T(3), T3, u, k)" in text
 
@@ -256,8 +264,9 @@ _BASES = {os.path.basename(p): tnn_dsl.load(p) for p in NETWORKS}
 @st.composite
 def edited_network(draw):
     """A network of networks/ with some constants changed: new values (as decimals in their unit), ``free``
-    flipped, bounds set or removed."""
+    flipped, bounds set or removed, ``per experiment`` flipped on free constants that nothing learns."""
     net = _BASES[draw(st.sampled_from(sorted(_BASES)))]
+    learned = net.learned_targets()
     params = []
     for p in net.params:
         if isinstance(p.expr, Num) and draw(st.booleans()):
@@ -269,8 +278,9 @@ def edited_network(draw):
             if free and draw(st.booleans()):
                 lo, hi = x - draw(st.floats(0.0, 0.99)) * abs(x), x + draw(st.floats(0.0, 10.0)) * abs(x) + 1e-3
                 lower, upper = parse_quantity(lo, unit)[0], parse_quantity(hi, unit)[0]
+            per = free and p.name not in learned and draw(st.booleans())
             p = p.model_copy(update={"expr": p.expr.model_copy(update={"value": value}), "free": free,
-                                     "lower": lower, "upper": upper})
+                                     "lower": lower, "upper": upper, "per_experiment": per})
         params.append(p)
     edited = net.model_copy(update={"params": params})
     try:

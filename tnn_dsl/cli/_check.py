@@ -1,8 +1,8 @@
 """``tnnc check FILE...``: parse and validate each file, print a short summary of each network.
 
 Exit status 0 when every file is valid, 1 when any has problems (all of them are printed, file by
-file). The summary lists nodes, boundaries, links, components, inputs, sensors, free parameters and
-learned functions with their number of trainable weights.
+file). The summary lists nodes, boundaries, links, components, inputs, sensors, free parameters (and how
+many of them are per experiment) and learned functions with their number of trainable weights.
 """
 
 from __future__ import annotations
@@ -56,8 +56,12 @@ def summary(net: Network, path: str) -> str:
         f"  sources     {len(net.sources):3d}  {_names(s.name for s in net.sources)}",
         f"  inputs      {len(net.inputs):3d}  {_names(i.name for i in net.inputs)}",
         f"  sensors     {len(net.sensors):3d}  {_names(s.name + (' (lag)' if s.lag else '') for s in net.sensors)}",
-        f"  free params {len(net.free_params):3d}  {_names(p.name for p in net.free_params)}",
+        f"  free params {len(net.free_params):3d}  "
+        + _names(p.name + (" (per experiment)" if p.per_experiment else "") for p in net.free_params),
     ]
+    per = [p.name for p in net.free_params if p.per_experiment]
+    if per:
+        lines.append(f"    of which {len(per)} per experiment (one value per data file)")
     total = 0
     for fn in net.learned:
         n = learned_weight_count(fn)

@@ -59,19 +59,19 @@ def register(subparsers) -> None:
 
 
 def _load(net_arg: str, backend: str, seed: int):
-    """→ (network, compiled model, backend params, label, stored initial states of a model's training files)."""
+    """→ (network, compiled model, backend params, label, what a trained model knows for a free run)."""
     if os.path.isdir(net_arg):
         from ..fit import load_model
 
         tm = load_model(net_arg)
         model = tm.compiled(backend)
-        return tm.network, model, tm.backend_params(backend), f"model {net_arg}", tm.stored_initial_states()
+        return tm.network, model, tm.backend_params(backend), f"model {net_arg}", tm.free_run_context()
     from ..compiler import compile as compile_network
     from ..lang import load
 
     net = load(net_arg)
     model = compile_network(net, backend=backend, dtype="float64")
-    return net, model, model.init_params(seed=seed), net_arg, None
+    return net, model, model.init_params(seed=seed), net_arg, {}
 
 
 def run(args) -> int:
@@ -81,7 +81,7 @@ def run(args) -> int:
     if args.substeps is not None and args.substeps < 1:
         raise TnnError(Diagnostic(f"--substeps must be ≥ 1, got {args.substeps}"))
     check_outputs(args, [(args.output, CSV, "-o"), (args.plot, IMAGE, "--plot")], inputs=[args.net, args.data])
-    net, model, params, label, stored = _load(args.net, args.backend, args.seed)
+    net, model, params, label, known = _load(args.net, args.backend, args.seed)
     if args.torch_compile:
         if args.backend != "torch":
             raise TnnError(Diagnostic("--torch-compile applies to the torch backend only",
@@ -92,7 +92,7 @@ def run(args) -> int:
     for n in exp.notes:
         print(f"note: {n}", file=sys.stderr)
     run = free_run(model, params, exp, args.init, integrator=args.integrator, substeps=args.substeps,
-                   burn_in_s=args.burn_in, stored=stored)
+                   burn_in_s=args.burn_in, **known)
     states, y = run.states, run.y
     for n in run.init.notes:
         print(n, file=sys.stderr)

@@ -205,7 +205,14 @@ def run(args) -> int:
     va = m.get("validation")
     if not args.quiet or stopped == "diverged":
         win = meta.get("window_s")
-        how = f"rollout {meta.get('rollout')}" + (f" in windows of {_dur(win)}" if win else "")
+        single = "single shooting: one free run per file from a fitted initial state"
+        if meta.get("single_shooting") and not win:
+            how = single
+        elif meta.get("rollout") == "estimated":
+            how = f"multiple shooting in windows of {_dur(win)}" + (f", then {single}" if meta.get("single_shooting")
+                                                                      else "")
+        else:
+            how = f"rollout {meta.get('rollout')}" + (f" in windows of {_dur(win)}" if win else "")
         print(f"model written to {args.output}  ({meta.get('backend')}, {how}, "
               f"{_dur(meta.get('train_seconds', 0.0))}, stopped: {stopped})", file=sys.stderr)
         print(f"  train      MAE {tr.get('mae', math.nan):.4g} K  max {tr.get('max_error', math.nan):.4g} K",

@@ -75,6 +75,9 @@ class InitialState:
     notes: list[str] = field(default_factory=list)
     prefix_outputs: np.ndarray | None = None
     """``filter``: the filtered outputs (at, n_outputs) K before the free run starts."""
+    params: dict[str, float] = field(default_factory=dict)
+    """The values (SI) of the network's per-experiment parameters for this file: estimated with the state
+    (``estimate``), stored (a training file) or the training files' mean (the other rules)."""
 
 
 def check_rule(init: str) -> str:
@@ -193,16 +196,22 @@ class _BurnInFit:
 
     _cache: dict[tuple, tuple[Any, Any, Any]] = {}
 
-    def __init__(self, model: Any, dt: float, n: int, integrator: str, substeps: int | None):
-        key = (id(model), repr(float(dt)), int(n), integrator, substeps)
+    def __init__(self, model: Any, dt: float, n: int, integrator: str, substeps: int | None,
+                 pe_names: tuple[str, ...] = ()):
+        key = (id(model), repr(float(dt)), int(n), integrator, substeps, pe_names)
         hit = self._cache.get(key)
         if hit is not None and hit[0] is model:
             self.fy, self.fJ = hit[1], hit[2]
             return
         B = backend_of(model)
 
-        def outputs(params, U, T0):
-            return model.rollout(params, T0, U, float(dt), integrator=integrator, substeps=substeps)[1]
+        ns = len(model.state_names)
+
+        def outputs(params, U, x):  # x = [T0 (n_states) K, the per-experiment parameters (SI)]
+            p = dict(params)
+            for i, k in enumerate(pe_names):
+                p[k] = x[ns + i] + 0.0 * params[k]
+            return model.rollout(p, x[:ns], U, float(dt), integrator=integrator, substeps=substeps)[1]
 
         if B.name == "jax":
             jax = B.jax
@@ -217,9 +226,10 @@ class _BurnInFit:
 
     def solve(self, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, prior: np.ndarray,
               prior_std: np.ndarray) -> tuple[np.ndarray, float]:
-        """The initial state (n_states,) K minimising ``Σ ((ŷ − y)/σ_y)² + Σ ((T0 − prior)/prior_std)²`` over the
-        burn-in (``U`` (n, n_in), ``Y`` (n, n_out) K with NaN where missing; ``σ_y`` per sensor from the
-        readings' first differences); returns it and the burn-in's RMS error (K)."""
+        """The unknowns ``x`` (the initial state (n_states,) K, then the per-experiment parameters, SI) minimising
+        ``Σ ((ŷ − y)/σ_y)² + Σ ((x − prior)/prior_std)²`` over the burn-in (``U`` (n, n_in), ``Y`` (n, n_out) K
+        with NaN where missing; ``σ_y`` per sensor from the readings' first differences); returns ``x`` and the
+        burn-in's RMS error (K)."""
         B = backend_of(model)
         Ub = B.asarray(np.asarray(U, dtype=np.float64))
         mask = np.isfinite(Y)
@@ -261,47 +271,85 @@ def _noise_std(Y: np.ndarray) -> np.ndarray:
 
 def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Experiment, rule: str = "estimate",
                   *, burn_in_s: float | None = None, integrator: str = "rk4", substeps: int | None = None,
-                  stored: Mapping[str, Sequence[float]] | None = None) -> InitialState:
+                  stored: Mapping[str, Sequence[float]] | None = None,
+                  per_experiment: Mapping[str, float] | None = None,
+                  stored_params: Mapping[str, Mapping[str, float]] | None = None) -> InitialState:
     """The initial state of a free run of ``model`` (backend ``params``) over ``exp`` by ``rule`` (see the
     module docstring). ``stored``: ``{fingerprint: T0 (n_states,) K}`` of a trained model's training files;
-    a match is used as it is (no burn-in)."""
+    with ``estimate`` a match is used as it is (no burn-in). ``per_experiment``: ``{name: value SI}`` of the network's
+    per-experiment parameters (the training files' mean): ``estimate`` fits them with the state, the other
+    rules use these values; ``stored_params``: ``{fingerprint: {name: value}}`` of the training files."""
     rule = check_rule(rule)
     U = np.asarray(exp.inputs, dtype=np.float64)
     Y = np.asarray(exp.outputs, dtype=np.float64)
     y0 = Y[0] if np.isfinite(Y[0]).any() else None
-    if stored:
-        hit = stored.get(fingerprint(exp))
+    pe = {k: float(v) for k, v in (per_experiment or {}).items()}
+    b = burn_in_samples(exp, burn_in_s)  # checked whatever the rule
+    if stored and rule == "estimate":  # an explicit other rule is applied as asked, also to a training file
+        fp = fingerprint(exp)
+        hit = stored.get(fp)
         if hit is not None and len(hit) == len(model.state_names):
             return InitialState(np.asarray(hit, dtype=np.float64), 0, 0, "stored",
-                                ["note: initial state: as fitted when this file was trained on"])
+                                ["note: initial state: as fitted when this file was trained on"],
+                                params={**pe, **dict((stored_params or {}).get(fp, {}))})
+    if pe:
+        params = with_values(model, params, pe)
     steady, measured = measured_state(net, model, params, U[0], y0)
     if rule == "steady":
-        return InitialState(steady, 0, 0, rule, _steady_warning(model, params, steady, U[0], y0))
+        return InitialState(steady, 0, 0, rule, _steady_warning(model, params, steady, U[0], y0), params=pe)
     if rule == "measured":
-        return InitialState(measured, 0, 0, rule)
-    b = burn_in_samples(exp, burn_in_s)
+        return InitialState(measured, 0, 0, rule, params=pe)
     if b < 2 or not np.isfinite(Y[:b]).any():
         if y0 is None:
             return InitialState(steady, 0, 0, "steady",
                                 ["note: no sensor reading at the start; initial state: the steady state of the first "
-                                 "inputs"])
+                                 "inputs"], params=pe)
         return InitialState(measured, 0, 0, "measured",
                             ["note: the file is too short for a burn-in; initial state: the steady state with the "
-                             "sensed nodes at their first readings"])
+                             "sensed nodes at their first readings"], params=pe)
     span = f"{b} samples ({b * float(exp.dt):g} s)"
     if rule == "filter":
-        return _filtered(model, params, exp, b, measured, integrator, span)
-    fit = _BurnInFit(model, float(exp.dt), b, integrator, substeps)
+        ini = _filtered(model, params, exp, b, measured, integrator, span)
+        ini.params = pe
+        return ini
+    names = tuple(pe)
+    fit = _BurnInFit(model, float(exp.dt), b, integrator, substeps, names)
     sensed = np.zeros(len(model.state_names), dtype=bool)
     for i, j, _ in sensed_states(model, net, None):
         sensed[i] = bool(np.isfinite(Y[0, j]))
-    prior_std = np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K)
-    T0, rms = fit.solve(model, params, U[:b], Y[:b], measured, prior_std)
-    if not np.all(np.isfinite(T0)):
+    prior = np.concatenate([measured, [pe[k] for k in names]])
+    prior_std = np.concatenate([np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K),
+                                [_param_prior_std(net, k, pe[k]) for k in names]])
+    x, rms = fit.solve(model, params, U[:b], Y[:b], prior, prior_std)
+    if not np.all(np.isfinite(x)):
         raise TnnError(Diagnostic("the initial state could not be estimated from the burn-in (not finite)",
                                   hint="try --init measured, or a longer --burn-in"))
-    return InitialState(T0, 0, b, "estimate",
-                        [f"note: initial state estimated from the first {span}, not scored (RMS there {rms:.3g} K)"])
+    ns = len(model.state_names)
+    values = {k: float(x[ns + i]) for i, k in enumerate(names)}
+    also = f" with {', '.join(names)}" if names else ""
+    return InitialState(x[:ns], 0, b, "estimate",
+                        [f"note: initial state{also} estimated from the first {span}, not scored (RMS there "
+                         f"{rms:.3g} K)"], params=values)
+
+
+def _param_prior_std(net: Network, name: str, value: float) -> float:
+    """Prior standard deviation (SI) of a per-experiment parameter around the training files' mean: a quarter of
+    its bounds where it has both, :data:`UNSENSED_PRIOR_K` for a temperature or an offset, else its magnitude."""
+    p = net.param(name)
+    if p.lower is not None and p.upper is not None and p.upper > p.lower:
+        return 0.25 * (p.upper - p.lower)
+    if p.role in ("temperature", "offset"):
+        return UNSENSED_PRIOR_K
+    return max(abs(value), 1e-12)
+
+
+def with_values(model: Any, params: Mapping[str, Any], values: Mapping[str, float]) -> dict[str, Any]:
+    """``params`` (backend arrays) with the scalar ``values`` (SI) put in, each in its parameter's shape."""
+    B = backend_of(model)
+    out = dict(params)
+    for k, v in values.items():
+        out[k] = B.asarray(np.full(np.shape(B.numpy(params[k])), float(v)))
+    return out
 
 
 def _filtered(model: Any, params: Mapping[str, Any], exp: Experiment, b: int, x0: np.ndarray, integrator: str,
@@ -317,4 +365,4 @@ def _filtered(model: Any, params: Mapping[str, Any], exp: Experiment, b: int, x0
 
 
 __all__ = ["INIT_RULES", "InitialState", "initial_state", "check_rule", "default_burn_in", "burn_in_samples",
-           "fingerprint", "measured_state", "sensed_states", "measured_arrays"]
+           "fingerprint", "measured_state", "sensed_states", "measured_arrays", "with_values"]

@@ -452,18 +452,29 @@ class TrainedModel:
         params = self.backend_params(backend)
         integ = integrator or self.meta.get("config", {}).get("integrator", "rk4")
         substeps = self.meta.get("config", {}).get("substeps")
-        stored = self.stored_initial_states()
+        known = self.free_run_context()
         out = []
         for exp in as_experiments(self.network, data):
             run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
-                           stored=stored)
+                           **known)
             out.append({
                 "name": exp.name, "t": np.asarray(exp.t), "y": run.y, "measured": np.asarray(exp.outputs, dtype=float),
                 "states": run.states, "sensors": list(model.output_names), "state_names": list(model.state_names),
                 "inputs": np.asarray(exp.inputs, dtype=float), "input_names": list(model.input_names),
                 "burn_in": run.burn_in, "init": run.init.rule, "notes": list(run.init.notes),
+                "experiment_params": dict(run.init.params),
             })
         return out
+
+    def free_run_context(self) -> dict[str, Any]:
+        """What this model knows for a free run (keyword arguments of :func:`~tnn_dsl.fit.simulation.free_run`):
+        the fitted initial states of its training files (``stored``), the mean of each per-experiment parameter
+        (``per_experiment``) and each training file's values (``stored_params``)."""
+        stored_params = {str(r.get("fingerprint")): dict(r.get("values") or {})
+                         for r in self.meta.get("per_experiment") or []}
+        means = {p.name: float(np.asarray(self.params[p.name]).reshape(-1)[0]) for p in self.network.params
+                 if getattr(p, "per_experiment", False) and p.name in self.params}
+        return {"stored": self.stored_initial_states(), "per_experiment": means, "stored_params": stored_params}
 
     def stored_initial_states(self) -> dict[str, list[float]]:
         """``{fingerprint: T0 (n_states,) K}``: the initial states fitted for the training files (state order of

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..compiler import backend_of
 from ..data import Experiment, as_experiments
-from .initial import InitialState, initial_state
+from .initial import InitialState, initial_state, with_values
 
 __all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments"]
 
@@ -57,14 +57,18 @@ def _sim_fn(model, integrator: str, dt: float, substeps):
 
 def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str = "estimate", *,
              integrator: str = "rk4", substeps: int | None = None, burn_in_s: float | None = None,
-             stored: Mapping[str, Any] | None = None) -> FreeRun:
+             stored: Mapping[str, Any] | None = None, per_experiment: Mapping[str, float] | None = None,
+             stored_params: Mapping[str, Mapping[str, float]] | None = None) -> FreeRun:
     """Free run of ``model`` (backend ``params``) over experiment ``exp``, started by the initial-state rule
     ``init`` (``estimate``, ``filter``, ``steady``, ``measured``: :mod:`tnn_dsl.fit.initial`); ``burn_in_s``
     overrides the default burn-in; ``stored`` holds a trained model's fitted initial states of its training
-    files."""
+    files, ``per_experiment`` the mean values of its per-experiment parameters and ``stored_params`` their
+    values per training file (see :func:`~tnn_dsl.fit.initial.initial_state`)."""
     ops = backend_of(model)
     ini = initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s, integrator=integrator,
-                        substeps=substeps, stored=stored)
+                        substeps=substeps, stored=stored, per_experiment=per_experiment, stored_params=stored_params)
+    if ini.params:
+        params = with_values(model, params, ini.params)
     fn = _sim_fn(model, integrator, float(exp.dt), substeps)
     U = np.asarray(exp.inputs, dtype=float)
     states, y = fn(params, ops.asarray(U[ini.at:]), ops.asarray(ini.T))

@@ -26,6 +26,7 @@ shooting). ``auto`` picks ``free`` for short experiments and ``estimated`` for l
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -39,7 +40,7 @@ from ..compiler import Backend
 from ..core import Diagnostic, TnnError
 from ..ir import Network
 from .config import TrainConfig
-from .initial import check_rule, fingerprint, measured_arrays, sensed_states
+from .initial import check_rule, fingerprint, initial_state, measured_arrays, sensed_states
 from .model_files import load_model
 from .simulation import free_run, simulate
 from .transforms import _from_z, _make_slot, _NumpyOps, _sigmoid_to_tanh, _Slot, _tanh_to_sigmoid, _to_z
@@ -51,8 +52,9 @@ class _Stop(Exception):
 
 
 SINGLE_SHOOTING_MAX_STEPS = 8000
-"""``rollout=auto``: files up to this many samples are fitted in one free run from a fitted initial state (single
-shooting); longer ones in windows (multiple shooting)."""
+"""``rollout=auto`` with the ``estimate`` rule: after multiple shooting, files of at most this many samples are
+fitted once more as one free run each from a fitted initial state (single shooting, an L-BFGS polish from the
+windowed solution): the free run the model is judged by, without the windows' seams."""
 
 
 def _net_of(network) -> Network:
@@ -355,7 +357,10 @@ class _Trainer:
                                       hint=f"did you mean {close[0]!r}?" if close else
                                       f"trainable names: {', '.join(k for k, s in specs.items() if s.trainable)}"))
         roles = {p.name: p.role for p in self.net.params}
+        per_exp = {p.name for p in self.net.params if getattr(p, "per_experiment", False)}
+        n_exp = len(self.exps)
         self.slots: list[_Slot] = []
+        self.pe_names: list[str] = []
         start = 0
         for k, s in specs.items():
             if not s.trainable or k in freeze:
@@ -366,6 +371,12 @@ class _Trainer:
             sl = _make_slot(k, s, params[k], start, roles.get(k))
             self.slots.append(sl)
             start += sl.size
+            if k in per_exp and n_exp > 1:  # one value per training file: experiment 0 in the slot named k
+                self.pe_names.append(k)
+                for i in range(1, n_exp):
+                    self.slots.append(dataclasses.replace(sl, name=f"{k}@{i}", start=start))
+                    params[f"{k}@{i}"] = np.asarray(params[k], dtype=np.float64).copy()
+                    start += sl.size
         self.n_param_z = start
         if start == 0:
             raise TnnError(Diagnostic(
@@ -378,13 +389,13 @@ class _Trainer:
         g = cfg.gamma
         self.reg = []
         for sl in self.slots:
-            if specs[sl.name].kind != "physical":
+            if specs[sl.name.split("@")[0]].kind != "physical":
                 continue
             w = g.get(sl.name, 0.0) if isinstance(g, dict) else float(g)
             if w > 0:
                 ref = self.params0[sl.name]
                 self.reg.append((sl, float(w), ref, np.maximum(np.abs(ref), 1e-12)))
-        self.weight_slots = [sl for sl in self.slots if specs[sl.name].kind == "weights"]
+        self.weight_slots = [sl for sl in self.slots if specs[sl.name.split("@")[0]].kind == "weights"]
         # sigmoid MLPs whose every weight is trained move in tanh coordinates (cfg.centre_sigmoid)
         trained = {sl.name for sl in self.slots}
         self.tanh_coords: list[tuple[str, int]] = []
@@ -412,8 +423,34 @@ class _Trainer:
         return np.concatenate([_to_z(sl, p[sl.name]) for sl in self.slots])
 
     def numpy_params(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        """The model's parameters (numpy) at ``z``; a per-experiment parameter holds the mean of its training files'
+        values (the starting value for a new file; :meth:`experiment_values` has each file's)."""
         p = self.params_from_z(np.asarray(z, dtype=float), _NumpyOps)
-        return {k: np.asarray(v, dtype=np.float64) for k, v in p.items()}
+        out = {k: np.asarray(v, dtype=np.float64) for k, v in p.items() if "@" not in k}
+        for k in self.pe_names:
+            out[k] = np.mean([np.asarray(p[k])] + [np.asarray(p[f"{k}@{i}"]) for i in range(1, len(self.exps))],
+                             axis=0)
+        return out
+
+    def experiment_values(self, z: np.ndarray) -> list[dict[str, Any]]:
+        """Each training file's per-experiment parameter values (SI): ``[{"name", "fingerprint", "values"}]``."""
+        if not self.pe_names:
+            return []
+        p = self.params_from_z(np.asarray(z, dtype=float), _NumpyOps)
+        out = []
+        for i, e in enumerate(self.exps):
+            vals = {k: float(np.asarray(p[k if i == 0 else f"{k}@{i}"]).reshape(-1)[0]) for k in self.pe_names}
+            out.append({"name": e.name, "fingerprint": fingerprint(e), "values": vals})
+        return out
+
+    def _experiment_params(self, params: dict, e_i: int) -> dict:
+        """``params`` with experiment ``e_i``'s values of the per-experiment parameters."""
+        if not self.pe_names or e_i == 0:
+            return params
+        out = dict(params)
+        for k in self.pe_names:
+            out[k] = params[f"{k}@{e_i}"]
+        return out
 
     def fitted_initial_states(self, z: np.ndarray) -> list[dict[str, Any]]:
         """The fitted initial state of each training file whose first window starts at its first sample (single
@@ -430,20 +467,72 @@ class _Trainer:
                             "T0": {n: float(v) for n, v in zip(names, X0[w_i])}})
         return out
 
+    _force_single = False
+    windowed: tuple[str, float] | None = None
+    """(mode, window s) of the windowed phase when :meth:`finish_single_shooting` followed it."""
+
+    def wants_single_shooting_finish(self) -> bool:
+        """Whether a windowed fit goes on as single shooting (:data:`SINGLE_SHOOTING_MAX_STEPS`)."""
+        return (self.cfg.rollout == "auto" and not self.single_shooting and self.mode != "free"
+                and check_rule(self.cfg.init) in ("estimate", "filter") and self.cfg.lbfgs_iters > 0
+                and max(e.n_steps for e in self.exps) <= SINGLE_SHOOTING_MAX_STEPS)
+
+    def finish_single_shooting(self, z: np.ndarray) -> np.ndarray:
+        """The windowed solution ``z`` polished as single shooting: each file one free run from a fitted initial
+        state (the first window's fitted state, else the burn-in estimate), L-BFGS on the free-run loss; the
+        result is kept where it beats ``z`` (validation MAE, else the free-run training loss). Returns the new
+        ``z`` in the single-shooting layout."""
+        names = list(self.model.state_names)
+        starts = [None] * len(self.exps)
+        if self.n_x0:
+            X0 = self.x0_guess + np.asarray(z[self.n_param_z:], dtype=float).reshape((self.n_x0, len(names)))
+            for w_i, w in enumerate(self.wins):
+                if w.start == 0:
+                    starts[w.exp] = X0[w_i]
+        zp = np.asarray(z[:self.n_param_z], dtype=float)
+        bp = self.model.from_numpy(self.params_from_z(zp, _NumpyOps))
+        for i, e in enumerate(self.exps):
+            if starts[i] is None:
+                starts[i] = initial_state(self.net, self.model, self._experiment_params(bp, i), e, "estimate",
+                                          integrator=self.cfg.integrator, substeps=self.cfg.substeps).T
+        windowed = (self.mode, self.window)
+        self._force_single = True
+        self.build_batches([np.asarray(T0)[None] for T0 in starts])
+        z_ss = np.concatenate([zp, np.zeros(self.n_x0 * len(names))])
+        data, statics = self.batch_arrays(None)
+        full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        has_val = bool(self.vals)
+        best = self.validate(z_ss) if has_val else _safe(full_vg(z_ss, data))[0]
+        self.log("single shooting: one free run per file from its fitted initial state, from the windowed fit")
+        out = self.polish(z_ss, full_vg, data, best, has_val, time.perf_counter())
+        self.windowed = windowed
+        return out
+
+    def slowest_tau(self) -> float:
+        """The slowest node time constant (s) of the network at its nominal values (``C/ΣG`` per node): the
+        shortest automatic window of multiple shooting (a window shorter than it fits the slow states' starts
+        instead of their dynamics)."""
+        try:
+            taus = [float(t) for t in self.model.time_constants().values()]
+        except Exception:  # noqa: BLE001 - a network whose nominal point has no time constants: no lower bound
+            return 0.0
+        taus = [t for t in taus if math.isfinite(t) and t > 0]
+        return max(taus) if taus else 0.0
+
     def plan_rollout(self) -> tuple[str, float, bool]:
         """``(mode, window s, single shooting)``: ``rollout=auto`` is one free run per file for files of at most
-        :data:`SINGLE_SHOOTING_MAX_STEPS` samples (or three windows), else multiple shooting; a free run with the
-        ``estimate`` or ``filter`` rule fits each file's initial state with the parameters (single shooting: one
-        window per file with its initial state free, mode ``estimated``)."""
+        three windows, else multiple shooting in windows of ``max(auto_window, slowest node time constant)``
+        unless ``window`` is given; a free run with the ``estimate`` or ``filter`` rule fits each file's initial
+        state with the parameters (single shooting: one window per file with its initial state free, mode
+        ``estimated``). :meth:`finish_single_shooting` switches a windowed fit to single shooting."""
         cfg = self.cfg
         mode = cfg.rollout
-        window = auto_window(self.exps) if cfg.window is None else float(cfg.window)
+        window = float(cfg.window) if cfg.window is not None else max(auto_window(self.exps), self.slowest_tau())
         if mode == "auto":
             longest = max(e.n_steps for e in self.exps)
             dt = min(float(e.dt) for e in self.exps)
-            short = longest <= 3 * (window / dt + 1) or longest <= SINGLE_SHOOTING_MAX_STEPS
-            mode = "free" if short else "estimated"
-        if mode == "free" and check_rule(cfg.init) in ("estimate", "filter"):
+            mode = "free" if longest <= 3 * (window / dt + 1) else "estimated"
+        if (mode == "free" or self._force_single) and check_rule(cfg.init) in ("estimate", "filter"):
             return "estimated", 2.0 * max(e.n_steps * float(e.dt) for e in self.exps), True
         return mode, window, False
 
@@ -451,7 +540,7 @@ class _Trainer:
         """Groups of equal-length rollouts (arrays) and their static description."""
         cfg = self.cfg
         mode, window, self.single_shooting = self.plan_rollout()
-        self.window = auto_window(self.exps) if cfg.window is None else float(cfg.window)
+        self.window = window
         init = check_rule(cfg.init)
         self.mode = mode
         n_states = len(self.model.state_names)
@@ -466,12 +555,12 @@ class _Trainer:
                     mask0[:] = False
                 self.groups.append({"dt": float(e.dt), "init": "measured", "windows": [_Window(e_i, 0, e.n_steps)],
                                     "U": np.asarray(e.inputs, dtype=float)[None], "Y": Y,
-                                    "mask0": mask0, "vals0": vals0})
+                                    "mask0": mask0, "vals0": vals0, "exp": e_i})
             return
         wins = _windows(self.exps, window)
-        by_len: dict[tuple[float, int], list[int]] = {}
+        by_len: dict[tuple[float, int, int], list[int]] = {}  # windows of one file apart: per-experiment values
         for w_i, w in enumerate(wins):
-            by_len.setdefault((float(self.exps[w.exp].dt), w.length), []).append(w_i)
+            by_len.setdefault((float(self.exps[w.exp].dt), w.length, w.exp if self.pe_names else 0), []).append(w_i)
         if mode == "estimated":
             guess = np.zeros((len(wins), n_states))
             for w_i, w in enumerate(wins):
@@ -484,7 +573,7 @@ class _Trainer:
             self.x0_guess = guess
             self.n_x0 = len(wins)
         self.wins = wins
-        for (dt, L), ids in by_len.items():
+        for (dt, L, e_i), ids in by_len.items():
             U = np.stack([np.asarray(self.exps[wins[i].exp].inputs, dtype=float)[wins[i].start:wins[i].start + L]
                           for i in ids])
             Y = np.stack([np.asarray(self.exps[wins[i].exp].outputs, dtype=float)[wins[i].start:wins[i].start + L]
@@ -494,7 +583,7 @@ class _Trainer:
                 mask0[:] = False
             self.groups.append({"dt": dt, "init": "estimated" if mode == "estimated" else "measured",
                                 "windows": [wins[i] for i in ids], "ids": np.array(ids), "U": U, "Y": Y,
-                                "mask0": mask0, "vals0": vals0})
+                                "mask0": mask0, "vals0": vals0, "exp": e_i})
 
     def batch_arrays(self, rng: np.random.Generator | None):
         """The per-step data: list (one per group) of dicts of backend arrays, and the statics."""
@@ -507,7 +596,7 @@ class _Trainer:
             Y = g["Y"][sel]
             M = np.isfinite(Y)
             d = {"U": g["U"][sel], "Y": np.where(M, Y, 0.0), "M": M}
-            st = {"dt": g["dt"], "init": g["init"], "n_valid": max(int(M.sum()), 1), "B": len(sel)}
+            st = {"dt": g["dt"], "init": g["init"], "n_valid": max(int(M.sum()), 1), "B": len(sel), "exp": g["exp"]}
             if g["init"] == "estimated":
                 ids = g["ids"][sel]
                 cb, ck, cj, cw = [], [], [], []
@@ -545,11 +634,12 @@ class _Trainer:
                 X0 = x0_guess + z[n_param_z:].reshape((n_x0, n_states))
             sse, mx, cont = 0.0, 0.0, 0.0
             for st, d in zip(statics, data):
+                gp = self._experiment_params(params, st["exp"])
                 if st["init"] == "estimated":
                     T0 = X0[d["idx"]]
                 else:
-                    T0 = ops.where(d["mask0"], d["vals0"], model.steady_state(params, d["U"][:, 0, :]))
-                states, yh = model.rollout(params, T0, d["U"], st["dt"], integrator=cfg.integrator,
+                    T0 = ops.where(d["mask0"], d["vals0"], model.steady_state(gp, d["U"][:, 0, :]))
+                states, yh = model.rollout(gp, T0, d["U"], st["dt"], integrator=cfg.integrator,
                                            substeps=cfg.substeps)
                 err = ops.where(d["M"], yh - d["Y"], 0.0 * yh)
                 sse = sse + ops.sum(err * err) / n_valid
@@ -582,7 +672,8 @@ class _Trainer:
         for e in exps:
             try:
                 run = free_run(self.model, bp, e, self.cfg.init, integrator=self.cfg.integrator,
-                               substeps=self.cfg.substeps, burn_in_s=self.cfg.burn_in)
+                               substeps=self.cfg.substeps, burn_in_s=self.cfg.burn_in,
+                               per_experiment={k: float(np.asarray(pn[k]).reshape(-1)[0]) for k in self.pe_names})
             except TnnError:  # no steady state or no initial state at these parameters
                 return math.inf
             y = run.y[run.burn_in:]

@@ -87,17 +87,27 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     tr.layout(params)
     tr.build_batches(runs)
     z = tr.run()
+    if tr.wants_single_shooting_finish() and tr.stopped not in ("interrupted", "diverged", "time_limit"):
+        z = tr.finish_single_shooting(z)
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
-    trained = TrainedModel(net, final, meta={"initial_states": initial_states}, path=None)
+    per_experiment = tr.experiment_values(z)
+    trained = TrainedModel(net, final, meta={"initial_states": initial_states, "per_experiment": per_experiment},
+                           path=None)
     trained._models[(cfg.backend, cfg.dtype)] = model
     metrics: dict[str, Any] = {}
     metrics["train"] = _metrics_or_nan(trained, exps, cfg)
     if vals:
         metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
+    if tr.windowed:  # multiple shooting, then single shooting
+        rollout, window_s = tr.windowed
+    elif tr.single_shooting:
+        rollout, window_s = "free", None
+    else:
+        rollout, window_s = tr.mode, (None if tr.mode == "free" else tr.window)
     fitted = {}
     for sl in tr.slots:
-        if model.param_specs[sl.name].kind == "physical":
+        if "@" not in sl.name and model.param_specs[sl.name].kind == "physical":
             fitted[sl.name] = {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
     trained.meta = {
         "network": net.name,
@@ -111,10 +121,12 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "fitted": fitted,
         "curve": tr.curve,
         "config": cfg.to_dict(),
-        "rollout": "free" if tr.single_shooting else tr.mode,
-        "window_s": None if tr.mode == "free" or tr.single_shooting else tr.window,
+        "rollout": rollout,
+        "window_s": window_s,
+        "single_shooting": bool(tr.single_shooting),
         "init": cfg.init,
         "initial_states": initial_states,
+        "per_experiment": per_experiment,
         "stopped": tr.stopped,
         "warnings": tr.warnings,
         "train_seconds": time.perf_counter() - t_start,

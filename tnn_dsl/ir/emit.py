@@ -336,6 +336,8 @@ def _param_line(pr: _Printer, p: Param) -> str:
                 notes.append(f"free in [{lo}, {hi}] {format_dim(p.dim, ascii_only=pr.ascii)}".rstrip(" 1"))
             else:
                 notes.append("free")
+        if p.per_experiment:
+            notes.append("per experiment")
     else:
         text = f"{p.name} = {pr.expr(p.expr)}"
         unit = format_dim(p.dim, ascii_only=pr.ascii)
@@ -573,7 +575,7 @@ def _value_text(pr: _Printer, name: str) -> str:
         text = f"{name} = {format_quantity(p.expr.value, p.expr.dim or p.dim, ascii_only=pr.ascii)}"
     else:
         text = f"{name} = {pr.expr(p.expr)}"
-    return text + (" (free)" if p.free else "")
+    return text + (" (free, per experiment)" if p.free and p.per_experiment else " (free)" if p.free else "")
 
 
 def dot(net: Network) -> str:

@@ -165,7 +165,8 @@ class Param(_Node):
     ``expr`` is a ``Num`` for a constant (then ``free`` may be true and ``lower``/``upper`` bound it, SI)
     or any expression for a derived value. ``unit`` is the unit the user wrote (for display);
     ``dim`` its dimension. ``owner`` names the element whose slot this is (``"link R_hp1"``,
-    ``"node hx1"``, ``"peltier pe"``) or ``None`` for a free-standing ``param``.
+    ``"node hx1"``, ``"peltier pe"``) or ``None`` for a free-standing ``param``. ``per_experiment``
+    (``free ... per experiment``, a free constant only): one value per data file.
     """
 
     name: str
@@ -176,6 +177,9 @@ class Param(_Node):
     free: bool = False
     lower: float | None = None
     upper: float | None = None
+    per_experiment: bool = False
+    """The value differs per data file: fitted per training file, estimated from the burn-in of a held-out
+    file; the written value is the starting value."""
     owner: str | None = None
     label: str | None = None
 

@@ -30,7 +30,7 @@ from ..ir import (
     map_children,
 )
 from .sources import _decode, _statements
-from .statements import _Q, _Clause, _Free, _St
+from .statements import _Q, _Clause, _Free, _Per, _St
 from .units import TEMPERATURE_UNITS, UnitError, dim_eq, format_dim, parse_quantity, unit_scale
 
 MAX_INCLUDE_DEPTH = 32
@@ -200,9 +200,14 @@ class _Builder:
             return None
 
     def slot(self, name: str, expr, role: str, owner: str | None, span: Span, free: _Free | None = None,
-             label: str | None = None, temp_slot: bool = False) -> str:
+             label: str | None = None, temp_slot: bool = False, per: _Per | None = None) -> str:
         if temp_slot:
             expr = self.temp_literal(expr)
+        if per is not None and free is None and isinstance(expr, Num):
+            # a derived value is left to the validation pass, which says it cannot be per experiment at all
+            self.err("a per-experiment value must be free: write `free per experiment`", per.span,
+                     hint="only a fitted constant takes its own value in each data file")
+            per = None
         lower = upper = None
         if free is not None and (free.lo is not None or free.hi is not None):
             vunit = expr.unit if isinstance(expr, Num) else None
@@ -221,7 +226,7 @@ class _Builder:
                     upper = val
         p = Param(name=name, expr=expr, dim=expr.dim if isinstance(expr, Num) else {},
                   unit=expr.unit if isinstance(expr, Num) else None, role=role, free=free is not None,
-                  lower=lower, upper=upper, owner=owner, label=label, span=span)
+                  lower=lower, upper=upper, per_experiment=per is not None, owner=owner, label=label, span=span)
         self.params.append(p)
         return name
 
@@ -338,13 +343,13 @@ class _Builder:
     def st_param(self, st, scope, chain):
         d = st.data
         self.slot(scope.decl(d["name"]), scope.expr(d["expr"]), "generic", None, st.span, d["free"],
-                  self.label_of(st))
+                  self.label_of(st), per=d["per"])
 
     def st_node(self, st, scope, chain):
         d = st.data
         name = scope.decl(d["name"])
         p = self.slot(scope.decl(_slot_name("C", d["name"])), scope.expr(d["expr"]), "capacitance", f"node {name}",
-                      st.span, d["free"])
+                      st.span, d["free"], per=d["per"])
         self.nodes.append(ThermalNode(name=name, capacitance=p, label=self.label_of(st), span=st.span))
 
     def st_boundary(self, st, scope, chain):
@@ -361,7 +366,7 @@ class _Builder:
         form = d["form"]
         name = scope.decl(as_.value if as_ else None) or self.auto(scope.decl(f"{form}_{d['a'][0]}_{d['b'][0]}"))
         role = "resistance" if form == "R" else "conductance"
-        self.slot(name, scope.expr(d["expr"]), role, f"link {name}", st.span, d["free"])
+        self.slot(name, scope.expr(d["expr"]), role, f"link {name}", st.span, d["free"], per=d["per"])
         self.links.append(Link(name=name, a=a, b=b, form=form, value=name, label=self.label_of(st), span=st.span))
 
     def st_source(self, st, scope, chain):
@@ -382,9 +387,10 @@ class _Builder:
         lag_p = off_p = None
         if lag is not None:
             lag_p = self.slot(f"{name}.lag", scope.expr(lag.value), "time_constant", f"sensor {name}", lag.span,
-                              lag.free)
+                              lag.free, per=lag.per)
         if off is not None:
-            off_p = self.slot(f"{name}.offset", scope.expr(off.value), "offset", f"sensor {name}", off.span, off.free)
+            off_p = self.slot(f"{name}.offset", scope.expr(off.value), "offset", f"sensor {name}", off.span, off.free,
+                              per=off.per)
         self.sensors.append(Sensor(name=name, node=node, column=col.value if col else name, lag=lag_p, offset=off_p,
                                    label=self.label_of(st), span=st.span))
 
@@ -398,7 +404,7 @@ class _Builder:
                 out[key] = None
                 continue
             out[key] = self.slot(f"{cname}.{key}", scope.expr(c.value), _ROLE_OF_KEY[key], owner, c.span, c.free,
-                                 temp_slot=key == "inlet")
+                                 temp_slot=key == "inlet", per=c.per)
         return out
 
     def st_radiation(self, st, scope, chain):

@@ -25,7 +25,10 @@ What the language cannot say (these IR fields do not survive a print → parse r
   as the automatic name.
 * **One-sided bounds**, and bounds on a parameter that is not ``free``: ``free in [LO, HI]`` has both or
   neither, so such a parameter is printed ``free`` without bounds (or without ``free``).
-* **A free boundary temperature**: ``boundary`` has no ``free`` clause; it is printed fixed.
+* **A free boundary temperature**: ``boundary`` has no ``free`` clause; it is printed fixed (and not
+  ``per experiment``).
+* **``per experiment`` on a parameter that is not free** (the validation pass refuses it): it is printed
+  without it.
 * **A slot whose parameter is not its automatic name** where the statement has no ``as`` (a node capacity
   not called ``C_<node>``, a sensor lag not called ``<sensor>.lag``, ...): the parameter is printed as a
   ``param`` line and the slot refers to it, so the re-read IR has one more parameter (the slot's automatic
@@ -305,8 +308,8 @@ class _ThnPrinter:
         return f"  as {_name(name)}"
 
     def value(self, pname: str | None, auto: str, *, free_ok: bool = True) -> str:
-        """The text of a slot: its expression with ``free [in [LO, HI]]`` where the slot owns the parameter,
-        else a reference to the parameter (printed as a ``param`` line, see module doc)."""
+        """The text of a slot: its expression with ``free [in [LO, HI]] [per experiment]`` where the slot owns the
+        parameter, else a reference to the parameter (printed as a ``param`` line, see module doc)."""
         if pname is None:
             return ""
         if pname != auto or pname not in self.params:
@@ -314,13 +317,14 @@ class _ThnPrinter:
         return self.expr_free(self.params[pname], free_ok=free_ok)
 
     def expr_free(self, p: Param, *, free_ok: bool = True) -> str:
+        """A constant's value with ``free [in [LO, HI]] [per experiment]``; any other expression as it is."""
         text = _expr(p.expr, self.tu)[0]
         if not (free_ok and p.free and isinstance(p.expr, Num)):
             return text
         text += "  free"
         if p.lower is not None and p.upper is not None:
             text += f" in [{_quantity(p.lower, p.expr.unit)}, {_quantity(p.upper, p.expr.unit)}]"
-        return text
+        return text + (" per experiment" if p.per_experiment else "")
 
     def input_line(self, inp) -> str:
         if inp.is_temperature and inp.unit == self.tu:

@@ -90,11 +90,19 @@ class _Free:
 
 
 @dataclass
+class _Per:
+    """A `per experiment` clause (its position, for the message when it has no `free`)."""
+
+    span: Span
+
+
+@dataclass
 class _Clause:
     tag: str
     value: Any
     span: Span
     free: _Free | None = None
+    per: _Per | None = None
 
 
 @dataclass
@@ -271,6 +279,14 @@ class _ToStatements(Transformer):
         return _Free(lo, hi, self._span(meta))
 
     @v_args(meta=True)
+    def per_clause(self, meta, ch):
+        span = self._span(meta)
+        if span.end_line == span.line and span.end_col - span.col < len("per experiment"):
+            self.diags.append(Diagnostic("`per` and `experiment` are two words", span,
+                                         hint="write `free per experiment`"))
+        return _Per(span)
+
+    @v_args(meta=True)
     def as_clause(self, meta, ch):
         return _Clause("as", str(ch[0]), self._tspan(ch[0]))
 
@@ -301,8 +317,9 @@ class _ToStatements(Transformer):
     def _valued(tag):  # noqa: N805 - a small factory of clause callbacks
         @v_args(meta=True)
         def cb(self, meta, ch):
-            free = ch[1] if len(ch) > 1 and isinstance(ch[1], _Free) else None
-            return _Clause(tag, self._e(ch[0]), self._span(meta), free)
+            free = next((c for c in ch[1:] if isinstance(c, _Free)), None)
+            per = next((c for c in ch[1:] if isinstance(c, _Per)), None)
+            return _Clause(tag, self._e(ch[0]), self._span(meta), free, per)
 
         return cb
 
@@ -403,16 +420,19 @@ class _ToStatements(Transformer):
     def param(self, meta, ch):
         rest = ch[2:]
         free = next((c for c in rest if isinstance(c, _Free)), None)
+        per = next((c for c in rest if isinstance(c, _Per)), None)
         return self._st("param", meta, {"name": str(ch[0]), "name_span": self._tspan(ch[0]), "expr": self._e(ch[1]),
-                                        "free": free}, [c for c in rest if isinstance(c, _Clause)])
+                                        "free": free, "per": per}, [c for c in rest if isinstance(c, _Clause)])
 
     @v_args(meta=True)
     def node(self, meta, ch):
         nid = ch[0]
         clauses = [c for c in ch[1:] if isinstance(c, _Clause)]
-        expr = next(self._e(c) for c in ch[1:] if not isinstance(c, (_Clause, _Free)))
+        expr = next(self._e(c) for c in ch[1:] if not isinstance(c, (_Clause, _Free, _Per)))
         free = next((c for c in ch[1:] if isinstance(c, _Free)), None)
-        return self._st("node", meta, {"name": nid[0], "name_span": nid[1], "expr": expr, "free": free}, clauses)
+        per = next((c for c in ch[1:] if isinstance(c, _Per)), None)
+        return self._st("node", meta, {"name": nid[0], "name_span": nid[1], "expr": expr, "free": free, "per": per},
+                        clauses)
 
     @v_args(meta=True)
     def boundary(self, meta, ch):
@@ -428,11 +448,15 @@ class _ToStatements(Transformer):
         rest = ch[3:]
         clauses = [c for c in rest if isinstance(c, _Clause)]
         frees = [c for c in rest if isinstance(c, _Free)]
-        expr = next(self._e(c) for c in rest if not isinstance(c, (_Clause, _Free)))
+        pers = [c for c in rest if isinstance(c, _Per)]
+        expr = next(self._e(c) for c in rest if not isinstance(c, (_Clause, _Free, _Per)))
         if len(frees) > 1:
             self.diags.append(Diagnostic("`free` is given twice", frees[1].span))
+        if len(pers) > 1:
+            self.diags.append(Diagnostic("`per experiment` is given twice", pers[1].span))
         return self._st("link", meta, {"form": kind, "a": a, "b": b, "expr": expr,
-                                       "free": frees[0] if frees else None}, clauses)
+                                       "free": frees[0] if frees else None, "per": pers[0] if pers else None},
+                        clauses)
 
     @v_args(meta=True)
     def source(self, meta, ch):

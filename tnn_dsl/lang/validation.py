@@ -9,11 +9,11 @@
 
 It reports (all at once, sorted by position): undefined and duplicate names (with a note "first
 defined here"), dimension mismatches naming both units, non-positive capacities/resistances/
-conductances/time constants, bounds that exclude the value, `free` on a derived parameter, dependency
-cycles between parameters, elements on missing nodes, learn targets that do not exist and learn inputs
-that are neither a node, an input nor a parameter, and connected groups of nodes with no conduction
-path to a boundary or a fluid inlet (their steady state is undefined).
-"""
+conductances/time constants, bounds that exclude the value, `free` on a derived parameter, `per experiment`
+on a derived, a fixed or a learned parameter, dependency cycles between parameters, elements on missing
+nodes, learn targets that do not exist and learn inputs that are neither a node, an input nor a parameter,
+and connected groups of nodes with no conduction path to a boundary or a fluid inlet (their steady state is
+undefined)."""
 
 from __future__ import annotations
 
@@ -296,6 +296,13 @@ class _V:
             elif p.free:
                 self.err(f"`{p.name}` is an expression and cannot be `free`", p.span,
                          hint="only a constant is fitted; make the constants inside the expression free instead")
+            if p.per_experiment and not isinstance(p.expr, Num):
+                self.err(f"`{p.name}` is an expression and cannot be `per experiment`", p.span,
+                         hint="only a constant takes its own value in each data file; write `free per experiment` "
+                              "on a constant inside the expression instead")
+            elif p.per_experiment and not p.free:
+                self.err("a per-experiment value must be free: write `free per experiment`", p.span,
+                         hint="only a fitted constant takes its own value in each data file")
 
     def _what(self, p: Param) -> str:
         owner = p.owner or ""
@@ -442,8 +449,11 @@ class _V:
                     self.err(f"cannot learn `{t.name}`: there is no such component flow", t.span,
                              hint=("component flows are " + ", ".join(f"`{x}`" for x in sorted(flows))) if flows else
                              "flows belong to `peltier` (`pe.Q_hot`, `pe.Q_cold`) and `fluid` (`f1.Q`) components")
-                elif t.kind == "param" and t.name in self.params and not self.params[t.name].is_constant and fn.kind:
-                    pass
+                elif t.kind == "param" and self.params[t.name].per_experiment:
+                    self.err(f"cannot learn `{t.name}`: it is `per experiment`", t.span,
+                             related=[("declared per experiment here", self.params[t.name].span)],
+                             hint="a learned function gives every data file the same function; drop `per experiment` "
+                                  "or the `learn` clause")
             inputs = []
             for li in fn.inputs:
                 inputs.append(self._learn_input(li))
