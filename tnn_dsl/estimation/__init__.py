@@ -6,7 +6,9 @@ May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.compiler``.
 from __future__ import annotations
 
 from .kalman import EKFResult, ekf, open_loop, tune_process_noise
+from .likelihood import Innovations, LikelihoodProblem, innovations, loglik, nll
 
 __all__ = [
-    "EKFResult", "ekf", "open_loop", "tune_process_noise"
+    "EKFResult", "ekf", "open_loop", "tune_process_noise",
+    "Innovations", "LikelihoodProblem", "innovations", "loglik", "nll",
 ]
