@@ -153,3 +153,23 @@ def test_run_all_discovers_benchmarks():
     assert res.returncode == 0
     assert "benchmarks/bench_rollout.py" in res.stdout.split()
     assert "_report" not in res.stdout and "run_all" not in res.stdout
+
+
+@pytest.mark.skipif(not (ROOT.parent / "shared" / "data" / "bacher_madsen_inputPRBS1.csv").exists(),
+                    reason="shared building data not present")
+def test_bench_real_data_fits_tiny_run(tmp_path):
+    """The real-data benchmark trains Ti three ways (a few epochs), scores each and writes its section."""
+    out_md = tmp_path / "BENCHMARKS.md"
+    out_json = tmp_path / "r.json"
+    cmd = [sys.executable, str(BENCH / "bench_real_data_fits.py"), "--quick", "--only", "ti", "--epochs", "5",
+           "--lbfgs-iters", "5", "--output", str(out_md), "--json", str(out_json)]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = json.loads(out_json.read_text())["rows"]
+    assert [r["way"] for r in rows] == ["default", "free+estimate", "windows"]
+    for r in rows:
+        for key in ("train_mae", "heldout_mae", "continued_mae", "fit_s"):
+            assert math.isfinite(r[key]) and r[key] > 0, (key, r)
+    text = out_md.read_text()
+    assert "<!-- begin real-data-fits -->" in text and "<!-- end real-data-fits -->" in text
+    assert text.count("| ti | B&M (1184 / 507) |") == 3

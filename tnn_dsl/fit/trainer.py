@@ -508,6 +508,15 @@ class _Trainer:
         self.windowed = windowed
         return out
 
+    def selection_score(self, z: np.ndarray) -> float:
+        """What decides between two fits of the same data: the validation MAE (K) with validation files, else the
+        training loss of the current layout (a single-shooting layout: the free runs' mean squared error, K²)."""
+        if self.vals:
+            return self.validate(z)
+        data, statics = self.batch_arrays(None)
+        value = _safe(self.ops.value_and_grad(self.make_loss(statics))(z, data))[0]
+        return value if math.isfinite(value) else math.inf
+
     def slowest_tau(self) -> float:
         """The slowest node time constant (s) of the network at its nominal values (``C/ΣG`` per node): the
         shortest automatic window of multiple shooting (a window shorter than it fits the slow states' starts

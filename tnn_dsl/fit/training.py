@@ -78,17 +78,21 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
             raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
                                       hint="check the sensor columns named in the network"))
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
-    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
     t_start = time.perf_counter()
-    params = tr.initial_params()
-    nom, nom_bp, runs = tr.nominal_runs(params)
-    tr.set_stats(params, nom, nom_bp, runs)
-    tr.prefit_replace(params, nom, nom_bp, runs)
-    tr.layout(params)
-    tr.build_batches(runs)
-    z = tr.run()
-    if tr.wants_single_shooting_finish() and tr.stopped not in ("interrupted", "diverged", "time_limit"):
+    tr, z = _fit(net, exps, vals, cfg, model, callback, log)
+    strategy = None
+    if tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT:
+        # two routes to the free run the model is judged by: the windowed fit polished as single shooting, and
+        # single shooting from the start; the better one (validation MAE, else the free-run training loss) is kept
         z = tr.finish_single_shooting(z)
+        tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+        a, b = tr.selection_score(z), tr_s.selection_score(z_s)
+        by = "validation MAE" if vals else "free-run training loss"
+        strategy = {"windows_then_single": a, "single": b, "by": by}
+        if tr_s.stopped not in _CUT_SHORT and b < a:
+            tr, z = tr_s, z_s
+        tr.log(f"kept {'single shooting' if tr is tr_s else 'multiple shooting, then single shooting'} "
+               f"({by} {min(a, b):.4g} against {max(a, b):.4g})")
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
@@ -124,6 +128,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "rollout": rollout,
         "window_s": window_s,
         "single_shooting": bool(tr.single_shooting),
+        "strategies": strategy,
         "init": cfg.init,
         "initial_states": initial_states,
         "per_experiment": per_experiment,
@@ -134,6 +139,21 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     if out is not None:
         trained.save(out, force=force)
     return trained
+
+
+_CUT_SHORT = ("interrupted", "diverged", "time_limit")
+
+
+def _fit(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):
+    """One training run (nominal run, normalisation, layout, rollouts, Adam, L-BFGS) → ``(trainer, z)``."""
+    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
+    params = tr.initial_params()
+    nom, nom_bp, runs = tr.nominal_runs(params)
+    tr.set_stats(params, nom, nom_bp, runs)
+    tr.prefit_replace(params, nom, nom_bp, runs)
+    tr.layout(params)
+    tr.build_batches(runs)
+    return tr, tr.run()
 
 
 def _input_paths(network, data, val) -> list:
