@@ -79,20 +79,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                                       hint="check the sensor columns named in the network"))
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
-    tr, z = _fit(net, exps, vals, cfg, model, callback, log)
-    strategy = None
-    if tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT:
-        # two routes to the free run the model is judged by: the windowed fit polished as single shooting, and
-        # single shooting from the start; the better one (validation MAE, else the free-run training loss) is kept
-        z = tr.finish_single_shooting(z)
-        tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
-        a, b = tr.selection_score(z), tr_s.selection_score(z_s)
-        by = "validation MAE" if vals else "free-run training loss"
-        strategy = {"windows_then_single": a, "single": b, "by": by}
-        if tr_s.stopped not in _CUT_SHORT and b < a:
-            tr, z = tr_s, z_s
-        tr.log(f"kept {'single shooting' if tr is tr_s else 'multiple shooting, then single shooting'} "
-               f"({by} {min(a, b):.4g} against {max(a, b):.4g})")
+    tr, z, strategy = _best_route(net, exps, vals, cfg, model, callback, log)
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
@@ -103,16 +90,6 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     metrics["train"] = _metrics_or_nan(trained, exps, cfg)
     if vals:
         metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
-    if tr.windowed:  # multiple shooting, then single shooting
-        rollout, window_s = tr.windowed
-    elif tr.single_shooting:
-        rollout, window_s = "free", None
-    else:
-        rollout, window_s = tr.mode, (None if tr.mode == "free" else tr.window)
-    fitted = {}
-    for sl in tr.slots:
-        if "@" not in sl.name and model.param_specs[sl.name].kind == "physical":
-            fitted[sl.name] = {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
     trained.meta = {
         "network": net.name,
         "backend": cfg.backend,
@@ -122,12 +99,10 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "data_files": data_records(sorted({e.path for e in exps + vals if getattr(e, "path", None)})),
         "normalisation": tr.normalisation,
         "metrics": metrics,
-        "fitted": fitted,
+        "fitted": _fitted(tr, model, final),
         "curve": tr.curve,
         "config": cfg.to_dict(),
-        "rollout": rollout,
-        "window_s": window_s,
-        "single_shooting": bool(tr.single_shooting),
+        **_rollout_meta(tr),
         "strategies": strategy,
         "init": cfg.init,
         "initial_states": initial_states,
@@ -142,6 +117,42 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
 
 
 _CUT_SHORT = ("interrupted", "diverged", "time_limit")
+
+
+def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):
+    """The fit → ``(trainer, z, strategies or None)``. Where the trainer goes on as single shooting after its
+    windows (:meth:`~.rollouts._Rollouts.wants_single_shooting_finish`), there are two routes to the free run the
+    model is judged by: the windowed fit polished as single shooting, and single shooting from the start; the
+    better one (validation MAE, else the free-run training loss) is kept and both scores are returned."""
+    tr, z = _fit(net, exps, vals, cfg, model, callback, log)
+    if not (tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT):
+        return tr, z, None
+    z = tr.finish_single_shooting(z)
+    tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+    a, b = tr.selection_score(z), tr_s.selection_score(z_s)
+    by = "validation MAE" if vals else "free-run training loss"
+    if tr_s.stopped not in _CUT_SHORT and b < a:
+        tr, z = tr_s, z_s
+    tr.log(f"kept {'single shooting' if tr is tr_s else 'multiple shooting, then single shooting'} "
+           f"({by} {min(a, b):.4g} against {max(a, b):.4g})")
+    return tr, z, {"windows_then_single": a, "single": b, "by": by}
+
+
+def _rollout_meta(tr: _Trainer) -> dict[str, Any]:
+    """``rollout``, ``window_s`` and ``single_shooting`` of a finished trainer, for ``meta.json``."""
+    if tr.windowed:  # multiple shooting, then single shooting
+        rollout, window_s = tr.windowed
+    elif tr.single_shooting:
+        rollout, window_s = "free", None
+    else:
+        rollout, window_s = tr.mode, (None if tr.mode == "free" else tr.window)
+    return {"rollout": rollout, "window_s": window_s, "single_shooting": bool(tr.single_shooting)}
+
+
+def _fitted(tr: _Trainer, model: Any, final: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
+    """Each free physical parameter's fitted and initial value (SI), for ``meta.json``."""
+    return {sl.name: {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
+            for sl in tr.slots if "@" not in sl.name and model.param_specs[sl.name].kind == "physical"}
 
 
 def _fit(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):
