@@ -1,9 +1,9 @@
 """Fitting a network to data and keeping the result.
 
-Owns: the training options (``config``), the flat parameter vector and its transforms (``transforms``), windows
-of multiple shooting (``windows``), the rollouts fitted (``rollouts``: single or multiple shooting), the trainer (``trainer``: loss, Adam, divergence guard, L-BFGS polish) and
-its entry points (``training``: ``train``, ``evaluate``), initial states by one rule (``initial``), free runs and
-error metrics (``simulation``), model
+Owns: the training options (``config``), the flat parameter vector and its transforms (``transforms``), windows of
+multiple shooting (``windows``), the rollouts fitted (``rollouts``: single or multiple shooting), the trainer
+(``trainer``: loss, Adam, divergence guard, L-BFGS polish) and its entry points (``training``: ``train``,
+``evaluate``), initial states by one rule (``initial``), free runs and error metrics (``simulation``), model
 directories (``model_files``: JSON + safetensors, atomic writes).
 May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``.
 """
