@@ -1,9 +1,11 @@
-"""``tnnc compile FILE --emit equations|ir-json|graph [-o OUT]``: the network written out.
+"""``tnnc compile FILE --emit equations|ir-json|graph|thn [-o OUT]``: the network written out.
 
 * ``equations`` (default): the ODE system per node, component flows, learned functions, parameters.
 * ``ir-json``: the validated IR as JSON (``Network.from_json`` reads it back; the round trip is exact).
 * ``graph``: Graphviz DOT text; with ``-o NAME.png`` a picture (Graphviz ``dot`` if installed, else
   matplotlib), with ``-o NAME.svg``/``.pdf`` a picture through Graphviz.
+* ``thn``: the network printed back as one flat ``.thn`` file from its IR (includes and subnets expanded, values
+  in the units written, comments not kept); reading it back gives the same IR. An IR JSON file becomes ``.thn``.
 
 ``FILE`` is a ``.thn`` file or an IR JSON file (``*.json``) as ``--emit ir-json`` writes it.
 """
@@ -15,18 +17,19 @@ import shutil
 import subprocess
 import sys
 
-from ..core import IMAGE, JSON, TEXT, Diagnostic, OutputKind, TnnError, atomic_path, write_text_atomic
+from ..core import IMAGE, JSON, TEXT, THN, Diagnostic, OutputKind, TnnError, atomic_path, write_text_atomic
 from ._common import add_command, add_force_flag, check_outputs
 
-EMITS = ("equations", "ir-json", "graph")
+EMITS = ("equations", "ir-json", "graph", "thn")
 
 
 def register(subparsers) -> None:
     p = add_command(
-        subparsers, "compile", "write a network out: its equations, its IR as JSON, or a picture",
+        subparsers, "compile", "write a network out: its equations, its IR as JSON, a picture, or flat .thn",
         description="Write a network out: the ODE system per node (equations), the validated IR as JSON "
-                    "(ir-json; round-trips exactly), or a picture (graph: DOT text, or PNG/SVG/PDF by the "
-                    "-o suffix). FILE may also be an IR .json file.",
+                    "(ir-json; round-trips exactly), a picture (graph: DOT text, or PNG/SVG/PDF by the "
+                    "-o suffix), or the network printed back as one flat .thn file (thn). FILE may also be an IR "
+                    ".json file.",
     )
     p.add_argument("file", metavar="FILE", help="a .thn network, or an IR .json file")
     p.add_argument("--emit", choices=EMITS, default="equations",
@@ -73,6 +76,8 @@ def _output_kind(emit: str, out: str) -> OutputKind:
     """What ``-o`` receives: equations are text, the IR is JSON, a picture is DOT text or an image."""
     if emit == "ir-json":
         return JSON
+    if emit == "thn":
+        return THN
     if emit == "graph":
         return IMAGE if os.path.splitext(out)[1].lower() in IMAGE.suffixes else OutputKind(
             "Graphviz file", suffixes=(".dot", ".gv"), example="net.dot")
@@ -93,6 +98,10 @@ def run(args) -> int:
         _write_text(out, _emit.equations(net, ascii_only=args.ascii))
     elif args.emit == "ir-json":
         _write_text(out, _emit.ir_json(net))
+    elif args.emit == "thn":
+        from ..lang import print_thn
+
+        _write_text(out, print_thn(net))
     else:
         suffix = os.path.splitext(out)[1].lower() if out and out != "-" else ".dot"
         if suffix in (".dot", ".gv"):
