@@ -7,8 +7,9 @@ from __future__ import annotations
 
 from .kalman import EKFResult, ekf, open_loop, tune_process_noise
 from .likelihood import Innovations, LikelihoodProblem, innovations, loglik, nll
+from .ml_fit import MLResult, fit_ml
 
 __all__ = [
     "EKFResult", "ekf", "open_loop", "tune_process_noise",
-    "Innovations", "LikelihoodProblem", "innovations", "loglik", "nll",
+    "Innovations", "LikelihoodProblem", "innovations", "loglik", "nll", "MLResult", "fit_ml",
 ]

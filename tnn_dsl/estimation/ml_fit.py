@@ -1,0 +1,529 @@
+"""Maximum-likelihood grey-box identification with standard errors (CTSM-R's ``$summary`` for a ``.thn``).
+
+:func:`fit_ml` maximises the continuous–discrete EKF likelihood (:mod:`tnn_dsl.estimation.likelihood`) over
+one or more records: the sum of the records' negative log-likelihoods, the physical parameters and the noise
+levels (``σ_w`` per state, ``σ_v`` per sensor) shared, each record with its own initial state. The optimiser is
+scipy's L-BFGS-B on :class:`~tnn_dsl.estimation.likelihood.LikelihoodProblem`'s flat vector ``z`` (positive
+parameters and σ's in log space, the declared ranges as bounds), started from the written values, ``σ_v = 0.1 K``
+and ``σ_w = 1e-3 K/√s`` (LikelihoodProblem's default; 0.017 K per 5-min sample: starting from 0.01 K per sample
+instead, TiTh stops in a local optimum at log L = 3841 with the solar gain at zero), then restarted once from
+where it stopped (a fresh quasi-Newton memory; the better end is kept) — no multi-start.
+
+**Uncertainty.** The observed information is the Hessian of ``−log L`` at the optimum in the fitted
+coordinates ``z``: on JAX ``jax.hessian`` of the jitted likelihood (exact, ``hessian="exact"``), on torch a
+central difference of the analytic gradient (``hessian="fd"``, step ``1e-4`` in ``z``: ``O(h²)`` truncation
+and ``~1e-12/h`` round-off, ~1e-7 relative; the test checks the two against each other on JAX). Its inverse is
+the covariance of ``z``; standard errors in the parameters' own units follow by the delta method
+(``se(e^z) = e^z·se(z)``), ``t = estimate/se``, two-sided normal p-values, and ``dF/dPar`` is the gradient at
+the optimum (in ``z``, as CTSM prints it). A parameter within 1e-6 (relative) of a bound gets no standard error
+(``status = "at bound"``; the covariance of the others is then that of the Hessian without its row and column,
+the bound held), and a parameter that loads on a direction in which the Hessian is singular (an eigenvalue
+``≤ 1e-9 ×`` the largest, or negative) gets ``status = "not identifiable"`` instead of a number — the project's
+rule: every estimate comes with its uncertainty or the statement that it is not identifiable. So does a
+parameter fitted in log space whose standard error there exceeds 5 (its 95 % interval spans more than a factor
+``e^±10``; e.g. ``σ_v → 0`` on Bacher & Madsen's Ti, where CTSM-R prints an estimate ~0 with a vast error).
+
+:class:`MLResult` holds ``loglik``, ``aic = 2k − 2 log L``, ``bic = k ln n − 2 log L`` (``n`` the readings
+present), the table (:meth:`MLResult.summary`, :meth:`MLResult.to_dict`, a notebook view).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..compiler import backend_of
+from ..compiler import compile as compile_network
+from ..core import Diagnostic, TnnError
+from ..core.htmlview import html_table, pre, safe_repr_html, view
+from ..ir.emit import format_quantity
+from .likelihood import LikelihoodProblem
+
+__all__ = ["fit_ml", "MLResult", "HESSIAN_METHODS"]
+
+HESSIAN_METHODS = ("auto", "exact", "fd")
+_FD_STEP = 1e-4
+_SINGULAR = 1e-9
+_AT_BOUND = 1e-6
+_LOG_SE_MAX = 5.0
+"""A log-coordinate standard error above this (a 95 % interval wider than a factor ``e^±10``) is no estimate:
+the likelihood is flat along the parameter (σ_v → 0 on Bacher & Madsen's Ti) — ``not identifiable``."""
+_PG_TOL = 1e-2
+"""L-BFGS-B's ``ABNORMAL`` end (no decrease found: −log L is flat to round-off) counts as converged when no
+projected gradient component exceeds this (in −log L per unit of ``z``)."""
+_SIGMA_V0 = 0.1
+_SIGMA_W0 = 1e-3
+
+
+# ---------------------------------------------------------------------------------------------
+# Units for display (the file's unit of a parameter; no dependency on the parser)
+# ---------------------------------------------------------------------------------------------
+
+_BASE = {"m": 1.0, "s": 1.0, "g": 1e-3, "K": 1.0, "W": 1.0, "J": 1.0, "Wh": 3600.0, "N": 1.0, "Pa": 1.0,
+         "V": 1.0, "A": 1.0, "ohm": 1.0, "Ohm": 1.0, "Ω": 1.0, "h": 3600.0, "min": 60.0, "d": 86400.0,
+         "day": 86400.0, "hour": 3600.0, "L": 1e-3, "l": 1e-3}
+_PREFIX = {"k": 1e3, "M": 1e6, "G": 1e9, "m": 1e-3, "c": 1e-2, "u": 1e-6, "µ": 1e-6, "μ": 1e-6}
+
+
+def _token_factor(tok: str) -> float | None:
+    if tok in _BASE:
+        return _BASE[tok]
+    if len(tok) > 1 and tok[0] in _PREFIX and tok[1:] in _BASE:
+        return _PREFIX[tok[0]] * _BASE[tok[1:]]
+    return None
+
+
+def unit_factor(unit: str | None) -> float | None:
+    """SI per one ``unit`` for the common products/quotients of units (``"kWh/K"`` → 3.6e6, ``"K/kW"`` → 1e-3,
+    ``"W/(m^2 K)"`` → 1); ``None`` for what it does not know (absolute temperatures included)."""
+    if unit is None:
+        return None
+    text = unit.strip().strip("[]").strip().replace("·", "*").replace("²", "^2").replace("³", "^3")
+    if text in ("", "1", "-"):
+        return 1.0
+    if text == "%":
+        return 0.01
+    if not re.fullmatch(r"[A-Za-zµμΩ0-9_^*/() .\-]+", text):
+        return None
+    text = re.sub(r"(?<=[A-Za-zµμΩ0-9)])\s+(?=[A-Za-zµμΩ(])", "*", text)
+    bad = []
+
+    def sub(mo):
+        f = _token_factor(mo.group(0))
+        if f is None:
+            bad.append(mo.group(0))
+            return "1"
+        return repr(f)
+
+    expr = re.sub(r"[A-Za-zµμΩ_]+", sub, text).replace("^", "**")
+    if bad:
+        return None
+    try:
+        v = float(eval(expr, {"__builtins__": {}}, {}))  # noqa: S307 - digits and operators only by now
+    except Exception:  # noqa: BLE001 - an unreadable unit is simply not shown
+        return None
+    return v if math.isfinite(v) and v > 0 else None
+
+
+# ---------------------------------------------------------------------------------------------
+# The result
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MLResult:
+    """A maximum-likelihood fit (:func:`fit_ml`).
+
+    ``rows``: one dict per estimated quantity — ``name``, ``kind`` (``parameter``/``sigma_w``/``sigma_v``/``x0``/
+    ``p0_std``), ``estimate`` and ``se`` (SI; σ_w in K/√s, σ_v, x0 and p0 in K), ``unit_si`` and ``display``
+    (``format_quantity``), ``unit`` / ``estimate_unit`` / ``se_unit`` (the file's unit where one was written and
+    understood, else ``None``), ``t``, ``p`` (two-sided, normal), ``dF`` (``∂(−log L)/∂z`` at the optimum),
+    ``coordinate`` (``log`` or ``linear``), ``z``, ``se_z``, ``status`` (``ok``/``at bound``/``not identifiable``).
+    ``labels``, ``z``, ``grad``, ``hessian``, ``cov_z`` and ``corr`` are in the fitted coordinates.
+    """
+
+    loglik: float
+    n_params: int
+    n_obs: int
+    rows: list[dict[str, Any]]
+    labels: tuple[str, ...]
+    z: np.ndarray
+    grad: np.ndarray
+    hessian: np.ndarray
+    cov_z: np.ndarray
+    corr: np.ndarray
+    hessian_method: str
+    backend: str
+    network: str
+    records: tuple[str, ...]
+    converged: bool
+    message: str
+    nit: int
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def aic(self) -> float:
+        return 2.0 * self.n_params - 2.0 * self.loglik
+
+    @property
+    def bic(self) -> float:
+        return self.n_params * math.log(self.n_obs) - 2.0 * self.loglik
+
+    @property
+    def estimates(self) -> dict[str, float]:
+        """``{name: estimate}`` (SI)."""
+        return {r["name"]: r["estimate"] for r in self.rows}
+
+    @property
+    def std_errors(self) -> dict[str, float]:
+        """``{name: se}`` (SI; NaN where at a bound or not identifiable)."""
+        return {r["name"]: r["se"] for r in self.rows}
+
+    def row(self, name: str) -> dict[str, Any]:
+        for r in self.rows:
+            if r["name"] == name:
+                return r
+        raise KeyError(f"no estimate {name!r}; estimates are: {', '.join(r['name'] for r in self.rows)}")
+
+    def summary(self) -> str:
+        """CTSM-R's coefficient table (Estimate, Std. Error, t value, Pr(>|t|), dF/dPar), then log L, AIC, BIC."""
+        w = max(12, *(len(r["name"]) for r in self.rows))
+        head = f"{'':<{w}} {'Estimate':>12} {'Std. Error':>12} {'t value':>9} {'Pr(>|t|)':>10} {'dF/dPar':>11}  unit"
+        lines = [f"maximum-likelihood fit of {self.network} ({self.backend}, {len(self.records)} record(s), "
+                 f"{self.n_obs} readings; Hessian: {self.hessian_method})", "Coefficients:", head]
+        for r in self.rows:
+            if r["status"] == "ok":
+                se, t, p = f"{r['se']:12.4e}", f"{r['t']:9.3f}", f"{r['p']:10.3g}"
+            else:
+                se, t, p = f"{r['status']:>12}", f"{'':9}", f"{'':10}"
+            unit = r["unit_si"]
+            extra = ""
+            if r.get("unit") and r.get("estimate_unit") is not None:
+                extra = f"   = {r['estimate_unit']:.5g}" + (f" ± {r['se_unit']:.3g}" if r["status"] == "ok" else "") \
+                    + f" {r['unit']}"
+            lines.append(f"{r['name']:<{w}} {r['estimate']:12.4e} {se} {t} {p} {r['dF']:11.3e}  {unit}{extra}")
+        lines.append(f"log L = {self.loglik:.3f}   k = {self.n_params}   n = {self.n_obs}   AIC = {self.aic:.2f}   "
+                     f"BIC = {self.bic:.2f}")
+        lines.append(f"optimiser: {'converged' if self.converged else 'NOT converged'} ({self.message}), "
+                     f"{self.nit} iterations, {self.seconds:.1f} s")
+        lines += [f"note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (floats and lists; NaN as ``None``)."""
+        def clean(v):
+            if isinstance(v, (float, np.floating)):
+                return float(v) if math.isfinite(v) else None
+            if isinstance(v, np.ndarray):
+                return [clean(x) for x in v.tolist()] if v.ndim == 1 else [clean(np.asarray(x)) for x in v]
+            if isinstance(v, (list, tuple)):
+                return [clean(x) for x in v]
+            if isinstance(v, dict):
+                return {k: clean(x) for k, x in v.items()}
+            if isinstance(v, (np.integer,)):
+                return int(v)
+            return v
+        return clean({"network": self.network, "backend": self.backend, "records": list(self.records),
+                      "loglik": self.loglik, "n_params": self.n_params, "n_obs": self.n_obs, "aic": self.aic,
+                      "bic": self.bic, "rows": self.rows, "labels": list(self.labels), "z": self.z,
+                      "grad": self.grad, "cov_z": self.cov_z, "corr": self.corr,
+                      "hessian_method": self.hessian_method, "converged": self.converged, "message": self.message,
+                      "nit": self.nit, "seconds": self.seconds, "notes": list(self.notes)})
+
+    def _repr_html_(self) -> str:
+        return safe_repr_html(self._html, self.summary, f"MLResult({self.network!r})")
+
+    def _html(self) -> str:
+        rows = [[r["name"], r["display"], r["se"] if r["status"] == "ok" else r["status"],
+                 r["t"] if r["status"] == "ok" else None, r["p"] if r["status"] == "ok" else None, r["dF"]]
+                for r in self.rows]
+        table = html_table(["parameter", "estimate", "std. error (SI)", "t value", "Pr(>|t|)", "dF/dPar"], rows,
+                           numeric=[False, False, True, True, True, True])
+        fit = html_table(["log L", "k", "n", "AIC", "BIC"],
+                         [[self.loglik, self.n_params, self.n_obs, self.aic, self.bic]], numeric=[True] * 5, digits=7)
+        return view(f"maximum-likelihood fit: {self.network}", fit, table,
+                    pre("\n".join(f"note: {n}" for n in self.notes)) if self.notes else "")
+
+
+# ---------------------------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------------------------
+
+
+def _records(experiments) -> list[tuple[str, np.ndarray, np.ndarray, float]]:
+    if hasattr(experiments, "inputs") or (isinstance(experiments, tuple) and len(experiments) == 3
+                                          and not hasattr(experiments[0], "inputs")):
+        experiments = [experiments]
+    out = []
+    for i, e in enumerate(experiments):
+        if hasattr(e, "inputs"):
+            out.append((str(getattr(e, "name", f"record {i}")), np.asarray(e.inputs, float),
+                        np.asarray(e.outputs, float), float(e.dt)))
+        else:
+            U, Y, dt = e
+            out.append((f"record {i}", np.asarray(U, float), np.asarray(Y, float), float(dt)))
+    if not out:
+        raise TnnError("fit_ml needs at least one record")
+    return out
+
+
+_JIT: dict = {}
+"""Compiled ``value_and_grad`` and Hessian per (model, layout, record shapes): refits of same-shaped records
+(a Monte-Carlo study, a cross-validation) trace and compile once."""
+
+
+class _Joint:
+    """The sum of per-record problems over one vector: shared ``[params, log σ_w, log σ_v]``, then each
+    record's own ``[x0 offsets (, log p0)]``. The records' data (inputs, readings, x0 reference) are arguments
+    of the compiled functions, not constants in them, so that same-shaped records share one compilation."""
+
+    def __init__(self, problems: list[LikelihoodProblem], names: list[str]):
+        self.problems = problems
+        p = problems[0]
+        self.B = p.B
+        ns, no = len(p.model.state_names), len(p.model.output_names)
+        self.n_shared = len(p.free) + ns + no
+        self.n_own = len(p.z0) - self.n_shared
+        z = [p.z0[:self.n_shared]] + [q.z0[self.n_shared:] for q in problems]
+        self.z0 = np.concatenate(z)
+        labels = list(p.labels[:self.n_shared])
+        for q, nm in zip(problems, names):
+            suffix = "" if len(problems) == 1 else f" @{nm}"
+            labels += [lab + suffix for lab in q.labels[self.n_shared:]]
+        self.labels = tuple(labels)
+        self.data = tuple((q.U, q.Y, q._x0_ref_b) for q in problems)
+        key = (id(p.model), tuple(p.free), tuple(p.logged), p.fit_x0, p.fit_p0,
+               tuple((q.static, tuple(q.U.shape), tuple(q.Y.shape)) for q in problems))
+        hit = _JIT.get(key)
+        if hit is None or hit["model"] is not p.model:
+            if len(_JIT) > 16:
+                _JIT.clear()
+            templates = [copy.copy(q) for q in problems]
+            hit = {"model": p.model, "templates": templates, "vg": None, "hess": None,
+                   "nll": lambda zz, data: self._total(templates, zz, data)}
+            _JIT[key] = hit
+        self._fns = hit
+
+    def _total(self, templates, z, data):
+        m = self.B.xp
+        total = 0.0
+        for r, (q, (U, Y, xr)) in enumerate(zip(templates, data)):
+            a = self.n_shared + r * self.n_own
+            qq = copy.copy(q)  # the record's data as (traced) arguments
+            qq.U, qq.Y, qq._x0_ref_b = U, Y, xr
+            total = total + qq.nll(m.concatenate([z[:self.n_shared], z[a:a + self.n_own]]))
+        return total
+
+    def nll(self, z):
+        return self._fns["nll"](z, self.data)
+
+    def value_and_grad(self, z):
+        if self._fns["vg"] is None:
+            self._fns["vg"] = self.B.value_and_grad(self._fns["nll"])
+        return self._fns["vg"](np.asarray(z, dtype=np.float64), self.data)
+
+    def hessian(self, z):
+        """``∂²(−log L)/∂z²`` by ``jax.hessian`` (JAX only)."""
+        B = self.B
+        if B.name != "jax":
+            raise TnnError(Diagnostic("hessian='exact' needs the JAX backend", hint="use hessian='fd' on torch"))
+        if self._fns["hess"] is None:
+            self._fns["hess"] = B.jax.jit(B.jax.hessian(self._fns["nll"]))
+        H = np.asarray(self._fns["hess"](B.xp.asarray(z), self.data), dtype=np.float64)
+        return 0.5 * (H + H.T)
+
+    def bounds(self):
+        b = self.problems[0].bounds()
+        return b[:self.n_shared] + [(None, None)] * (len(self.z0) - self.n_shared)
+
+
+def _hessian_fd(joint: _Joint, z: np.ndarray, h: float = _FD_STEP) -> np.ndarray:
+    n = len(z)
+    H = np.empty((n, n))
+    for i in range(n):
+        e = np.zeros(n)
+        e[i] = h
+        H[:, i] = (joint.value_and_grad(z + e)[1] - joint.value_and_grad(z - e)[1]) / (2.0 * h)
+    return 0.5 * (H + H.T)
+
+
+def _covariance(H: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(cov (n, n) with NaN rows/columns for the fixed and the not identifiable, singular mask (n,))``."""
+    n = len(H)
+    cov = np.full((n, n), np.nan)
+    singular = np.zeros(n, dtype=bool)
+    keep = np.flatnonzero(~fixed)
+    if keep.size == 0:
+        return cov, singular
+    Hk = H[np.ix_(keep, keep)]
+    d = np.sqrt(np.abs(np.diag(Hk)))
+    d = np.where(d > 0, d, 1.0)
+    S = Hk / d[:, None] / d[None, :]  # scaled to unit diagonal: singularity independent of the coordinates
+    lam, V = np.linalg.eigh(S)
+    bad = lam <= _SINGULAR * max(lam.max(), 0.0) if lam.max() > 0 else np.ones_like(lam, dtype=bool)
+    if bad.any():
+        load = np.sqrt(np.sum(V[:, bad] ** 2, axis=1))
+        singular[keep[load > 0.1]] = True
+    good = ~bad
+    Sinv = (V[:, good] / lam[good]) @ V[:, good].T
+    Ck = Sinv / d[:, None] / d[None, :]
+    cov[np.ix_(keep, keep)] = Ck
+    cov[singular, :] = np.nan
+    cov[:, singular] = np.nan
+    return cov, singular
+
+
+def _projected_gradient(z, g, bounds) -> float:
+    """``max |g|`` without the components that push against an active bound."""
+    g = g.copy()
+    for i, (lo, hi) in enumerate(bounds):
+        if lo is not None and z[i] <= lo + 1e-10 and g[i] > 0:
+            g[i] = 0.0
+        if hi is not None and z[i] >= hi - 1e-10 and g[i] < 0:
+            g[i] = 0.0
+    return float(np.max(np.abs(g))) if g.size else 0.0
+
+
+def _normal_p(t: float) -> float:
+    return math.erfc(abs(t) / math.sqrt(2.0)) if math.isfinite(t) else math.nan
+
+
+def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: Sequence[str] | None = None,
+           x0: Any = None, integrator: str = "rk4", substeps: int | None = None, qd: str = "vanloan",
+           sigma_w: Any = None, sigma_v: Any = _SIGMA_V0, fit_p0: bool = False, hessian: str = "auto",
+           maxiter: int = 1000, restart: bool = True) -> MLResult:
+    """Maximum-likelihood estimates of a network's free parameters and noise levels, with standard errors.
+
+    Parameters
+    ----------
+    net_or_model : a :class:`~tnn_dsl.ir.Network` (compiled here with ``backend``) or a compiled JAX/torch model
+    experiments : one record or a list: :class:`~tnn_dsl.data.Experiment` objects (``inputs``, ``outputs``,
+        ``dt``, ``name``) or ``(inputs (N, n_in), outputs (N, n_out), dt)`` tuples (SI)
+    free : the parameters to estimate (default every free constant); the others are held at their values
+    x0 : the initial state's reference per record (a list of ``(n_states,)``, or one for all); default each
+        record's steady state with the sensors' nodes at their first readings; the offsets are always estimated
+    sigma_w : starting σ_w, K/√s (scalar or per state); default 1e-3 K/√s
+    sigma_v : starting σ_v, K (scalar or per sensor); default 0.1 K
+    fit_p0 : also estimate each record's initial-state standard deviation (default: CTSM's ``P0 = Q_d``)
+    hessian : ``"exact"`` (JAX), ``"fd"`` (central differences of the gradient), ``"auto"`` (exact on JAX)
+    restart : run L-BFGS-B a second time from where the first stopped, keep the better end
+
+    Returns
+    -------
+    :class:`MLResult`
+    """
+    from scipy.optimize import minimize
+
+    if hessian not in HESSIAN_METHODS:
+        raise TnnError(f"unknown hessian method {hessian!r}; use one of: {', '.join(HESSIAN_METHODS)}")
+    model = net_or_model
+    if not hasattr(model, "param_specs"):
+        model = compile_network(net_or_model, backend)
+    B = backend_of(model)
+    recs = _records(experiments)
+    ns, no = len(model.state_names), len(model.output_names)
+    if sigma_w is None:
+        sigma_w = _SIGMA_W0
+    lsw = np.log(np.broadcast_to(np.asarray(sigma_w, float), (ns,)))
+    lsv = np.log(np.broadcast_to(np.asarray(sigma_v, float), (no,)))
+    if x0 is None or np.ndim(x0) == 1:
+        x0s = [x0] * len(recs)
+    else:
+        x0s = list(x0)
+        if len(x0s) != len(recs):
+            raise TnnError(f"x0 gives {len(x0s)} initial states for {len(recs)} records")
+    params = model.init_params()
+    problems = [LikelihoodProblem(model, params, U, Y, dt, free=free, log_sigma_w=lsw, log_sigma_v=lsv, x0=x,
+                                  fit_p0=fit_p0, integrator=integrator, substeps=substeps, qd=qd)
+                for (_, U, Y, dt), x in zip(recs, x0s)]
+    joint = _Joint(problems, [r[0] for r in recs])
+    bounds = joint.bounds()
+    z0 = np.array([min(max(v, lo if lo is not None else -np.inf), hi if hi is not None else np.inf)
+                   for v, (lo, hi) in zip(joint.z0, bounds)])
+
+    t0 = time.perf_counter()
+    opts = {"maxiter": maxiter, "ftol": 1e-14, "gtol": 1e-8, "maxcor": 20}
+    res = minimize(joint.value_and_grad, z0, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+    nit = int(res.nit)
+    if restart:
+        r2 = minimize(joint.value_and_grad, res.x, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+        nit += int(r2.nit)
+        if r2.fun <= res.fun:
+            res = r2
+    z = np.asarray(res.x, dtype=np.float64)
+    f, g = joint.value_and_grad(z)
+    method = ("exact" if B.name == "jax" else "fd") if hessian == "auto" else hessian
+    H = joint.hessian(z) if method == "exact" else _hessian_fd(joint, z)
+    seconds = time.perf_counter() - t0
+
+    # parameters at a bound (relative 1e-6 in their own value)
+    p0 = problems[0]
+    nf = len(p0.free)
+    at_bound = np.zeros(len(z), dtype=bool)
+    for i, (lo, hi) in enumerate(bounds[:nf]):
+        v = math.exp(z[i]) if p0.logged[i] else z[i]
+        for b in (lo, hi):
+            if b is not None:
+                bv = math.exp(b) if p0.logged[i] else b
+                if abs(v - bv) <= _AT_BOUND * max(abs(bv), 1e-300):
+                    at_bound[i] = True
+    cov, singular = _covariance(H, at_bound)
+    se_z = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / se_z[:, None] / se_z[None, :]
+
+    rows = _rows(model, joint, z, g, se_z, at_bound, singular)
+    notes = []
+    pg = _projected_gradient(z, np.asarray(g, float), bounds)
+    converged = bool(res.success) or ("ABNORMAL" in str(res.message) and pg <= _PG_TOL)
+    if not res.success:
+        notes.append(f"L-BFGS-B: {res.message} (largest projected gradient {pg:.2g}"
+                     + (", taken as converged: the line search is at round-off)" if converged else ")"))
+    for r in rows:
+        if r["status"] != "ok":
+            why = ("it is at a bound of its declared range" if r["status"] == "at bound"
+                   else "the likelihood is flat (the Hessian singular) along a direction it loads on")
+            notes.append(f"{r['name']}: no standard error, {why}")
+    n_obs = int(sum(np.isfinite(Y).sum() for _, _, Y, _ in recs))
+    return MLResult(loglik=-float(f), n_params=len(z), n_obs=n_obs, rows=rows, labels=joint.labels, z=z,
+                    grad=np.asarray(g, float), hessian=H, cov_z=cov, corr=corr, hessian_method=method,
+                    backend=B.name, network=model.network.name, records=tuple(r[0] for r in recs),
+                    converged=converged, message=str(res.message), nit=nit, seconds=seconds, notes=notes)
+
+
+def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str, Any]]:
+    p0 = joint.problems[0]
+    net = model.network
+    nf = len(p0.free)
+    rows = []
+    for i, lab in enumerate(joint.labels):
+        log = lab.startswith("log ")
+        base = lab[4:] if log else lab
+        if i < nf:
+            name, kind = p0.free[i], "parameter"
+            par = net.param(name)
+            dim, unit = par.dim, par.unit
+            est = math.exp(z[i]) if log else float(z[i])
+        else:
+            head = base.split(" - ")[0]
+            suffix = base[base.index(" @"):] if " @" in base else ""
+            name = head.split(" @")[0] + suffix
+            kind = name.split("[")[0]
+            dim = {"K": 1.0, "s": -0.5} if kind == "sigma_w" else {"K": 1.0}
+            unit = None
+            if kind == "x0":
+                r = (i - joint.n_shared) // joint.n_own
+                k = (i - joint.n_shared) % joint.n_own
+                est = float(joint.problems[r].x0_ref[k] + z[i])
+            else:
+                est = math.exp(z[i])
+        status = "at bound" if at_bound[i] else ("not identifiable" if singular[i] else "ok")
+        sz = float(se_z[i]) if status == "ok" else math.nan
+        se = abs(est) * sz if log else sz
+        t = est / se if status == "ok" and se > 0 else math.nan
+        if log and status == "ok" and sz > _LOG_SE_MAX:
+            status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
+        fac = unit_factor(unit) if unit else None
+        unit_si = "K/√s" if kind == "sigma_w" else _si_unit(dim)
+        rows.append({"name": name, "kind": kind, "estimate": est, "se": se, "unit_si": unit_si,
+                     "display": f"{est:.6g} K/√s" if kind == "sigma_w" else format_quantity(est, dim),
+                     "unit": unit if fac else None,
+                     "estimate_unit": est / fac if fac else None, "se_unit": se / fac if fac else None,
+                     "t": t, "p": _normal_p(t), "dF": float(g[i]), "coordinate": "log" if log else "linear",
+                     "z": float(z[i]), "se_z": sz, "status": status})
+    return rows
+
+
+def _si_unit(dim) -> str:
+    s = format_quantity(1.0, dim)
+    return s[2:] if s.startswith("1 ") else "1"
