@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
-from tnn_dsl.estimation.ml_fit import MLResult, _covariance, fit_ml, unit_factor
+from tnn_dsl.estimation.ml_fit import MLResult, _covariance, display_factor, fit_ml
 
 ROOT = Path(__file__).resolve().parents[1]
 BUILDING = Path("/work/shared/data/bacher_madsen_inputPRBS1.csv")
@@ -119,8 +119,8 @@ def test_table_views_and_criteria(rc_fit):
     assert d["loglik"] == pytest.approx(r.loglik) and len(d["rows"]) == 5
     html = r._repr_html_()
     assert "<table" in html and "C_n" in html
-    assert unit_factor("kWh/K") == 3.6e6 and unit_factor("K/kW") == pytest.approx(1e-3)
-    assert unit_factor("W/(m^2 K)") == 1.0 and unit_factor("degC") is None
+    assert display_factor("kWh/K") == 3.6e6 and display_factor("K/kW") == pytest.approx(1e-3)
+    assert display_factor("W/(m^2 K)") == 1.0 and display_factor("degC") is None
 
 
 def test_two_records_share_parameters():

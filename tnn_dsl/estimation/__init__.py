@@ -1,6 +1,7 @@
-"""State estimation on a compiled model: the extended Kalman filter (virtual sensing, innovation likelihood).
+"""State estimation on a compiled model: the extended Kalman filter (virtual sensing, innovation likelihood), the
+continuous–discrete likelihood (``likelihood``) and the maximum-likelihood fit with standard errors (``ml_fit``).
 
-May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.compiler``.
+May import: ``tnn_dsl.core``, ``tnn_dsl.ir``, ``tnn_dsl.compiler``, ``tnn_dsl.data`` (units of the file's values).
 """
 
 from __future__ import annotations

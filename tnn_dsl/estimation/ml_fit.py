@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import copy
 import math
-import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -42,6 +41,7 @@ from ..compiler import backend_of
 from ..compiler import compile as compile_network
 from ..core import Diagnostic, TnnError
 from ..core.htmlview import html_table, pre, safe_repr_html, view
+from ..data import unit_factor
 from ..ir.emit import format_quantity
 from .likelihood import LikelihoodProblem
 
@@ -62,51 +62,19 @@ _SIGMA_W0 = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------
-# Units for display (the file's unit of a parameter; no dependency on the parser)
+# Units for display (the file's unit of a parameter)
 # ---------------------------------------------------------------------------------------------
 
-_BASE = {"m": 1.0, "s": 1.0, "g": 1e-3, "K": 1.0, "W": 1.0, "J": 1.0, "Wh": 3600.0, "N": 1.0, "Pa": 1.0,
-         "V": 1.0, "A": 1.0, "ohm": 1.0, "Ohm": 1.0, "Ω": 1.0, "h": 3600.0, "min": 60.0, "d": 86400.0,
-         "day": 86400.0, "hour": 3600.0, "L": 1e-3, "l": 1e-3}
-_PREFIX = {"k": 1e3, "M": 1e6, "G": 1e9, "m": 1e-3, "c": 1e-2, "u": 1e-6, "µ": 1e-6, "μ": 1e-6}
 
-
-def _token_factor(tok: str) -> float | None:
-    if tok in _BASE:
-        return _BASE[tok]
-    if len(tok) > 1 and tok[0] in _PREFIX and tok[1:] in _BASE:
-        return _PREFIX[tok[0]] * _BASE[tok[1:]]
-    return None
-
-
-def unit_factor(unit: str | None) -> float | None:
-    """SI per one ``unit`` for the common products/quotients of units (``"kWh/K"`` → 3.6e6, ``"K/kW"`` → 1e-3,
-    ``"W/(m^2 K)"`` → 1); ``None`` for what it does not know (absolute temperatures included)."""
+def display_factor(unit: str | None) -> float | None:
+    """SI per one ``unit`` (``"kWh/K"`` → 3.6e6, ``"K/kW"`` → 1e-3) by the project's unit parser
+    (:func:`tnn_dsl.data.unit_factor`, pint underneath); ``None`` for an absolute temperature or a unit it does not
+    know (the estimate is then shown in SI only)."""
     if unit is None:
         return None
-    text = unit.strip().strip("[]").strip().replace("·", "*").replace("²", "^2").replace("³", "^3")
-    if text in ("", "1", "-"):
-        return 1.0
-    if text == "%":
-        return 0.01
-    if not re.fullmatch(r"[A-Za-zµμΩ0-9_^*/() .\-]+", text):
-        return None
-    text = re.sub(r"(?<=[A-Za-zµμΩ0-9)])\s+(?=[A-Za-zµμΩ(])", "*", text)
-    bad = []
-
-    def sub(mo):
-        f = _token_factor(mo.group(0))
-        if f is None:
-            bad.append(mo.group(0))
-            return "1"
-        return repr(f)
-
-    expr = re.sub(r"[A-Za-zµμΩ_]+", sub, text).replace("^", "**")
-    if bad:
-        return None
     try:
-        v = float(eval(expr, {"__builtins__": {}}, {}))  # noqa: S307 - digits and operators only by now
-    except Exception:  # noqa: BLE001 - an unreadable unit is simply not shown
+        v = unit_factor(unit)
+    except ValueError:
         return None
     return v if math.isfinite(v) and v > 0 else None
 
@@ -513,7 +481,7 @@ def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str
         t = est / se if status == "ok" and se > 0 else math.nan
         if log and status == "ok" and sz > _LOG_SE_MAX:
             status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
-        fac = unit_factor(unit) if unit else None
+        fac = display_factor(unit) if unit else None
         unit_si = "K/√s" if kind == "sigma_w" else _si_unit(dim)
         rows.append({"name": name, "kind": kind, "estimate": est, "se": se, "unit_si": unit_si,
                      "display": f"{est:.6g} K/√s" if kind == "sigma_w" else format_quantity(est, dim),
