@@ -106,6 +106,23 @@ def test_train_replaces_an_existing_model_without_force(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "rc.csv", "rc.thn"]
 
 
+def test_retraining_into_a_model_directory_keeps_the_users_files_in_it(tmp_path, capsys):
+    """A model directory the user has put notes and plots into is not theirs to lose: training into it again
+    (no --force needed: it is a model) replaces the model's files and keeps the rest."""
+    net, data = rc_net(tmp_path), rc_data(tmp_path)
+    out = tmp_path / "model"
+    args = ["train", net, data, "-o", str(out), "--epochs", "2", "--lbfgs-iters", "0", "-q"]
+    assert main(args) == 0
+    first = load_model(out).meta["write_id"]
+    (out / "notes.txt").write_text("what I tried")
+    (out / "plots").mkdir()
+    (out / "plots" / "fit.png").write_bytes(b"png")
+    assert main(args) == 0, capsys.readouterr().err
+    assert load_model(out).meta["write_id"] != first
+    assert (out / "notes.txt").read_text() == "what I tried" and (out / "plots" / "fit.png").read_bytes() == b"png"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
 @pytest.mark.parametrize("what", ["file", "below-a-file", "input-csv", "input-thn"])
 def test_train_refuses_a_bad_output_before_training(tmp_path, capsys, no_training, what):
     net, data = rc_net(tmp_path), rc_data(tmp_path)

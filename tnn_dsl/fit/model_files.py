@@ -137,7 +137,9 @@ def save_model(
     with an existing model in one atomic step (Linux ``renameat2``, macOS ``renamex_np``; elsewhere two
     renames) and the old model removed. Concurrent writers never leave the path empty. ``path`` must be
     absent, empty or a model directory (:func:`is_model_dir`); with ``force=True`` an other directory is
-    written into file by file and its other files are kept. Temporary siblings of writers that were
+    written into file by file and its other files are kept — and so is a model directory that holds files of the
+    user's (notes, plots): only directories holding nothing but model files are ever swapped out and deleted
+    (:func:`holds_only_model_files`). Temporary siblings of writers that were
     killed are removed by the next write."""
     from safetensors.numpy import save_file
 
@@ -184,15 +186,15 @@ def save_model(
         if (tmp / "include").is_dir():
             fsync_dir(tmp / "include")
         fsync_dir(tmp)
-        if path.is_dir() and any(path.iterdir()) and not is_model_dir(path):
-            _write_into(tmp, path)  # force=True into a directory of the user's: keep its other files
+        if path.is_dir() and not holds_only_model_files(path):
+            _write_into(tmp, path)  # a directory with files of the user's (a model's or not): keep them
         else:
             _install(tmp, path)
     except OSError as err:
         raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
                    hint="check the free disk space and that the place is writable") from None
     finally:
-        if tmp.exists():
+        if tmp.exists() and holds_only_model_files(tmp):  # ours, or the model it replaced: never a user's file
             shutil.rmtree(tmp, ignore_errors=True)
     fsync_dir(parent)
     return path
@@ -226,7 +228,7 @@ def _install(tmp: Path, path: Path) -> None:
         except OSError:
             if not path.exists():
                 os.rename(old, path)
-            else:
+            elif holds_only_model_files(old):
                 shutil.rmtree(old, ignore_errors=True)
             continue
         os.rename(old, tmp)  # the caller removes tmp
@@ -261,9 +263,18 @@ def _remove_stale_temps(path: Path) -> None:
         m = pattern.match(e.name)
         if not m or not e.is_dir() or e.is_symlink() or _process_alive(int(m.group(2))):
             continue
-        # a model's files, and the temporary file safetensors writes next to params.safetensors
-        if all(c.name in MODEL_FILES or c.name.startswith(".tmp") for c in e.iterdir()):
+        if holds_only_model_files(e):
             shutil.rmtree(e, ignore_errors=True)
+
+
+def holds_only_model_files(d: Path) -> bool:
+    """Whether directory ``d`` holds nothing but a model's files (and the temporary ``.tmp*`` file safetensors
+    writes next to ``params.safetensors``): the only directories this program ever deletes. An empty directory
+    does; one it cannot read does not."""
+    try:
+        return all(c.name in MODEL_FILES or c.name.startswith(".tmp") for c in d.iterdir())
+    except OSError:
+        return False
 
 
 def _process_alive(pid: int) -> bool:
