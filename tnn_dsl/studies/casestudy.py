@@ -261,6 +261,14 @@ _INCOMPLETE = ".tnn_dsl-incomplete"
 """Marker file present while a generation is under way (and after one that failed): the directory is ours."""
 
 
+def _is_our_manifest(path: Path) -> bool:
+    """Whether ``path`` is a manifest this generator wrote (its ``what`` names the case study)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8")).get("what") == _WHAT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def _is_data_dir(p: Path) -> bool:
     """A directory this generator wrote: its ``manifest.json`` says so, or the marker of an interrupted
     or failed generation is there."""
@@ -269,10 +277,7 @@ def _is_data_dir(p: Path) -> bool:
             return True
     except (OSError, UnicodeDecodeError):
         pass
-    try:
-        return json.loads((p / "manifest.json").read_text(encoding="utf-8")).get("what") == _WHAT
-    except (OSError, ValueError, AttributeError):
-        return False
+    return _is_our_manifest(p / "manifest.json")
 
 
 DATA_DIR = OutputKind("case-study data directory", is_dir=True, ours=_is_data_dir, example="out/cs")
@@ -321,7 +326,7 @@ def generate_case_study(
     out.mkdir(parents=True, exist_ok=True)
     # a half-regenerated directory must never look valid, but stays recognisable as ours
     write_text_atomic(out / _INCOMPLETE, _WHAT + "\n")
-    if (out / "manifest.json").exists():
+    if _is_our_manifest(out / "manifest.json"):  # only our own: a user's file of that name is left until replaced
         (out / "manifest.json").unlink()
     truth = _truth(backend, tpath)
     written: dict[str, str] = {}
