@@ -38,7 +38,11 @@ sensor y = n column "y"
 TRUTH = {"C_n": 130.0, "Rn": 0.4, "sigma_w[n]": 0.03, "sigma_v[y]": 0.08, "x0[n]": 296.0}
 
 
-def simulate(N: int, dt: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def simulate(N: int, dt: float = 5.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Exact simulation of ``C dT = ((Ta − T)/R + P) dt + C·σ_w dω`` in the likelihood's convention
+    ``dT = f dt + σ_w dω``: ``T⁺ = T∞ + a (T − T∞) + w``, ``a = e^{−Δt/τ}``, ``w ~ N(0, σ_w² τ (1 − a²)/2)``,
+    inputs held over the sample; readings ``T + N(0, σ_v²)``. Returns inputs ``(N, 2)`` [Ta K, P W] and readings
+    ``(N, 1)`` K. (Also the fixture of tests/test_ml_fit.py.)"""
     rng = np.random.default_rng(seed)
     C, R, sw, sv = TRUTH["C_n"], TRUTH["Rn"], TRUTH["sigma_w[n]"], TRUTH["sigma_v[y]"]
     tau = R * C
@@ -55,10 +59,10 @@ def simulate(N: int, dt: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([Ta, P], axis=1), y[:, None]
 
 
-def coverage(n_refits: int, N: int = 300, dt: float = 5.0, seed0: int = 1000) -> dict:
+def coverage(n_refits: int, N: int = 300, dt: float = 5.0, seed0: int = 1000, model=None) -> dict:
     """``{"per_param": {name: fraction}, "pooled": fraction, "hits": int, "intervals": int, "seconds": float,
-    "failed": int}`` over ``n_refits`` simulated records."""
-    model = tnn_dsl.compile(tnn_dsl.loads(RC, "rc.thn"), "jax")
+    "failed": int}`` over ``n_refits`` simulated records (``model``: a compiled :data:`RC` to reuse)."""
+    model = model if model is not None else tnn_dsl.compile(tnn_dsl.loads(RC, "rc.thn"), "jax")
     hits = {k: 0 for k in TRUTH}
     counted = {k: 0 for k in TRUTH}
     failed = 0

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from tnn_dsl.estimation.likelihood import LikelihoodProblem, innovations, loglik
 
 BACKENDS = ["jax", "torch"]
 ROOT = Path(__file__).resolve().parents[1]
-BUILDING = Path("/work/shared/data/bacher_madsen_inputPRBS1.csv")
+BUILDING = Path(os.environ.get("TNN_SHARED", ROOT.parent / "shared")) / "data" / "bacher_madsen_inputPRBS1.csv"
 
 RC = """
 network rc "one node"

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -23,47 +25,10 @@ import tnn_dsl
 from tnn_dsl.estimation.ml_fit import MLResult, _covariance, display_factor, fit_ml
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILDING = Path("/work/shared/data/bacher_madsen_inputPRBS1.csv")
+BUILDING = Path(os.environ.get("TNN_SHARED", ROOT.parent / "shared")) / "data" / "bacher_madsen_inputPRBS1.csv"
 
-RC = """
-network rc "one node"
-units temperature = K
-input Ta : temperature column "Ta"
-input P  : [W] column "P"
-boundary amb = Ta
-node n C = 100 J/K  free in [1 J/K, 10000 J/K]
-R n -- amb = 0.5 K/W  free in [0.01 K/W, 50 K/W] as Rn
-source n = P
-sensor y = n column "y"
-"""
-
-TRUE = {"C_n": 130.0, "Rn": 0.4, "sigma_w": 0.03, "sigma_v": 0.08, "x0": 296.0}
-
-
-def simulate_rc(N: int, dt: float = 5.0, seed: int = 0, truth: dict = TRUE) -> tuple[np.ndarray, np.ndarray]:
-    """Exact simulation of ``C dT = ((Ta − T)/R + P) dt + C·σ_w dω``… in the likelihood's convention
-    ``dT = f dt + σ_w dω``: ``T⁺ = T∞ + a (T − T∞) + w``, ``a = e^{−Δt/τ}``, ``w ~ N(0, σ_w² τ (1 − a²)/2)``,
-    inputs held over the sample; readings ``T + N(0, σ_v²)``."""
-    rng = np.random.default_rng(seed)
-    C, R, sw, sv = truth["C_n"], truth["Rn"], truth["sigma_w"], truth["sigma_v"]
-    tau = R * C
-    a = math.exp(-dt / tau)
-    q = sw ** 2 * tau * (1 - a * a) / 2
-    Ta = 293.0 + 2.0 * np.sin(np.arange(N) / 40.0)
-    P = np.repeat(rng.uniform(0.0, 20.0, N // 15 + 1), 15)[:N]  # steps every 15 samples
-    x = truth["x0"]
-    y = np.empty(N)
-    for k in range(N):
-        y[k] = x + sv * rng.standard_normal()
-        xinf = Ta[k] + R * P[k]
-        x = xinf + a * (x - xinf) + math.sqrt(q) * rng.standard_normal()
-    return np.stack([Ta, P], axis=1), y[:, None]
-
-
-def _truth_of(name: str) -> float:
-    key = name.split("[")[0]
-    return TRUE[key]
-
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_ml_coverage import RC, TRUTH, coverage, simulate  # noqa: E402 - the benchmark's record is the fixture
 
 N_RC = 300
 
@@ -76,7 +41,7 @@ def rc_model():
 
 @pytest.fixture(scope="module")
 def rc_fit(rc_model):
-    U, Y = simulate_rc(N_RC, seed=3)
+    U, Y = simulate(N_RC, seed=3)
     return fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler")
 
 
@@ -88,9 +53,9 @@ def test_estimates_cover_the_truth_and_hessians_agree(rc_model, rc_fit):
     assert r.converged and r.n_params == 5 and r.n_obs == N_RC
     for row in r.rows:
         assert row["status"] == "ok", row
-        assert abs(row["estimate"] - _truth_of(row["name"])) < 3 * row["se"], row
+        assert abs(row["estimate"] - TRUTH[row["name"]]) < 3 * row["se"], row
         assert abs(row["dF"]) < 1e-3
-    U, Y = simulate_rc(N_RC, seed=3)
+    U, Y = simulate(N_RC, seed=3)
     fd = fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler", hessian="fd")
     assert r.hessian_method == "exact" and fd.hessian_method == "fd"
     assert fd.loglik == pytest.approx(r.loglik, abs=1e-6)
@@ -127,7 +92,7 @@ def test_two_records_share_parameters():
     """Two records: one C, R, σ_w, σ_v; an x0 each; the log-likelihood is the sum of the records' (checked
     against fitting each with the joint estimates held: the sum equals the joint value)."""
     net = tnn_dsl.loads(RC, "rc.thn")
-    recs = [simulate_rc(120, seed=11), simulate_rc(120, seed=12)]
+    recs = [simulate(120, seed=11), simulate(120, seed=12)]
     r = fit_ml(net, [(U, Y, 5.0) for U, Y in recs], integrator="expeuler", hessian="fd")  # fd: no 2nd compile
     names = [row["name"] for row in r.rows]
     assert names == ["C_n", "Rn", "sigma_w[n]", "sigma_v[y]", "x0[n] @record 0", "x0[n] @record 1"]
@@ -146,7 +111,7 @@ def test_two_records_share_parameters():
 def test_jax_and_torch_reach_the_same_optimum():
     """A short record (torch's filter is a Python loop): the torch fit (finite-difference Hessian) reaches the
     JAX fit's log-likelihood, and the standard errors agree."""
-    U, Y = simulate_rc(20, seed=5)
+    U, Y = simulate(20, seed=5)
     net = tnn_dsl.loads(RC, "rc.thn")
     kw = dict(integrator="expeuler", free=["Rn"])
     rj = fit_ml(net, (U, Y, 5.0), **kw)
@@ -187,17 +152,8 @@ def test_coverage_of_the_95_percent_intervals(rc_model):
     nominal 95 % the misses are ~Binomial(50, 0.05) (mean 2.5), so more than 15 misses (< 70 %) has probability
     < 1e-7 even allowing for the correlation within a fit — a failure means the standard errors are too small,
     not bad luck. (The issue's 85–100 % over 50 refits: benchmarks/bench_ml_coverage.py, measured 2026-11-24.)"""
-    hits = n = 0
-    for seed in range(100, 110):
-        U, Y = simulate_rc(N_RC, seed=seed)
-        r = fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler")
-        for row in r.rows:
-            n += 1
-            if row["status"] != "ok":
-                continue
-            truth = _truth_of(row["name"])
-            zt = math.log(truth) if row["coordinate"] == "log" else truth - (row["estimate"] - row["z"])
-            hits += abs(row["z"] - zt) <= 1.96 * row["se_z"]
+    res = coverage(10, N=N_RC, seed0=100, model=rc_model)  # the benchmark's own count, 10 refits instead of 50
+    hits, n = res["hits"], res["intervals"]
     assert n == 50 and hits / n >= 0.70, hits
 
 
@@ -205,7 +161,7 @@ def test_at_bound_and_not_identifiable_get_no_standard_error():
     """A resistance whose declared range stops below the truth ends at its bound: ``status = "at bound"``, no
     standard error, a note; the others keep theirs. A singular Hessian (two coordinates that enter only as a
     sum) marks both ``not identifiable`` and leaves the third's variance exact."""
-    U, Y = simulate_rc(80, seed=4)
+    U, Y = simulate(80, seed=4)
     text = RC.replace("0.5 K/W  free in [0.01 K/W, 50 K/W]", "0.25 K/W  free in [0.01 K/W, 0.3 K/W]")
     net = tnn_dsl.loads(text, "rc.thn")
     r = fit_ml(net, (U, Y, 5.0), integrator="expeuler", hessian="fd")
