@@ -346,7 +346,8 @@ class LikelihoodProblem:
 
     Layout of ``z`` (:attr:`labels` names every entry): the free constant parameters (``free``; default every
     trainable physical parameter), each as ``log`` of its SI value when it is positive (a positive role, or a
-    lower bound ≥ 0 and a positive value) else the SI value; then ``log σ_w`` (n_states), ``log σ_v``
+    lower bound ≥ 0 and a positive value) else the SI value; then the learned functions' arrays named in ``free``
+    (flattened, as stored: ``NAME[i]``); then ``log σ_w`` (n_states), ``log σ_v``
     (n_outputs), the initial state as an offset in K from :attr:`x0_ref` (``fit_x0``), and ``log p0_std``
     (``fit_p0``). What is not in ``z`` is held at the values given.
 
@@ -372,10 +373,13 @@ class LikelihoodProblem:
             free = [k for k, s in specs.items() if s.kind == "physical" and s.trainable]
         self.free, self.logged = [], []
         z, labels = [], []
+        learned = [name for name in free if specs.get(name) is not None and specs[name].kind == "weights"]
+        free = [name for name in free if name not in learned]
         for name in free:
             s = specs.get(name)
             if s is None or s.kind != "physical":
-                raise TnnError(Diagnostic(f"cannot estimate {name!r}: not a constant parameter of the network"))
+                raise TnnError(Diagnostic(f"cannot estimate {name!r}: not a constant parameter or learned array of "
+                                          "the network"))
             v = float(pn[name])
             log = bool(s.positive or (s.lower is not None and s.lower >= 0 and v > 0))
             if log and not v > 0:
@@ -384,6 +388,13 @@ class LikelihoodProblem:
             self.logged.append(log)
             z.append(math.log(v) if log else v)
             labels.append(f"log {name}" if log else name)
+        # learned functions' arrays, flattened, in their own (linear) coordinates, after the constants
+        self.learned = [(name, tuple(np.shape(pn[name]))) for name in learned]
+        for name, shape in self.learned:
+            flat = np.asarray(pn[name], dtype=np.float64).reshape(-1)
+            z += list(flat)
+            labels += [f"{name}[{i}]" for i in range(flat.size)]
+        self.n_learned = sum(int(np.prod(shape)) for _, shape in self.learned)
         if x0 is None:  # the steady state of the first inputs, the sensors' nodes moved to their first readings
             x0 = _default_x0(model, params, U, Y)
         self.x0_ref = np.asarray(x0, dtype=np.float64).reshape(-1)
@@ -417,6 +428,10 @@ class LikelihoodProblem:
         for i, (name, log) in enumerate(zip(self.free, self.logged)):
             p[name] = m.exp(z[i]) if log else z[i]
         i = len(self.free)
+        for name, shape in self.learned:
+            size = int(np.prod(shape))
+            p[name] = m.reshape(z[i:i + size], shape)
+            i += size
         out = {"params": p, "log_sigma_w": z[i:i + ns], "log_sigma_v": z[i + ns:i + ns + no]}
         i += ns + no
         if self.fit_x0:
@@ -448,7 +463,10 @@ class LikelihoodProblem:
         out = {}
         for i, (name, log) in enumerate(zip(self.free, self.logged)):
             out[name] = float(np.exp(z[i]) if log else z[i])
-        for lab, v in zip(self.labels[len(self.free):], z[len(self.free):]):
+        skip = len(self.free) + self.n_learned
+        for lab, v in zip(self.labels[len(self.free):skip], z[len(self.free):skip]):
+            out[lab] = float(v)
+        for lab, v in zip(self.labels[skip:], z[skip:]):
             if lab.startswith("log "):
                 out[lab[4:]] = float(np.exp(v))
             else:

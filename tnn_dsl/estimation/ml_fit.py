@@ -32,7 +32,6 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -40,167 +39,23 @@ import numpy as np
 from ..compiler import backend_of
 from ..compiler import compile as compile_network
 from ..core import Diagnostic, TnnError
-from ..core.htmlview import html_table, pre, safe_repr_html, view
-from ..data import unit_factor
 from ..ir.emit import format_quantity
+from .estimates import AT_BOUND, LOG_SE_MAX, Estimates, display_factor, normal_p, si_unit
+from .estimates import covariance_from_information as _covariance
 from .likelihood import LikelihoodProblem
 
-__all__ = ["fit_ml", "MLResult", "HESSIAN_METHODS"]
+__all__ = ["fit_ml", "MLResult", "HESSIAN_METHODS", "display_factor"]
+
+MLResult = Estimates
+"""The result of :func:`fit_ml` (an :class:`~tnn_dsl.estimation.estimates.Estimates` with ``objective="ml"``)."""
 
 HESSIAN_METHODS = ("auto", "exact", "fd")
 _FD_STEP = 1e-4
-_SINGULAR = 1e-9
-_AT_BOUND = 1e-6
-_LOG_SE_MAX = 5.0
-"""A log-coordinate standard error above this (a 95 % interval wider than a factor ``e^±10``) is no estimate:
-the likelihood is flat along the parameter (σ_v → 0 on Bacher & Madsen's Ti) — ``not identifiable``."""
 _PG_TOL = 1e-2
 """L-BFGS-B's ``ABNORMAL`` end (no decrease found: −log L is flat to round-off) counts as converged when no
 projected gradient component exceeds this (in −log L per unit of ``z``)."""
 _SIGMA_V0 = 0.1
 _SIGMA_W0 = 1e-3
-
-
-# ---------------------------------------------------------------------------------------------
-# Units for display (the file's unit of a parameter)
-# ---------------------------------------------------------------------------------------------
-
-
-def display_factor(unit: str | None) -> float | None:
-    """SI per one ``unit`` (``"kWh/K"`` → 3.6e6, ``"K/kW"`` → 1e-3) by the project's unit parser
-    (:func:`tnn_dsl.data.unit_factor`, pint underneath); ``None`` for an absolute temperature or a unit it does not
-    know (the estimate is then shown in SI only)."""
-    if unit is None:
-        return None
-    try:
-        v = unit_factor(unit)
-    except ValueError:
-        return None
-    return v if math.isfinite(v) and v > 0 else None
-
-
-# ---------------------------------------------------------------------------------------------
-# The result
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class MLResult:
-    """A maximum-likelihood fit (:func:`fit_ml`).
-
-    ``rows``: one dict per estimated quantity — ``name``, ``kind`` (``parameter``/``sigma_w``/``sigma_v``/``x0``/
-    ``p0_std``), ``estimate`` and ``se`` (SI; σ_w in K/√s, σ_v, x0 and p0 in K), ``unit_si`` and ``display``
-    (``format_quantity``), ``unit`` / ``estimate_unit`` / ``se_unit`` (the file's unit where one was written and
-    understood, else ``None``), ``t``, ``p`` (two-sided, normal), ``dF`` (``∂(−log L)/∂z`` at the optimum),
-    ``coordinate`` (``log`` or ``linear``), ``z``, ``se_z``, ``status`` (``ok``/``at bound``/``not identifiable``).
-    ``labels``, ``z``, ``grad``, ``hessian``, ``cov_z`` and ``corr`` are in the fitted coordinates.
-    """
-
-    loglik: float
-    n_params: int
-    n_obs: int
-    rows: list[dict[str, Any]]
-    labels: tuple[str, ...]
-    z: np.ndarray
-    grad: np.ndarray
-    hessian: np.ndarray
-    cov_z: np.ndarray
-    corr: np.ndarray
-    hessian_method: str
-    backend: str
-    network: str
-    records: tuple[str, ...]
-    converged: bool
-    message: str
-    nit: int
-    seconds: float
-    notes: list[str] = field(default_factory=list)
-
-    @property
-    def aic(self) -> float:
-        return 2.0 * self.n_params - 2.0 * self.loglik
-
-    @property
-    def bic(self) -> float:
-        return self.n_params * math.log(self.n_obs) - 2.0 * self.loglik
-
-    @property
-    def estimates(self) -> dict[str, float]:
-        """``{name: estimate}`` (SI)."""
-        return {r["name"]: r["estimate"] for r in self.rows}
-
-    @property
-    def std_errors(self) -> dict[str, float]:
-        """``{name: se}`` (SI; NaN where at a bound or not identifiable)."""
-        return {r["name"]: r["se"] for r in self.rows}
-
-    def row(self, name: str) -> dict[str, Any]:
-        for r in self.rows:
-            if r["name"] == name:
-                return r
-        raise KeyError(f"no estimate {name!r}; estimates are: {', '.join(r['name'] for r in self.rows)}")
-
-    def summary(self) -> str:
-        """CTSM-R's coefficient table (Estimate, Std. Error, t value, Pr(>|t|), dF/dPar), then log L, AIC, BIC."""
-        w = max(12, *(len(r["name"]) for r in self.rows))
-        head = f"{'':<{w}} {'Estimate':>12} {'Std. Error':>12} {'t value':>9} {'Pr(>|t|)':>10} {'dF/dPar':>11}  unit"
-        lines = [f"maximum-likelihood fit of {self.network} ({self.backend}, {len(self.records)} record(s), "
-                 f"{self.n_obs} readings; Hessian: {self.hessian_method})", "Coefficients:", head]
-        for r in self.rows:
-            if r["status"] == "ok":
-                se, t, p = f"{r['se']:12.4e}", f"{r['t']:9.3f}", f"{r['p']:10.3g}"
-            else:
-                se, t, p = f"{r['status']:>12}", f"{'':9}", f"{'':10}"
-            unit = r["unit_si"]
-            extra = ""
-            if r.get("unit") and r.get("estimate_unit") is not None:
-                extra = f"   = {r['estimate_unit']:.5g}" + (f" ± {r['se_unit']:.3g}" if r["status"] == "ok" else "") \
-                    + f" {r['unit']}"
-            lines.append(f"{r['name']:<{w}} {r['estimate']:12.4e} {se} {t} {p} {r['dF']:11.3e}  {unit}{extra}")
-        lines.append(f"log L = {self.loglik:.3f}   k = {self.n_params}   n = {self.n_obs}   AIC = {self.aic:.2f}   "
-                     f"BIC = {self.bic:.2f}")
-        lines.append(f"optimiser: {'converged' if self.converged else 'NOT converged'} ({self.message}), "
-                     f"{self.nit} iterations, {self.seconds:.1f} s")
-        lines += [f"note: {n}" for n in self.notes]
-        return "\n".join(lines)
-
-    def __str__(self) -> str:
-        return self.summary()
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (floats and lists; NaN as ``None``)."""
-        def clean(v):
-            if isinstance(v, (float, np.floating)):
-                return float(v) if math.isfinite(v) else None
-            if isinstance(v, np.ndarray):
-                return [clean(x) for x in v.tolist()] if v.ndim == 1 else [clean(np.asarray(x)) for x in v]
-            if isinstance(v, (list, tuple)):
-                return [clean(x) for x in v]
-            if isinstance(v, dict):
-                return {k: clean(x) for k, x in v.items()}
-            if isinstance(v, (np.integer,)):
-                return int(v)
-            return v
-        return clean({"network": self.network, "backend": self.backend, "records": list(self.records),
-                      "loglik": self.loglik, "n_params": self.n_params, "n_obs": self.n_obs, "aic": self.aic,
-                      "bic": self.bic, "rows": self.rows, "labels": list(self.labels), "z": self.z,
-                      "grad": self.grad, "cov_z": self.cov_z, "corr": self.corr,
-                      "hessian_method": self.hessian_method, "converged": self.converged, "message": self.message,
-                      "nit": self.nit, "seconds": self.seconds, "notes": list(self.notes)})
-
-    def _repr_html_(self) -> str:
-        return safe_repr_html(self._html, self.summary, f"MLResult({self.network!r})")
-
-    def _html(self) -> str:
-        rows = [[r["name"], r["display"], r["se"] if r["status"] == "ok" else r["status"],
-                 r["t"] if r["status"] == "ok" else None, r["p"] if r["status"] == "ok" else None, r["dF"]]
-                for r in self.rows]
-        table = html_table(["parameter", "estimate", "std. error (SI)", "t value", "Pr(>|t|)", "dF/dPar"], rows,
-                           numeric=[False, False, True, True, True, True])
-        fit = html_table(["log L", "k", "n", "AIC", "BIC"],
-                         [[self.loglik, self.n_params, self.n_obs, self.aic, self.bic]], numeric=[True] * 5, digits=7)
-        return view(f"maximum-likelihood fit: {self.network}", fit, table,
-                    pre("\n".join(f"note: {n}" for n in self.notes)) if self.notes else "")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,7 +95,7 @@ class _Joint:
         p = problems[0]
         self.B = p.B
         ns, no = len(p.model.state_names), len(p.model.output_names)
-        self.n_shared = len(p.free) + ns + no
+        self.n_shared = len(p.free) + p.n_learned + ns + no
         self.n_own = len(p.z0) - self.n_shared
         z = [p.z0[:self.n_shared]] + [q.z0[self.n_shared:] for q in problems]
         self.z0 = np.concatenate(z)
@@ -250,7 +105,7 @@ class _Joint:
             labels += [lab + suffix for lab in q.labels[self.n_shared:]]
         self.labels = tuple(labels)
         self.data = tuple((q.U, q.Y, q._x0_ref_b) for q in problems)
-        key = (id(p.model), tuple(p.free), tuple(p.logged), p.fit_x0, p.fit_p0,
+        key = (id(p.model), tuple(p.free), tuple(p.logged), tuple(p.learned), p.fit_x0, p.fit_p0,
                tuple((q.static, tuple(q.U.shape), tuple(q.Y.shape)) for q in problems))
         hit = _JIT.get(key)
         if hit is None or hit["model"] is not p.model:
@@ -305,32 +160,6 @@ def _hessian_fd(joint: _Joint, z: np.ndarray, h: float = _FD_STEP) -> np.ndarray
     return 0.5 * (H + H.T)
 
 
-def _covariance(H: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(cov (n, n) with NaN rows/columns for the fixed and the not identifiable, singular mask (n,))``."""
-    n = len(H)
-    cov = np.full((n, n), np.nan)
-    singular = np.zeros(n, dtype=bool)
-    keep = np.flatnonzero(~fixed)
-    if keep.size == 0:
-        return cov, singular
-    Hk = H[np.ix_(keep, keep)]
-    d = np.sqrt(np.abs(np.diag(Hk)))
-    d = np.where(d > 0, d, 1.0)
-    S = Hk / d[:, None] / d[None, :]  # scaled to unit diagonal: singularity independent of the coordinates
-    lam, V = np.linalg.eigh(S)
-    bad = lam <= _SINGULAR * max(lam.max(), 0.0) if lam.max() > 0 else np.ones_like(lam, dtype=bool)
-    if bad.any():
-        load = np.sqrt(np.sum(V[:, bad] ** 2, axis=1))
-        singular[keep[load > 0.1]] = True
-    good = ~bad
-    Sinv = (V[:, good] / lam[good]) @ V[:, good].T
-    Ck = Sinv / d[:, None] / d[None, :]
-    cov[np.ix_(keep, keep)] = Ck
-    cov[singular, :] = np.nan
-    cov[:, singular] = np.nan
-    return cov, singular
-
-
 def _projected_gradient(z, g, bounds) -> float:
     """``max |g|`` without the components that push against an active bound."""
     g = g.copy()
@@ -342,14 +171,10 @@ def _projected_gradient(z, g, bounds) -> float:
     return float(np.max(np.abs(g))) if g.size else 0.0
 
 
-def _normal_p(t: float) -> float:
-    return math.erfc(abs(t) / math.sqrt(2.0)) if math.isfinite(t) else math.nan
-
-
 def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: Sequence[str] | None = None,
-           x0: Any = None, integrator: str = "rk4", substeps: int | None = None, qd: str = "vanloan",
-           sigma_w: Any = None, sigma_v: Any = _SIGMA_V0, fit_p0: bool = False, hessian: str = "auto",
-           maxiter: int = 1000, restart: bool = True) -> MLResult:
+           params: Any = None, x0: Any = None, integrator: str = "rk4", substeps: int | None = None,
+           qd: str = "vanloan", sigma_w: Any = None, sigma_v: Any = _SIGMA_V0, fit_p0: bool = False,
+           hessian: str = "auto", maxiter: int = 1000, restart: bool = True) -> MLResult:
     """Maximum-likelihood estimates of a network's free parameters and noise levels, with standard errors.
 
     Parameters
@@ -357,7 +182,11 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
     net_or_model : a :class:`~tnn_dsl.ir.Network` (compiled here with ``backend``) or a compiled JAX/torch model
     experiments : one record or a list: :class:`~tnn_dsl.data.Experiment` objects (``inputs``, ``outputs``,
         ``dt``, ``name``) or ``(inputs (N, n_in), outputs (N, n_out), dt)`` tuples (SI)
-    free : the parameters to estimate (default every free constant); the others are held at their values
+    free : the parameters to estimate (default every free constant); the others are held at their values.
+        A learned function's weight array named here is estimated too (no standard error per weight: the
+        summary says how many weights each array holds; the constants' errors account for them)
+    params : the starting values (the model's parameter table, numpy or backend arrays; e.g. an output-error
+        fit's); default the values written in the network (``model.init_params()``)
     x0 : the initial state's reference per record (a list of ``(n_states,)``, or one for all); default each
         record's steady state with the sensors' nodes at their first readings; the offsets are always estimated
     sigma_w : starting σ_w, K/√s (scalar or per state); default 1e-3 K/√s
@@ -390,7 +219,7 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
         x0s = list(x0)
         if len(x0s) != len(recs):
             raise TnnError(f"x0 gives {len(x0s)} initial states for {len(recs)} records")
-    params = model.init_params()
+    params = model.init_params() if params is None else model.from_numpy(model.to_numpy(params))
     problems = [LikelihoodProblem(model, params, U, Y, dt, free=free, log_sigma_w=lsw, log_sigma_v=lsv, x0=x,
                                   fit_p0=fit_p0, integrator=integrator, substeps=substeps, qd=qd)
                 for (_, U, Y, dt), x in zip(recs, x0s)]
@@ -423,7 +252,7 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
         for b in (lo, hi):
             if b is not None:
                 bv = math.exp(b) if p0.logged[i] else b
-                if abs(v - bv) <= _AT_BOUND * max(abs(bv), 1e-300):
+                if abs(v - bv) <= AT_BOUND * max(abs(bv), 1e-300):
                     at_bound[i] = True
     cov, singular = _covariance(H, at_bound)
     se_z = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
@@ -442,11 +271,35 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
             why = ("it is at a bound of its declared range" if r["status"] == "at bound"
                    else "the likelihood is flat (the Hessian singular) along a direction it loads on")
             notes.append(f"{r['name']}: no standard error, {why}")
+    for name, shape in p0.learned:
+        notes.append(f"{name}: {int(np.prod(shape))} weights of a learned function estimated with the rest (no "
+                     "standard error per weight; the constants' standard errors account for them)")
     n_obs = int(sum(np.isfinite(Y).sum() for _, _, Y, _ in recs))
+    fitted, initial_states = _fitted_values(joint, z)
     return MLResult(loglik=-float(f), n_params=len(z), n_obs=n_obs, rows=rows, labels=joint.labels, z=z,
                     grad=np.asarray(g, float), hessian=H, cov_z=cov, corr=corr, hessian_method=method,
                     backend=B.name, network=model.network.name, records=tuple(r[0] for r in recs),
-                    converged=converged, message=str(res.message), nit=nit, seconds=seconds, notes=notes)
+                    converged=converged, message=str(res.message), nit=nit, seconds=seconds, notes=notes,
+                    objective="ml", fitted=fitted, initial_states=initial_states)
+
+
+def _fitted_values(joint: _Joint, z: np.ndarray) -> tuple[dict[str, Any], list[list[float]]]:
+    """``({table name: SI float or nested list}, [initial state per record (K)])`` at ``z``."""
+    p0 = joint.problems[0]
+    fitted: dict[str, Any] = {}
+    for i, (name, log) in enumerate(zip(p0.free, p0.logged)):
+        fitted[name] = float(math.exp(z[i]) if log else z[i])
+    i = len(p0.free)
+    for name, shape in p0.learned:
+        size = int(np.prod(shape))
+        fitted[name] = np.asarray(z[i:i + size], dtype=np.float64).reshape(shape).tolist()
+        i += size
+    states = []
+    for r, q in enumerate(joint.problems):
+        a = joint.n_shared + r * joint.n_own
+        off = z[a:a + len(q.x0_ref)] if q.fit_x0 else np.zeros(len(q.x0_ref))
+        states.append((q.x0_ref + off).tolist())
+    return fitted, states
 
 
 def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str, Any]]:
@@ -455,6 +308,8 @@ def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str
     nf = len(p0.free)
     rows = []
     for i, lab in enumerate(joint.labels):
+        if nf <= i < nf + p0.n_learned:
+            continue  # a learned function's weight: summarised per array in the notes
         log = lab.startswith("log ")
         base = lab[4:] if log else lab
         if i < nf:
@@ -479,19 +334,14 @@ def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str
         sz = float(se_z[i]) if status == "ok" else math.nan
         se = abs(est) * sz if log else sz
         t = est / se if status == "ok" and se > 0 else math.nan
-        if log and status == "ok" and sz > _LOG_SE_MAX:
+        if log and status == "ok" and sz > LOG_SE_MAX:
             status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
         fac = display_factor(unit) if unit else None
-        unit_si = "K/√s" if kind == "sigma_w" else _si_unit(dim)
+        unit_si = "K/√s" if kind == "sigma_w" else si_unit(dim)
         rows.append({"name": name, "kind": kind, "estimate": est, "se": se, "unit_si": unit_si,
                      "display": f"{est:.6g} K/√s" if kind == "sigma_w" else format_quantity(est, dim),
                      "unit": unit if fac else None,
                      "estimate_unit": est / fac if fac else None, "se_unit": se / fac if fac else None,
-                     "t": t, "p": _normal_p(t), "dF": float(g[i]), "coordinate": "log" if log else "linear",
+                     "t": t, "p": normal_p(t), "dF": float(g[i]), "coordinate": "log" if log else "linear",
                      "z": float(z[i]), "se_z": sz, "status": status})
     return rows
-
-
-def _si_unit(dim) -> str:
-    s = format_quantity(1.0, dim)
-    return s[2:] if s.startswith("1 ") else "1"
