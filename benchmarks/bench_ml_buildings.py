@@ -1,15 +1,23 @@
 """Maximum-likelihood fits of Bacher & Madsen's building models (issue 16) against CTSM-R's log-likelihoods.
 
 ``tnn_dsl.estimation.fit_ml`` (JAX, rk4, L-BFGS-B from the values written in the ``.thn`` files, σ_v = 0.1 K,
-σ_w = 1e-3 K/√s, one restart) on ``../shared/data/bacher_madsen_inputPRBS1.csv`` (1691 × 5 min). References:
+σ_w = 1e-3 K/√s, one restart, one more start when a parameter ends at a bound, Hessian by Richardson-extrapolated
+differences of the gradient) on ``../shared/data/bacher_madsen_inputPRBS1.csv`` (1691 × 5 min). References:
 the maximum log-likelihoods of Bacher & Madsen (2011) / CTSM-R's examples — Ti 2479.2, TiTe 3286.6 (not checked
 here), TiTh 3904.7, TiTeTh 5437.0. Printed: log L, its reference, the difference, the number of estimates
 without a standard error (at a bound or not identifiable), and the wall time (compilation included).
 
-Measured 2026-11-24 (2 shared cores, compilation included): ti 2479.23 (+0.03, 7 s), tith 3904.73 (+0.03, 21 s;
-from σ_w = 0.01 K per sample instead it stopped at 3841.09), titeth 5431.00 (−6.0, 21 s: Rih ends at the upper
-bound of its declared range, 20 K/kW, with Ch near its lower one; widening the range does not help — the heater
-node decouples, 5427.9 — so the gap is a local optimum from the written start, not the bound).
+Measured 2026-11-24 with ``python benchmarks/bench_ml_buildings.py`` (2 cores shared with other jobs, load
+average ~4, compilation included): ti 2479.23 (+0.03, 4.3 s; before this change 7.3 s, measured earlier
+the same day at a lower load, ~1), tith 3904.73 (+0.03, 15.2 s; before 18.9 s — its first run now ends at
+3841.09 with Aw = 0, and the start from the bound released
+reaches 3904.73), titeth 5431.00 (−6.0, 16.0 s; before 22.2 s: Rih ends at the upper bound of its declared
+range, 20 K/kW, with Ch near its lower one; the released start returns to the same point; widening the range
+does not help — the heater node decouples, 5427.9 — so the gap is a local optimum from the written start, not
+the bound). Where the time went before: compiling ``jax.hessian`` (4.5 / 9.2 / 11.1 s), the gradient's
+compilation (1.2 / 2.4 / 2.6 s) and evaluations (95 × 11 ms / 237 × 28 ms / 247 × 32 ms); now the
+linearisation of these linear networks is formed once per evaluation instead of per sample and the Hessian
+costs 4n gradients instead of a compilation.
 
     python benchmarks/bench_ml_buildings.py            # ti, tith, titeth, with every summary
     python benchmarks/bench_ml_buildings.py --quick    # ti and tith, the table only

@@ -42,7 +42,7 @@ def rc_model():
 @pytest.fixture(scope="module")
 def rc_fit(rc_model):
     U, Y = simulate(N_RC, seed=3)
-    return fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler")
+    return fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler", hessian="exact")
 
 
 def test_estimates_cover_the_truth_and_hessians_agree(rc_model, rc_fit):
@@ -62,6 +62,9 @@ def test_estimates_cover_the_truth_and_hessians_agree(rc_model, rc_fit):
     se, se_fd = np.array([x["se"] for x in r.rows]), np.array([x["se"] for x in fd.rows])
     np.testing.assert_allclose(se_fd, se, rtol=1e-3)
     np.testing.assert_allclose(fd.hessian, r.hessian, rtol=1e-3, atol=1e-6 * np.abs(r.hessian).max())
+    auto = fit_ml(rc_model, (U, Y, 5.0), integrator="expeuler")  # Richardson: much closer to the exact one
+    assert auto.hessian_method == "fd"
+    np.testing.assert_allclose(auto.hessian, r.hessian, rtol=1e-6, atol=1e-8 * np.abs(r.hessian).max())
 
 
 def test_table_views_and_criteria(rc_fit):

@@ -1,7 +1,9 @@
 """``tnnc inspect MODEL [--plot DIR] [--json FILE]``: what a trained model learned.
 
 Prints the fitted value of every free parameter next to its nominal (as written) value, the training
-summary (data, metrics, why training stopped) and, for each learned function, its inputs with the range
+summary (data, metrics, why training stopped), the estimates with their standard errors (the coefficient table
+of the fit's objective: estimate, std. error, t, p, dF/dPar, in SI and the file's units; log-likelihood, AIC,
+BIC) and, for each learned function, its inputs with the range
 they covered in training. ``--plot DIR`` writes one PNG per learned function: each target plotted
 against each input over the range that input saw in training, the other inputs held at the middle of
 their ranges (for a positive parameter target: its value; for a flow or heat load: the learned
@@ -108,6 +110,10 @@ def run(args) -> int:
             ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
             print(f"{r['name'][:22]:<22} {_fmt(r['nominal'], r['role'], r['unit']):>26} "
                   f"{_fmt(r['fitted'], r['role'], r['unit']):>26} {ch:>9}", file=out)
+    if meta.get("estimation"):
+        from ..estimation import estimation_summary
+
+        print("\n" + estimation_summary(meta["estimation"]), file=out)
     summ = learned_summary(tm)
     for s in summ:
         fn = next(f for f in tm.network.learned if f.name == s["name"])
@@ -131,7 +137,8 @@ def run(args) -> int:
     for w in meta.get("warnings", []) or []:
         print(f"warning: {w}", file=out)
     if args.json:
-        write_json(args.json, json.dumps(to_jsonable({"parameters": rows, "learned": summ, "metrics": m}), indent=2))
+        write_json(args.json, json.dumps(to_jsonable({"parameters": rows, "learned": summ, "metrics": m,
+                                                       "estimation": meta.get("estimation")}), indent=2))
     if args.plot:
         os.makedirs(args.plot, exist_ok=True)
         for s in summ:

@@ -29,6 +29,9 @@ from ._common import (
 
 # (flag, config field, type, help). `None` type: a store_true/false flag handled below.
 _OPTIONS = [
+    ("--objective", "objective", str,
+     "output-error (fit the free run; default) | ml (then maximise the Kalman-filter likelihood from that fit: "
+     "process and measurement noise estimated, standard errors from its Hessian)"),
     ("--epochs", "epochs", int, "Adam epochs (default 300)"),
     ("--lr", "lr", float, "Adam step size in transformed coordinates (default 0.02)"),
     ("--lr-final", "lr_final", float, "cosine decay to lr*LR_FINAL at the end (default 0.1)"),
@@ -167,6 +170,7 @@ def run(args) -> int:
 
     from ..core import JSON, Diagnostic, TnnError
     from ..data import read_data
+    from ..estimation import estimation_summary
     from ..fit import MODEL_DIR, load_config, train
 
     overrides = {dest: getattr(args, f"opt_{dest}") for _, dest, _, _ in _OPTIONS}
@@ -220,8 +224,14 @@ def run(args) -> int:
         if va:
             print(f"  validation MAE {va.get('mae', math.nan):.4g} K  max {va.get('max_error', math.nan):.4g} K",
                   file=sys.stderr)
+        if meta.get("estimation"):
+            print("\n" + estimation_summary(meta["estimation"]), file=sys.stderr)
+    est = meta.get("estimation") or {}
     if args.json:
-        doc = {"model": args.output, "backend": meta.get("backend"), "stopped": stopped,
+        doc = {"model": args.output, "backend": meta.get("backend"), "objective": meta.get("objective"),
+               "loglik": est.get("loglik"), "aic": est.get("aic"), "bic": est.get("bic"),
+               "n_params": est.get("n_params"), "n_obs": est.get("n_obs"), "estimates": est.get("rows"),
+               "stopped": stopped,
                "metrics": meta.get("metrics"), "fitted": meta.get("fitted"), "warnings": meta.get("warnings"),
                "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
         from ..core import to_jsonable

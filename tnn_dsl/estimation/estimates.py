@@ -21,8 +21,8 @@ import numpy as np
 from ..core.htmlview import html_table, pre, safe_repr_html, view
 from ..data import unit_factor
 
-__all__ = ["Estimates", "covariance_from_information", "display_factor", "normal_p", "si_unit", "SINGULAR",
-           "LOG_SE_MAX", "AT_BOUND"]
+__all__ = ["Estimates", "estimation_summary", "covariance_from_information", "display_factor", "normal_p", "si_unit",
+           "file_temperatures", "SINGULAR", "LOG_SE_MAX", "AT_BOUND"]
 
 SINGULAR = 1e-9
 AT_BOUND = 1e-6
@@ -138,8 +138,11 @@ class Estimates:
             lines.append(f"{r['name']:<{w}} {r['estimate']:12.4e} {se} {t} {p} {r['dF']:11.3e}  {unit}{extra}")
         lines.append(f"log L = {self.loglik:.3f}   k = {self.n_params}   n = {self.n_obs}   AIC = {self.aic:.2f}   "
                      f"BIC = {self.bic:.2f}")
-        lines.append(f"optimiser: {'converged' if self.converged else 'NOT converged'} ({self.message}), "
-                     f"{self.nit} iterations, {self.seconds:.1f} s")
+        if self.objective == "ml":
+            lines.append(f"optimiser: {'converged' if self.converged else 'NOT converged'} ({self.message}), "
+                         f"{self.nit} iterations, {self.seconds:.1f} s")
+        else:
+            lines.append(f"standard errors of the trainer's fit at its optimum ({self.seconds:.1f} s)")
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -168,6 +171,29 @@ class Estimates:
                       "hessian_method": self.hessian_method, "converged": self.converged, "message": self.message,
                       "nit": self.nit, "seconds": self.seconds, "notes": list(self.notes),
                       "fitted": self.fitted, "initial_states": self.initial_states})
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Estimates":
+        """The inverse of :meth:`to_dict` (as stored in ``meta.json``; ``None`` read back as NaN; the Hessian, not
+        stored, is empty)."""
+        def num(v: Any) -> float:
+            return math.nan if v is None else float(v)
+
+        def arr(v: Any) -> np.ndarray:
+            return np.asarray([[num(x) for x in row] for row in v] if v and isinstance(v[0], list)
+                              else [num(x) for x in (v or [])], dtype=np.float64)
+
+        numeric = ("estimate", "se", "t", "p", "dF", "z", "se_z")
+        rows = [{k: (num(v) if k in numeric else v) for k, v in r.items()} for r in d.get("rows") or []]
+        return cls(loglik=num(d.get("loglik")), n_params=int(d.get("n_params") or 0), n_obs=int(d.get("n_obs") or 0),
+                   rows=rows, labels=tuple(d.get("labels") or ()), z=arr(d.get("z")), grad=arr(d.get("grad")),
+                   hessian=np.zeros((0, 0)), cov_z=arr(d.get("cov_z")), corr=arr(d.get("corr")),
+                   hessian_method=str(d.get("hessian_method", "?")), backend=str(d.get("backend", "?")),
+                   network=str(d.get("network", "?")), records=tuple(d.get("records") or ()),
+                   converged=bool(d.get("converged", False)), message=str(d.get("message", "")),
+                   nit=int(d.get("nit") or 0), seconds=num(d.get("seconds")), notes=list(d.get("notes") or []),
+                   objective=str(d.get("objective", "ml")), fitted=dict(d.get("fitted") or {}),
+                   initial_states=list(d.get("initial_states") or []))
 
     def _repr_html_(self) -> str:
         return safe_repr_html(self._html, self.summary, f"Estimates({self.network!r}, {self.objective!r})")
@@ -224,3 +250,28 @@ def si_unit(dim) -> str:
 
     s = format_quantity(1.0, dim)
     return s[2:] if s.startswith("1 ") else "1"
+
+
+def estimation_summary(d: dict[str, Any]) -> str:
+    """The coefficient table of an :class:`Estimates` stored as a dict (``meta.json``'s ``"estimation"``)."""
+    return Estimates.from_dict(d).summary()
+
+
+def file_temperatures(est: Estimates, network: Any) -> Estimates:
+    """``est`` with every absolute temperature (initial states, parameters of role ``temperature``) also given in
+    the file's temperature unit (``network.temperature_unit``: ``degC``/``degF``/``K``) as ``estimate_unit`` /
+    ``se_unit`` / ``unit`` — a standard error in °C equals the one in K, in °F it is 9/5 of it."""
+    unit = getattr(network, "temperature_unit", "K")
+    roles = {p.name: p.role for p in getattr(network, "params", [])}
+    for r in est.rows:
+        if not (r["kind"] == "x0" or (r["kind"] == "parameter" and roles.get(r["name"]) == "temperature")):
+            continue
+        v, se = r["estimate"], r["se"]
+        if unit == "degC":
+            r["estimate_unit"], r["se_unit"] = v - 273.15, se
+        elif unit == "degF":
+            r["estimate_unit"], r["se_unit"] = (v - 273.15) * 9.0 / 5.0 + 32.0, se * 9.0 / 5.0
+        else:
+            r["estimate_unit"], r["se_unit"] = v, se
+        r["unit"] = unit
+    return est

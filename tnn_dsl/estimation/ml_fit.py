@@ -7,12 +7,22 @@ scipy's L-BFGS-B on :class:`~tnn_dsl.estimation.likelihood.LikelihoodProblem`'s 
 parameters and σ's in log space, the declared ranges as bounds), started from the written values, ``σ_v = 0.1 K``
 and ``σ_w = 1e-3 K/√s`` (LikelihoodProblem's default; 0.017 K per 5-min sample: starting from 0.01 K per sample
 instead, TiTh stops in a local optimum at log L = 3841 with the solar gain at zero), then restarted once from
-where it stopped (a fresh quasi-Newton memory; the better end is kept) — no multi-start.
+where it stopped (a fresh quasi-Newton memory; the better end is kept). If a free parameter then sits at a bound
+of its declared range, one more start (``release=True``): the fitted point with each such parameter moved back
+to its starting value (the middle of its range where the start is at the bound), the better optimum kept — a
+local optimum with a parameter pinned at a bound is the usual sign of a wrong basin (TiTh from the written values
+can end at 3841 with ``Aw = 0``; moved back it reaches 3904.7). No random multi-start: log-uniform draws within
+the declared ranges, or within a factor 4–10 of the written values, mostly end in worse optima or in regions where
+the filter diverges (measured on TiTeTh, 2026-11-24), and none reached CTSM-R's 5437 there.
 
 **Uncertainty.** The observed information is the Hessian of ``−log L`` at the optimum in the fitted
-coordinates ``z``: on JAX ``jax.hessian`` of the jitted likelihood (exact, ``hessian="exact"``), on torch a
-central difference of the analytic gradient (``hessian="fd"``, step ``1e-4`` in ``z``: ``O(h²)`` truncation
-and ``~1e-12/h`` round-off, ~1e-7 relative; the test checks the two against each other on JAX). Its inverse is
+coordinates ``z``. By default (``hessian="auto"``, both backends) central differences of the compiled analytic
+gradient at steps ``1e-4`` and ``5e-5`` combined by one Richardson step (``4n`` gradients, ``O(h⁴)``
+truncation; within 1e-6 relative of the exact one in the tests; a fraction of a second, where compiling
+``jax.hessian`` of the filter took 4–11 s
+of a 7–22 s fit); ``hessian="exact"``: ``jax.hessian`` of the jitted likelihood (JAX); ``hessian="fd"``: plain
+central differences (step ``1e-4``: ``O(h²)`` truncation and ``~1e-12/h`` round-off, ~1e-7 relative; the tests
+check the three against each other on JAX). Its inverse is
 the covariance of ``z``; standard errors in the parameters' own units follow by the delta method
 (``se(e^z) = e^z·se(z)``), ``t = estimate/se``, two-sided normal p-values, and ``dF/dPar`` is the gradient at
 the optimum (in ``z``, as CTSM prints it). A parameter within 1e-6 (relative) of a bound gets no standard error
@@ -150,14 +160,33 @@ class _Joint:
         return b[:self.n_shared] + [(None, None)] * (len(self.z0) - self.n_shared)
 
 
-def _hessian_fd(joint: _Joint, z: np.ndarray, h: float = _FD_STEP) -> np.ndarray:
+def _hessian_fd(joint: _Joint, z: np.ndarray, h: float = _FD_STEP, richardson: bool = False) -> np.ndarray:
+    """Central differences of the gradient, column by column (``2n`` gradients); ``richardson``: at ``h`` and
+    ``h/2`` combined as ``(4 D(h/2) − D(h))/3`` (``4n`` gradients, ``O(h⁴)`` truncation)."""
     n = len(z)
-    H = np.empty((n, n))
-    for i in range(n):
-        e = np.zeros(n)
-        e[i] = h
-        H[:, i] = (joint.value_and_grad(z + e)[1] - joint.value_and_grad(z - e)[1]) / (2.0 * h)
+
+    def central(step):
+        H = np.empty((n, n))
+        for i in range(n):
+            e = np.zeros(n)
+            e[i] = step
+            H[:, i] = (joint.value_and_grad(z + e)[1] - joint.value_and_grad(z - e)[1]) / (2.0 * step)
+        return H
+
+    H = (4.0 * central(0.5 * h) - central(h)) / 3.0 if richardson else central(h)
     return 0.5 * (H + H.T)
+
+
+def _at_bounds(z: np.ndarray, z0: np.ndarray, bounds, zero_floor: list[bool]) -> list[int]:
+    """The free parameters within 1e-8 (in ``z``) of a bound of their declared range; one fitted in log space
+    with a declared lower bound of 0 (``zero_floor``; no bound in ``z``) counts as at it once it has fallen
+    below 1e-6 of its starting value."""
+    out = []
+    for i, (lo, hi) in enumerate(bounds[:len(zero_floor)]):
+        if (lo is not None and z[i] <= lo + 1e-8) or (hi is not None and z[i] >= hi - 1e-8) \
+                or (zero_floor[i] and z[i] < z0[i] - math.log(1e6)):
+            out.append(i)
+    return out
 
 
 def _projected_gradient(z, g, bounds) -> float:
@@ -174,7 +203,7 @@ def _projected_gradient(z, g, bounds) -> float:
 def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: Sequence[str] | None = None,
            params: Any = None, x0: Any = None, integrator: str = "rk4", substeps: int | None = None,
            qd: str = "vanloan", sigma_w: Any = None, sigma_v: Any = _SIGMA_V0, fit_p0: bool = False,
-           hessian: str = "auto", maxiter: int = 1000, restart: bool = True) -> MLResult:
+           hessian: str = "auto", maxiter: int = 1000, restart: bool = True, release: bool = True) -> MLResult:
     """Maximum-likelihood estimates of a network's free parameters and noise levels, with standard errors.
 
     Parameters
@@ -192,8 +221,13 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
     sigma_w : starting σ_w, K/√s (scalar or per state); default 1e-3 K/√s
     sigma_v : starting σ_v, K (scalar or per sensor); default 0.1 K
     fit_p0 : also estimate each record's initial-state standard deviation (default: CTSM's ``P0 = Q_d``)
-    hessian : ``"exact"`` (JAX), ``"fd"`` (central differences of the gradient), ``"auto"`` (exact on JAX)
+    hessian : ``"exact"`` (``jax.hessian``, JAX only; its compilation costs 3–10 s), ``"fd"`` (central
+        differences of the gradient, step ``1e-4``), ``"auto"`` (the default: central differences at ``1e-4``
+        and ``5e-5`` with one Richardson step, ``4n`` gradients, on either backend)
     restart : run L-BFGS-B a second time from where the first stopped, keep the better end
+    release : if a free parameter ends at a bound of its declared range, start once more from the fitted point
+        with each such parameter moved back to its starting value (to the middle of its range where the start
+        is itself at the bound), and keep the better optimum
 
     Returns
     -------
@@ -230,17 +264,36 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
 
     t0 = time.perf_counter()
     opts = {"maxiter": maxiter, "ftol": 1e-14, "gtol": 1e-8, "maxcor": 20}
-    res = minimize(joint.value_and_grad, z0, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+
+    def run(start):
+        r = minimize(joint.value_and_grad, start, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+        if restart:
+            r2 = minimize(joint.value_and_grad, r.x, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+            r2.nit += r.nit
+            if r2.fun <= r.fun or not np.isfinite(r.fun):
+                return r2
+            r.nit = r2.nit
+        return r
+
+    res = run(z0)
     nit = int(res.nit)
-    if restart:
-        r2 = minimize(joint.value_and_grad, res.x, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
-        nit += int(r2.nit)
-        if r2.fun <= res.fun:
-            res = r2
+    pr = problems[0]
+    zero_floor = [log and model.param_specs[name].lower == 0 for name, log in zip(pr.free, pr.logged)]
+    stuck = _at_bounds(np.asarray(res.x), z0, bounds, zero_floor) if release else []
+    if stuck:  # one more start: the fitted point with the parameters at a bound moved back to their start values
+        z1 = np.asarray(res.x, dtype=np.float64).copy()
+        for i in stuck:
+            lo, hi = bounds[i]
+            inside = (lo is None or z0[i] > lo + 1e-8) and (hi is None or z0[i] < hi - 1e-8)
+            z1[i] = z0[i] if inside else (0.5 * (lo + hi) if lo is not None and hi is not None else z1[i])
+        r3 = run(z1)
+        nit += int(r3.nit)
+        if r3.fun < res.fun or not np.isfinite(res.fun):
+            res = r3
     z = np.asarray(res.x, dtype=np.float64)
     f, g = joint.value_and_grad(z)
-    method = ("exact" if B.name == "jax" else "fd") if hessian == "auto" else hessian
-    H = joint.hessian(z) if method == "exact" else _hessian_fd(joint, z)
+    method = "fd" if hessian == "auto" else hessian
+    H = joint.hessian(z) if method == "exact" else _hessian_fd(joint, z, richardson=hessian == "auto")
     seconds = time.perf_counter() - t0
 
     # parameters at a bound (relative 1e-6 in their own value)

@@ -16,6 +16,7 @@ ROLLOUTS = ("auto", "free", "steady", "measured", "estimated")
 
 
 INITS = ("estimate", "filter", "steady", "measured", "auto")
+OBJECTIVES = ("output-error", "ml")
 
 
 @dataclass
@@ -28,6 +29,10 @@ class TrainConfig:
 
     backend: str = "jax"
     """``jax`` or ``torch``."""
+    objective: str = "output-error"
+    """``output-error``: fit the free run (thesis eq. 4.8), standard errors by Gauss–Newton. ``ml``: then maximise
+    the continuous–discrete Kalman-filter likelihood from that fit (process and measurement noise estimated;
+    standard errors from its Hessian; :mod:`tnn_dsl.fit.estimates`)."""
     torch_compile: bool | None = None
     """torch backend: run each integration step through ``torch.compile`` (see ``tnn_dsl.compile``; the
     case study's M2 trained 2.5× faster in all, compilation included, benchmarks/bench_train.py). ``None``:
@@ -103,6 +108,8 @@ class TrainConfig:
             problems.append(f"dtype must be float64 or float32, not {self.dtype!r}")
         if self.rollout not in ROLLOUTS:
             problems.append(f"rollout must be one of {', '.join(ROLLOUTS)}, not {self.rollout!r}")
+        if self.objective not in OBJECTIVES:
+            problems.append(f"objective must be one of {', '.join(OBJECTIVES)}, not {self.objective!r}")
         if self.init not in INITS:
             problems.append(f"init must be one of {', '.join(INITS)}, not {self.init!r}")
         if self.burn_in is not None and not (isinstance(self.burn_in, (int, float)) and math.isfinite(self.burn_in)

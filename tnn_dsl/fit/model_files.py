@@ -556,6 +556,10 @@ class TrainedModel:
                 ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
                 lines.append(f"{r['name'][:22]:<22} {format_value(r['nominal'], r['role'], r['unit']):>26} "
                              f"{format_value(r['fitted'], r['role'], r['unit']):>26} {ch:>9}")
+        if self.meta.get("estimation"):
+            from ..estimation import estimation_summary
+
+            lines += ["", estimation_summary(self.meta["estimation"])]
         lines += [f"warning: {w}" for w in self.meta.get("warnings", []) or []]
         return "\n".join(lines)
 

@@ -15,6 +15,7 @@ from ..core import Diagnostic, TnnError
 from ..data import as_experiments
 from ..ir import Network
 from .config import TrainConfig, load_config
+from .estimates import check_objective, estimation_meta, ml_refit, output_error_summary
 from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
 from .trainer import _net_of, _Trainer
 
@@ -77,6 +78,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         if not np.isfinite(np.asarray(e.outputs, dtype=float)).any():
             raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
                                       hint="check the sensor columns named in the network"))
+    check_objective(net, cfg.objective, cfg.backend)
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
     tr, z, strategy = _best_route(net, exps, vals, cfg, model, callback, log)
@@ -86,6 +88,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     trained = TrainedModel(net, final, meta={"initial_states": initial_states, "per_experiment": per_experiment},
                            path=None)
     trained._models[(cfg.backend, cfg.dtype)] = model
+    est = _estimates(trained, model, exps, cfg, tr)
     metrics: dict[str, Any] = {}
     metrics["train"] = _metrics_or_nan(trained, exps, cfg)
     if vals:
@@ -107,6 +110,8 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "init": cfg.init,
         "initial_states": initial_states,
         "per_experiment": per_experiment,
+        "objective": cfg.objective,
+        "estimation": estimation_meta(est) if est is not None else None,
         "stopped": tr.stopped,
         "warnings": tr.warnings,
         "train_seconds": time.perf_counter() - t_start,
@@ -117,6 +122,24 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
 
 
 _CUT_SHORT = ("interrupted", "diverged", "time_limit")
+
+
+def _estimates(trained: TrainedModel, model: Any, exps: list, cfg: TrainConfig, tr: _Trainer) -> Any:
+    """The likelihood fit (``objective="ml"``, which updates ``trained``) or the output-error fit's standard
+    errors; ``None`` (with a warning) where they cannot be had — a fit that was cut short, a model that does
+    not run — the trained model is kept either way."""
+    if tr.stopped in ("interrupted", "diverged"):
+        return None
+    try:
+        if cfg.objective == "ml":
+            return ml_refit(trained, model, exps, cfg, tr.log)
+        return output_error_summary(trained, model, exps, cfg)
+    except (TnnError, FloatingPointError, np.linalg.LinAlgError, ValueError) as e:
+        msg = e.diagnostics[0].message if isinstance(e, TnnError) and getattr(e, "diagnostics", None) else str(e)
+        what = "the likelihood fit" if cfg.objective == "ml" else "standard errors"
+        tr.warnings.append(f"no {what}: {msg}")
+        tr.log(f"warning: no {what}: {msg}")
+        return None
 
 
 def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):

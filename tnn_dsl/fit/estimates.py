@@ -1,0 +1,122 @@
+"""Estimates with their uncertainty after a fit, under either objective (``TrainConfig.objective``).
+
+* ``output-error`` (default): the trainer's free-run fit; standard errors from the Gauss–Newton information
+  (:func:`tnn_dsl.estimation.output_error_estimates`) at the fitted values, over the part of each training file
+  that is scored, from the initial state the free run starts from.
+* ``ml``: the continuous–discrete EKF likelihood (:func:`tnn_dsl.estimation.fit_ml`) maximised from the
+  output-error fit — the free constants and learned functions' weights, a process-noise level per state, a
+  measurement-noise level per sensor and each training file's initial state — with standard errors from the
+  Hessian of ``−log L``. The model keeps the likelihood's estimates.
+
+Both give an :class:`~tnn_dsl.estimation.Estimates` (log-likelihood, AIC, BIC, the coefficient table), stored in
+``meta.json`` under ``"estimation"`` (:func:`estimation_meta`).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any, Callable
+
+import numpy as np
+
+from ..core import Diagnostic, TnnError
+from ..estimation import Estimates, fit_ml, output_error_estimates
+from ..estimation.estimates import file_temperatures
+from .config import OBJECTIVES
+from .simulation import free_run
+
+__all__ = ["OBJECTIVES", "scored_records", "output_error_summary", "ml_refit", "estimation_meta",
+           "check_objective"]
+
+
+def check_objective(net: Any, objective: str, backend: str) -> None:
+    """Refuse, before any work, what the chosen objective cannot do."""
+    if objective == "ml":
+        pe = [p.name for p in net.params if getattr(p, "per_experiment", False)]
+        if pe:
+            raise TnnError(Diagnostic(
+                f"--objective ml does not estimate per-experiment parameters ({', '.join(pe)}) yet",
+                hint="fit with --objective output-error, or make them ordinary free parameters"))
+        if not net.sensors:
+            raise TnnError(Diagnostic(f"network {net.name!r} has no sensors; the likelihood needs one",
+                                      hint="declare `sensor NAME = NODE column \"...\"`"))
+
+
+def scored_records(trained: Any, model: Any, exps: list, cfg: Any) -> list[tuple[str, np.ndarray, np.ndarray,
+                                                                                   float, np.ndarray]]:
+    """``(name, inputs, outputs, dt, T0)`` per training file: the part from where its free run starts (the
+    initial-state rule of the fit; a training file's own fitted state), with that state."""
+    params = trained.backend_params(cfg.backend)
+    known = trained.free_run_context()
+    out = []
+    for e in exps:
+        run = free_run(model, params, e, cfg.init, integrator=cfg.integrator, substeps=cfg.substeps,
+                       burn_in_s=cfg.burn_in, **known)
+        at = int(run.init.at)
+        U = np.asarray(e.inputs, dtype=np.float64)[at:]
+        Y = np.asarray(e.outputs, dtype=np.float64)[at:]
+        out.append((str(e.name), U, Y, float(e.dt), np.asarray(run.init.T, dtype=np.float64)))
+    return out
+
+
+def _free_constants(model: Any, net: Any) -> list[str]:
+    pe = {p.name for p in net.params if getattr(p, "per_experiment", False)}
+    return [k for k, s in model.param_specs.items() if s.kind == "physical" and s.trainable and k not in pe]
+
+
+def output_error_summary(trained: Any, model: Any, exps: list, cfg: Any) -> Estimates:
+    """Standard errors of the trainer's fit (module docstring)."""
+    notes = []
+    if trained.network.learned:
+        notes.append("conditional on the learned functions' weights (held at their fitted values)")
+    if any(getattr(p, "per_experiment", False) for p in trained.network.params):
+        notes.append("conditional on the per-experiment values (held at their fitted values)")
+    est = output_error_estimates(model, trained.backend_params(cfg.backend), scored_records(trained, model, exps, cfg),
+                                 free=_free_constants(model, trained.network), integrator=cfg.integrator,
+                                 substeps=cfg.substeps, notes=notes)
+    return file_temperatures(est, trained.network)
+
+
+def ml_refit(trained: Any, model: Any, exps: list, cfg: Any, log: Callable[[str], None] | None = None) -> Estimates:
+    """Maximise the EKF likelihood from the output-error fit and write the estimates into ``trained`` (its
+    parameters and its training files' initial states). Returns the fit's :class:`Estimates`."""
+    recs = scored_records(trained, model, exps, cfg)
+    free = _free_constants(model, trained.network)
+    free += [k for k, s in model.param_specs.items() if s.kind == "weights" and s.trainable]
+    records = [SimpleNamespace(name=n, inputs=U, outputs=Y, dt=dt) for n, U, Y, dt, _ in recs]
+    est = fit_ml(model, records, backend=cfg.backend, free=free, params=trained.backend_params(cfg.backend),
+                 x0=[T0 for *_, T0 in recs], integrator=cfg.integrator, substeps=cfg.substeps)
+    for name, v in est.fitted.items():
+        trained.params[name] = np.asarray(v, dtype=np.float64).reshape(np.shape(trained.params[name]))
+    names = list(model.state_names)
+    by_name = {n: T for n, T in zip((r[0] for r in recs), est.initial_states)}
+    for rec in trained.meta.get("initial_states") or []:
+        T = by_name.get(rec.get("name"))
+        if T is not None:
+            rec["T0"] = {n: float(v) for n, v in zip(names, T)}
+    file_temperatures(est, trained.network)
+    if log is not None and not est.converged:
+        log(f"warning: the likelihood fit did not converge ({est.message}); its estimates are kept, check them")
+    return est
+
+
+def estimation_meta(est: Estimates) -> dict[str, Any]:
+    """``meta.json``'s ``"estimation"``: :meth:`Estimates.to_dict` with the covariance and correlation restricted
+    to the rows shown (a learned function's weights are counted, not listed)."""
+    d = est.to_dict()
+    shown = [i for i, lab in enumerate(est.labels) if _is_row_label(lab)]
+    for key, M in (("cov_z", est.cov_z), ("corr", est.corr)):
+        sub = np.asarray(M, dtype=np.float64)[np.ix_(shown, shown)] if len(shown) else np.zeros((0, 0))
+        d[key] = [[float(x) if np.isfinite(x) else None for x in row] for row in sub]
+    d["labels"] = [est.labels[i] for i in shown]
+    for key in ("z", "grad"):
+        d[key] = [d[key][i] for i in shown] if d.get(key) is not None else None
+    d.pop("fitted", None)  # the values are the model's parameters
+    return d
+
+
+def _is_row_label(label: str) -> bool:
+    """A label of ``z`` shown as a row (not a learned function's weight ``NAME[i]``)."""
+    base = label[4:] if label.startswith("log ") else label
+    head = base.split("[")[0]
+    return head in ("sigma_w", "sigma_v", "x0", "p0_std") or "[" not in base
