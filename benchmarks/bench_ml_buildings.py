@@ -7,17 +7,12 @@ the maximum log-likelihoods of Bacher & Madsen (2011) / CTSM-R's examples — Ti
 here), TiTh 3904.7, TiTeTh 5437.0. Printed: log L, its reference, the difference, the number of estimates
 without a standard error (at a bound or not identifiable), and the wall time (compilation included).
 
-Measured 2026-11-24 with ``python benchmarks/bench_ml_buildings.py`` (2 cores shared with other jobs, load
-average ~4, compilation included): ti 2479.23 (+0.03, 4.3 s; before this change 7.3 s, measured earlier
-the same day at a lower load, ~1), tith 3904.73 (+0.03, 15.2 s; before 18.9 s — its first run now ends at
-3841.09 with Aw = 0, and the start from the bound released
-reaches 3904.73), titeth 5431.00 (−6.0, 16.0 s; before 22.2 s: Rih ends at the upper bound of its declared
-range, 20 K/kW, with Ch near its lower one; the released start returns to the same point; widening the range
-does not help — the heater node decouples, 5427.9 — so the gap is a local optimum from the written start, not
-the bound). Where the time went before: compiling ``jax.hessian`` (4.5 / 9.2 / 11.1 s), the gradient's
-compilation (1.2 / 2.4 / 2.6 s) and evaluations (95 × 11 ms / 237 × 28 ms / 247 × 32 ms); now the
-linearisation of these linear networks is formed once per evaluation instead of per sample and the Hessian
-costs 4n gradients instead of a compilation.
+Measured 2026-11-24 with ``python benchmarks/bench_ml_buildings.py`` (2 shared cores, load average ~3, compilation
+included): ti 2479.23 (+0.03, 3.3 s), tith 3904.74 (+0.04, 7.7 s), titeth 5437.12 (+0.12, 12.2 s). Before the
+linearisation was formed once per evaluation and the Hessian taken from gradient differences: 7.3 / 18.9 / 22.2 s
+(compiling ``jax.hessian`` took 4.5 / 9.2 / 11.1 s of it). TiTeTh stopped at 5431.00 while the filter's mean took
+one RK4 step per 5-min sample (stable for the heater node's τ = 360 s, not accurate); with sub-steps of at most
+half the fastest time constant (2 here) it reaches 5437.12, with 4 and 8 sub-steps 5437.42 and 5437.43.
 
     python benchmarks/bench_ml_buildings.py            # ti, tith, titeth, with every summary
     python benchmarks/bench_ml_buildings.py --quick    # ti and tith, the table only
