@@ -10,6 +10,7 @@ May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``, 
 from __future__ import annotations
 
 from . import residuals
+from .comparison import Comparison, Nesting, compare_models, nesting
 from .hankel import excitation
 from .identifiability import fisher_analysis
 from .report import SensitivityReport
@@ -17,5 +18,6 @@ from .sensitivities import sensitivity
 from .significance import held_out_test
 
 __all__ = [
-    "residuals", "SensitivityReport", "excitation", "fisher_analysis", "sensitivity", "held_out_test"
+    "residuals", "SensitivityReport", "excitation", "fisher_analysis", "sensitivity", "held_out_test",
+    "Comparison", "Nesting", "compare_models", "nesting",
 ]

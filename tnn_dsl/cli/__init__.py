@@ -29,6 +29,7 @@ COMMANDS = {
     "diagnose": "_diagnose",
     "generate": "_generate",
     "estimate": "_estimate",
+    "compare": "_compare",
     "demo": "_demo",
 }
 

@@ -582,6 +582,10 @@ class TrainedModel:
                   format_value(r["fitted"], r["role"], r["unit"]),
                   f"{r['change_pct']:+.1f} %" if math.isfinite(r["change_pct"]) else ""] for r in rows],
                 numeric=[False, True, True, True]))
+        if self.meta.get("estimation"):
+            from ..estimation import Estimates
+
+            parts.append(Estimates.from_dict(self.meta["estimation"])._html())
         parts.append(html_list(f"warning: {w}" for w in self.meta.get("warnings", []) or []))
         return view(f"TrainedModel: {self.network.name} ({self.backend})", *parts)
 
