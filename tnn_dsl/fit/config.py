@@ -117,18 +117,31 @@ class TrainConfig:
             problems.append(f"burn_in must be a non-negative number of seconds, not {self.burn_in!r}")
         if self.integrator not in ("euler", "rk4", "expeuler"):
             problems.append(f"integrator must be euler, rk4 or expeuler, not {self.integrator!r}")
-        for name in (("window",) if self.window is not None else ()) + ("lr",):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
-                problems.append(f"{name} must be a positive number, not {getattr(self, name)!r}")
+        positive = (("window",) if self.window is not None else ()) + ("lr",) \
+            + (("clip",) if self.clip is not None else ()) + (("time_limit",) if self.time_limit is not None else ())
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                problems.append(f"{name} must be a positive finite number, not {v!r}")
+        if self.substeps is not None and (not isinstance(self.substeps, int) or isinstance(self.substeps, bool)
+                                          or self.substeps < 1):
+            problems.append(f"substeps must be a whole number ≥ 1 (or left out for the model's choice), "
+                            f"not {self.substeps!r}")
         for name in ("epochs", "lbfgs_iters", "patience", "val_every", "batch_size", "max_restarts"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 problems.append(f"{name} must be a non-negative integer, not {v!r}")
-        if not (0.0 <= float(self.val_fraction) < 1.0):
+        vf = self.val_fraction
+        if not (isinstance(vf, (int, float)) and not isinstance(vf, bool) and 0.0 <= float(vf) < 1.0):
             problems.append(f"val_fraction must be in [0, 1), not {self.val_fraction!r}")
         for name in ("lam", "weight_decay", "continuity", "lr_final"):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) >= 0):
-                problems.append(f"{name} must be a non-negative number, not {getattr(self, name)!r}")
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                problems.append(f"{name} must be a non-negative finite number, not {v!r}")
+        gammas = self.gamma.values() if isinstance(self.gamma, dict) else [self.gamma]
+        for v in gammas:
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                problems.append(f"gamma must be a non-negative finite number (or NAME: number), not {v!r}")
         if isinstance(self.freeze, str):
             self.freeze = [s for s in self.freeze.replace(",", " ").split() if s]
         if problems:

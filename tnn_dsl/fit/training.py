@@ -85,8 +85,9 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
-    trained = TrainedModel(net, final, meta={"initial_states": initial_states, "per_experiment": per_experiment},
-                           path=None)
+    # the metrics below are free runs with the training's integrator and sub-steps (meta["config"])
+    trained = TrainedModel(net, final, meta={"initial_states": initial_states, "per_experiment": per_experiment,
+                                             "config": cfg.to_dict()}, path=None)
     trained._models[(cfg.backend, cfg.dtype)] = model
     est = _estimates(trained, model, exps, cfg, tr)
     metrics: dict[str, Any] = {}
