@@ -180,9 +180,10 @@ def test_random_corruptions_give_data_error_or_a_valid_experiment(tmp_path, ms):
             if d.span is not None:
                 assert d.span.file == p and d.span.line >= 1 and d.span.col >= 1
         return
-    (exp,) = exps
-    assert exp.inputs.shape == (exp.n_steps, 2) and np.all(np.isfinite(exp.inputs))
-    assert np.all(np.diff(exp.t) > 0)
+    assert exps  # a long gap splits the file into segments (tests/test_data_reliability.py)
+    for exp in exps:
+        assert exp.inputs.shape == (exp.n_steps, 2) and np.all(np.isfinite(exp.inputs))
+        assert np.all(np.diff(exp.t) > 0)
 
 
 # ---------------------------------------------------------------------------------------------

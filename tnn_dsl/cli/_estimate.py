@@ -91,7 +91,7 @@ def _drops(spans, t: np.ndarray) -> np.ndarray:
 
 
 def run(args) -> int:
-    from ..data import from_kelvin, read_data, write_csv
+    from ..data import from_kelvin, read_data, warning_lines, write_csv
     from ..estimation import ekf, open_loop, tune_process_noise
     from ._simulate import _load
 
@@ -111,9 +111,11 @@ def run(args) -> int:
             raise TnnError(Diagnostic(f"--use: unknown sensor {s!r}",
                                       hint=f"the network's sensors are: {', '.join(sensors)}"))
     (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, time_unit=args.time_unit,
-                       require_outputs=False)
+                       require_outputs=False, split_gaps=False)  # one filter over the file: a long gap is an error
     for n in exp.notes:
         print(f"note: {n}", file=sys.stderr)
+    for w in warning_lines([exp]):
+        print(w, file=sys.stderr)
     Y = np.array(exp.outputs, dtype=float)
     dropped = _drops(args.drop, exp.t)
     use_idx = [sensors.index(s) for s in args.use]

@@ -42,12 +42,14 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from .. import plots
     from ..core import IMAGE, JSON, save_figure, to_jsonable
-    from ..data import read_data
+    from ..data import read_data, warning_lines
     from ..fit import error_metrics, load_model
 
     check_outputs(args, [(args.json, JSON, "--json"), (args.plot, IMAGE, "--plot")], inputs=[args.model, *args.data])
     tm = load_model(args.model)
     exps = read_data(tm.network, args.data, time_col=args.time_col, dt=args.dt, time_unit=args.time_unit)
+    for w in warning_lines(exps):
+        print(w, file=sys.stderr)
     preds = tm.predict(exps, backend=args.backend, init=args.init, burn_in_s=args.burn_in)
     for p in preds:
         for n in p["notes"]:

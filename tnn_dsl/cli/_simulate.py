@@ -75,7 +75,7 @@ def _load(net_arg: str, backend: str, seed: int):
 
 
 def run(args) -> int:
-    from ..data import read_data, write_csv
+    from ..data import read_data, warning_lines, write_csv
     from ..fit import free_run
 
     if args.substeps is not None and args.substeps < 1:
@@ -88,9 +88,11 @@ def run(args) -> int:
                                       hint="add --backend torch (JAX rollouts are always compiled)"))
         model.torch_compile = True
     (exp,) = read_data(net, [args.data], time_col=args.time_col, dt=args.dt, time_unit=args.time_unit,
-                       require_outputs=False)
+                       require_outputs=False, split_gaps=False)
     for n in exp.notes:
         print(f"note: {n}", file=sys.stderr)
+    for w in warning_lines([exp]):
+        print(w, file=sys.stderr)
     run = free_run(model, params, exp, args.init, integrator=args.integrator, substeps=args.substeps,
                    burn_in_s=args.burn_in, **known)
     states, y = run.states, run.y

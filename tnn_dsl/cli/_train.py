@@ -169,7 +169,7 @@ def run(args) -> int:
     import tnn_dsl
 
     from ..core import JSON, Diagnostic, TnnError
-    from ..data import read_data
+    from ..data import read_data, warning_lines
     from ..estimation import estimation_summary
     from ..fit import MODEL_DIR, load_config, train
 
@@ -193,6 +193,8 @@ def run(args) -> int:
     for e in exps + (vals or []):
         for note in getattr(e, "notes", ()):
             prog.log(f"note: {e.name}: {note}")
+    for w in warning_lines(exps + (vals or [])):  # shown also with -q
+        print(w, file=sys.stderr)
     interrupted = False
     try:
         tm = train(net, exps, vals, config=cfg, callback=prog, log=prog.log)

@@ -1,9 +1,9 @@
 """Measured data for a network: CSV / Parquet files → :class:`Experiment` (SI, kelvin, uniform step).
 
-One experiment per file. The columns to read come from the IR: every ``Input.column`` and every
-``Sensor.column``. The file's temperature unit is ``Network.temperature_unit``: temperature inputs and
-all sensors are converted to kelvin; other inputs are scaled to SI by their declared unit (``[%]`` ×0.01,
-``[kW]`` ×1000 ...).
+One experiment per file (or per segment of a file with long gaps, see Gaps). The columns to read come
+from the IR: every ``Input.column`` and every ``Sensor.column``. The file's temperature unit is
+``Network.temperature_unit``: temperature inputs and all sensors are converted to kelvin; other inputs are
+scaled to SI by their declared unit (``[%]`` ×0.01, ``[kW]`` ×1000 ...).
 
 Time
     The time column is ``time_col`` if given, else the first of ``t``, ``time``, ``time_s``, ``timestamp``,
@@ -11,19 +11,40 @@ Time
     Numbers are seconds unless the column name carries a unit suffix (``time_h``, ``t_min``, ``time [h]``)
     or ``time_unit`` says otherwise. A numeric time column that runs alongside a timestamp column in the
     same file (the Bacher–Madsen file's ``t`` next to ``TimeDate``) has its unit inferred from the
-    timestamps, with a note. ISO timestamps are parsed (time zones respected). ``Experiment.t`` starts at 0.
+    timestamps, with a note. ISO timestamps are parsed (time zones respected). ``Experiment.t`` starts at 0
+    (a gap segment's at its time in the file).
 
 Sampling
-    The model step is ``dt`` if given, else the file's step (for irregular files the median step, rounded
-    to 3 significant digits). If
-    the file is sampled on that grid (to 1e-6 relative) its rows are used as they are. Otherwise the file is
-    resampled to ``t_k = k·dt``: sensors and temperature inputs linearly, other inputs as the mean over
-    ``[t_k, t_k + dt)`` of the zero-order-held signal (which is what the model's zero-order hold sees).
-    ``Experiment.notes`` says so.
+    The model step is ``dt`` if given, else the file's step (for irregular files the median step of the
+    rows within segments, rounded to 3 significant digits). If a segment is sampled on that grid (to 1e-6
+    relative) its rows are used as they are. Otherwise it is resampled to ``t_k = t_0 + k·dt``: temperature
+    inputs linearly, other inputs as the mean over ``[t_k, t_k + dt)`` of the zero-order-held signal (which
+    is what the model's zero-order hold sees), sensors linearly between neighbouring rows, but only where
+    the two rows are at most ``HOLE_STEPS`` (1.5) periods apart: a grid point inside a longer hole of
+    missing rows has no sensor reading (NaN, masked by the trainer and the metrics) rather than an invented
+    one. ``Experiment.notes`` says so (and how many such short gaps the inputs were carried across).
+
+Gaps (never interpolated across)
+    The *period* is ``max(median row spacing, dt)``. Rows in which every input and every sensor present in
+    the file is missing (a logger that kept writing time stamps) count as missing rows. A jump between two
+    rows with data longer than ``GAP_STEPS`` (5) periods splits the file into segments, each its own
+    :class:`Experiment` named ``<stem>[1/3]``, ``<stem>[2/3]`` ... with the file's ``path``, its own part of
+    the file's time (``t[0]`` is the segment's start, not 0) and a note naming the gaps and its lines. A
+    segment with fewer than two rows (or spanning less than one step) is dropped, with a note. With
+    ``split_gaps=False`` (``tnnc simulate``: one continuous run) a long gap is an error instead.
 
 Missing values
     A NaN in a sensor column is kept (the trainer masks it). A NaN in an input column is a
-    :class:`DataError` naming the rows.
+    :class:`DataError` naming the rows, unless every input and sensor of that row is missing (see Gaps).
+
+Warnings (``Experiment.warnings``: :class:`Diagnostic` s of severity ``"warning"``, ``file:line:col``)
+    Kept apart from ``notes`` (what was done to the data) so that the commands can print them even with
+    ``-q``. A sensor column with no value in any row when other sensors have data (no sensor with any data,
+    when outputs are required, is an error). A temperature column whose values, read in the network's unit,
+    look like another unit: in a ``degC``/``degF`` file every value within 200…450 (kelvin); in a ``K``
+    file any value below 150 K (°C). A temperature below absolute zero (a -999 "missing" code, or the
+    wrong unit). A column the network reads (input, sensor or time) that appears twice in the header is an
+    error, at the second occurrence.
 
 Every problem is a :class:`DataError` whose diagnostics point at ``file:line:col`` (line = the CSV line,
 the header is line 1); Parquet files have no lines, so their messages name the row instead.
@@ -42,9 +63,21 @@ from ..ir import Network
 from .experiment import Experiment
 from .tables import MAX_REPORTED, _find_column, _missing_column, _numeric, _row_list, read_table
 from .timebase import _interp_linear, _interval_mean_zoh, _nice_step, _show_time, _time
-from .units import to_kelvin, unit_scale_offset
+from .units import from_kelvin, to_kelvin, unit_scale_offset
 
-__all__ = ["read_data", "as_experiments"]
+__all__ = ["read_data", "as_experiments", "GAP_STEPS", "HOLE_STEPS"]
+
+GAP_STEPS = 5.0
+"""A jump between rows with data longer than this many periods splits a file into segments (module docstring)."""
+
+HOLE_STEPS = 1.5
+"""Sensors are interpolated only between rows at most this many periods apart; inside longer holes they are NaN."""
+
+_KELVIN_LIKE = (200.0, 450.0)
+"""A ``degC``/``degF`` temperature column with every value in this range looks like kelvin."""
+
+_KELVIN_MIN = 150.0
+"""A ``K`` temperature column with a value below this looks like °C (or °F)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -60,8 +93,9 @@ def read_data(
     *,
     time_unit: str | None = None,
     require_outputs: bool = True,
+    split_gaps: bool = True,
 ) -> list[Experiment]:
-    """Read data files for ``net``: one :class:`Experiment` per file.
+    """Read data files for ``net``: one :class:`Experiment` per file, or per segment of a file with gaps.
 
     Parameters
     ----------
@@ -79,6 +113,9 @@ def read_data(
     require_outputs : bool
         If false, a missing sensor column gives an all-NaN output and a note instead of an error
         (``tnnc simulate`` needs only the inputs).
+    split_gaps : bool
+        If true (default), a gap longer than ``GAP_STEPS`` periods splits a file into segments (experiments
+        ``<stem>[1/2]``, ``<stem>[2/2]``); if false it is an error (callers that need one continuous run).
 
     Raises
     ------
@@ -96,7 +133,7 @@ def read_data(
     problems: list[Diagnostic] = []
     for p in paths:
         try:
-            experiments.append(_read_one(net, p, time_col, dt, time_unit, require_outputs))
+            experiments.extend(_read_one(net, p, time_col, dt, time_unit, require_outputs, split_gaps))
         except DataError as err:
             problems.extend(err.diagnostics)
     if problems:
@@ -104,8 +141,9 @@ def read_data(
     return experiments
 
 
-def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs) -> Experiment:
-    """One file as an :class:`Experiment`: its columns, values in SI, checks, time and the model's grid."""
+def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs, split_gaps) -> list[Experiment]:
+    """One file as :class:`Experiment` s (one per segment): its columns, values in SI, checks, time, gaps and
+    the model's grid."""
     tab = read_table(path)
     _check_row_count(tab)
     notes: list[str] = []
@@ -118,26 +156,84 @@ def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs)
         who += [f"sensor {s.name}" for s, j in zip(net.sensors, out_cols) if j == tj]
         problems.append(Diagnostic(f"{tab.prefix()}column {tab.shown(tj)!r} is both the time and {', '.join(who)}",
                                    tab.span(None, tj), hint="name another time column with --time-col"))
+    problems.extend(_duplicate_columns(net, tab, in_cols, out_cols, tj, time_col))
     U, Y = _values(net, tab, in_cols, out_cols, problems)
     if problems:
         raise DataError(problems)
-    _check_values(net, tab, in_cols, out_cols, U, Y, problems)
+    empty = _empty_rows(U, Y, out_cols)
+    _check_values(net, tab, in_cols, out_cols, U, Y, empty, problems)
+    warnings: list[Diagnostic] = []
+    _check_temperatures(net, tab, in_cols, out_cols, U, Y, warnings)
+    _check_sensor_columns(net, tab, out_cols, Y, require_outputs, problems, warnings, notes)
     if t is not None:
         _check_time(tab, t, tj, problems)
     if problems:
         raise DataError(problems)
     assert t is not None
-    tt, Ug, Yg, step = _on_model_grid(net, tab, t, tj, U, Y, dt, notes)
+    rows = np.flatnonzero(~empty)
+    if rows.size < 2:
+        raise DataError(Diagnostic(
+            f"{tab.prefix()}only {rows.size} row(s) of {tab.n_rows} have any input or sensor value; at least two "
+            f"are needed", tab.span(int(rows[0]) if rows.size else None, None),
+            hint="every other row has no value in any input or sensor column"))
+    if empty.any():
+        notes.append(f"{int(empty.sum())} row(s) with no input and no sensor value "
+                     f"({_row_list(tab, np.flatnonzero(empty))}) taken as missing rows")
+    tk, Uk, Yk = t[rows], U[rows], Y[rows]
+    bounds, step, file_dt, gaps, limit = _segments(tk, dt)
+    if gaps.size and not split_gaps:
+        raise DataError([_gap_diagnostic(tab, tj, rows, tk, g, limit, step) for g in gaps[:MAX_REPORTED]])
     name = os.path.splitext(os.path.basename(path))[0]
-    return Experiment(
-        name=name, path=path, t=tt, dt=step, inputs=np.ascontiguousarray(Ug, dtype=np.float64),
-        outputs=np.ascontiguousarray(Yg, dtype=np.float64),
-        input_names=tuple(net.input_names), output_names=tuple(s.name for s in net.sensors),
-        notes=tuple(notes),
-        input_columns=tuple(tab.columns[j] if j is not None else None for j in in_cols),
-        output_columns=tuple(tab.columns[j] if j is not None else None for j in out_cols),
-        time_column=tab.columns[tj] if tj is not None else None, start=start,
-    )
+    kept: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, list[str]]] = []
+    dropped: list[str] = []
+    for a, b in bounds:
+        span_s = float(tk[b - 1] - tk[a])
+        if b - a < 2 or span_s < step * (1 - 1e-9):
+            if len(bounds) == 1:  # the whole file: the former errors
+                raise DataError(Diagnostic(
+                    f"{tab.prefix()}the file spans {span_s:g} s, less than one step of {step:g} s",
+                    tab.span(None, tj), hint="use a smaller --dt"))
+            dropped.append(f"{_lines(tab, rows[a], rows[b - 1])} ({b - a} row(s), {span_s:g} s)")
+            continue
+        seg_notes: list[str] = []
+        tt, Ug, Yg = _on_model_grid(net, tk[a:b], Uk[a:b], Yk[a:b], step, file_dt, seg_notes)
+        kept.append((a, b, tt, Ug, Yg, seg_notes))
+    if not kept:
+        raise DataError(Diagnostic(
+            f"{tab.prefix()}every part of the file between gaps longer than {GAP_STEPS:g} periods ({limit:g} s) "
+            f"is shorter than two steps", tab.span(None, tj),
+            hint="the rows are too far apart for the step: give a larger --dt, or fill the gaps in the file"))
+    split_note = ""
+    if gaps.size:
+        shown = ", ".join(f"{tk[g + 1] - tk[g]:g} s after {tab.where(int(rows[g]))}" for g in gaps[:MAX_REPORTED])
+        more = f", ... ({gaps.size} in all)" if gaps.size > MAX_REPORTED else ""
+        split_note = (f"split into {len(kept)} segment(s) at {gaps.size} gap(s) with no data longer than "
+                      f"{GAP_STEPS:g} periods ({limit:g} s), never interpolated across: {shown}{more}")
+        if dropped:
+            split_note += f"; dropped segment(s) shorter than two steps: {'; '.join(dropped)}"
+    out: list[Experiment] = []
+    for i, (a, b, tt, Ug, Yg, seg_notes) in enumerate(kept):
+        mine = list(notes)
+        if split_note:
+            mine.append(f"{split_note}; this is segment {i + 1} of {len(kept)}: {_lines(tab, rows[a], rows[b - 1])}, "
+                        f"t = {tt[0]:g} … {tt[-1]:g} s")
+        mine.extend(seg_notes)
+        out.append(Experiment(
+            name=f"{name}[{i + 1}/{len(kept)}]" if len(kept) > 1 else name, path=path, t=tt, dt=step,
+            inputs=np.ascontiguousarray(Ug, dtype=np.float64), outputs=np.ascontiguousarray(Yg, dtype=np.float64),
+            input_names=tuple(net.input_names), output_names=tuple(s.name for s in net.sensors),
+            notes=tuple(mine), warnings=tuple(warnings),
+            input_columns=tuple(tab.columns[j] if j is not None else None for j in in_cols),
+            output_columns=tuple(tab.columns[j] if j is not None else None for j in out_cols),
+            time_column=tab.columns[tj] if tj is not None else None, start=start,
+        ))
+    return out
+
+
+def _lines(tab, first: int, last: int) -> str:
+    """``lines 2–3601`` (CSV) / ``rows 1–3600`` (Parquet)."""
+    a, b = tab.where(int(first)), tab.where(int(last))
+    return a if first == last else f"{a.split()[0]}s {a.split()[1]}–{b.split()[1]}"
 
 
 def _check_row_count(tab) -> None:
@@ -195,10 +291,20 @@ def _values(net: Network, tab, in_cols, out_cols, problems: list[Diagnostic]) ->
     return U, Y
 
 
-def _check_values(net: Network, tab, in_cols, out_cols, U, Y, problems: list[Diagnostic]) -> None:
-    """NaN or infinite inputs, infinite sensor readings: errors naming the rows."""
+def _empty_rows(U: np.ndarray, Y: np.ndarray, out_cols) -> np.ndarray:
+    """Rows (n,) in which every input and every sensor the file has is missing: missing rows (see Gaps).
+    A file without any sensor column has none (a missing input there is an error, as always)."""
+    present = [k for k, j in enumerate(out_cols) if j is not None]
+    if not present:
+        return np.zeros(U.shape[0], dtype=bool)
+    return np.all(np.isnan(U), axis=1) & np.all(np.isnan(Y[:, present]), axis=1)
+
+
+def _check_values(net: Network, tab, in_cols, out_cols, U, Y, empty, problems: list[Diagnostic]) -> None:
+    """NaN or infinite inputs (outside rows with no value at all), infinite sensor readings: errors naming
+    the rows."""
     for k, (inp, j) in enumerate(zip(net.inputs, in_cols)):
-        bad = np.flatnonzero(~np.isfinite(U[:, k]))
+        bad = np.flatnonzero(~np.isfinite(U[:, k]) & ~empty)
         if bad.size:
             problems.append(Diagnostic(
                 f"{tab.prefix()}input {inp.name} (column {tab.shown(j)!r}) has no value (empty, NaN or infinite) on "
@@ -211,6 +317,96 @@ def _check_values(net: Network, tab, in_cols, out_cols, U, Y, problems: list[Dia
             problems.append(Diagnostic(
                 f"{tab.prefix()}sensor {s.name} (column {tab.shown(j)!r}) is infinite on {_row_list(tab, bad)}",
                 tab.span(int(bad[0]), j), hint="leave the cell empty for a missing value"))
+
+
+def _duplicate_columns(net: Network, tab, in_cols, out_cols, tj, time_col) -> list[Diagnostic]:
+    """A column the network reads (input, sensor, time) whose name the header holds twice: an error at the
+    second occurrence (the reader would silently take the first). Names are compared exactly, or ignoring
+    case and spaces when the column was found that way."""
+    wanted = [(j, inp.column, f"input {inp.name}") for inp, j in zip(net.inputs, in_cols)]
+    wanted += [(j, s.column, f"sensor {s.name}") for s, j in zip(net.sensors, out_cols)]
+    wanted.append((tj, time_col, "the time"))
+    out: list[Diagnostic] = []
+    seen: set[int] = set()
+    for j, name, who in wanted:
+        if j is None or j in seen:
+            continue
+        seen.add(j)
+        if name is not None and tab.columns[j] == name:
+            same = [k for k, c in enumerate(tab.columns) if c == name]
+        else:
+            key = tab.columns[j].strip().lower()
+            same = [k for k, c in enumerate(tab.columns) if c.strip().lower() == key]
+        if len(same) < 2:
+            continue
+        times = "twice" if len(same) == 2 else f"{len(same)} times"
+        where = ", ".join(str(k + 1) for k in same[:-1]) + f" and {same[-1] + 1}"
+        out.append(Diagnostic(
+            f"{tab.prefix()}column {tab.shown(same[1])!r} appears {times} (columns {where}); it is {who}, and "
+            f"which one is meant is ambiguous", tab.span(None, same[1]),
+            hint="rename the columns so that each name is unique (or point `column \"...\"` in the network at "
+                 "the one meant)"))
+    return out
+
+
+def _check_temperatures(net: Network, tab, in_cols, out_cols, U, Y, warnings: list[Diagnostic]) -> None:
+    """Temperature columns (temperature inputs, sensors) read in the network's unit: values below absolute
+    zero, or a range that looks like another unit, are warnings (module docstring)."""
+    unit = net.temperature_unit
+    cols = [(U[:, k], j, f"input {inp.name}") for k, (inp, j) in enumerate(zip(net.inputs, in_cols))
+            if inp.is_temperature]
+    cols += [(Y[:, k], j, f"sensor {s.name}") for k, (s, j) in enumerate(zip(net.sensors, out_cols)) if j is not None]
+    switch = "if the file is in {0}, write `units temperature = {0}` in the network"
+    for kelvin, j, who in cols:
+        ok = np.isfinite(kelvin)
+        if not ok.any():
+            continue
+        below = np.flatnonzero(ok & (kelvin < -1e-9))
+        if below.size:
+            r = int(below[0])
+            warnings.append(Diagnostic(
+                f"{tab.prefix()}{who} (column {tab.shown(j)!r}) reads {from_kelvin(kelvin[r], unit):.6g} {unit} at "
+                f"{tab.where(r)}, below absolute zero" + (f" ({below.size} such rows)" if below.size > 1 else ""),
+                tab.span(r, j), severity="warning",
+                hint=f"the network reads temperatures in {unit}; leave the cell empty for a missing value"
+                     + ("" if unit != "K" else "; " + switch.format("degC"))))
+            continue
+        raw = from_kelvin(kelvin[ok], unit)
+        lo, hi = float(raw.min()), float(raw.max())
+        seen = f"{lo:.4g} … {hi:.4g} {unit}"
+        if unit in ("degC", "degF") and _KELVIN_LIKE[0] <= lo and hi <= _KELVIN_LIKE[1]:
+            warnings.append(Diagnostic(
+                f"{tab.prefix()}{who} (column {tab.shown(j)!r}) reads {seen}, which looks like kelvin, not {unit}",
+                tab.span(None, j), severity="warning", hint=switch.format("K")))
+        elif unit == "K" and lo < _KELVIN_MIN:
+            warnings.append(Diagnostic(
+                f"{tab.prefix()}{who} (column {tab.shown(j)!r}) reads {seen}; below {_KELVIN_MIN:g} K is implausible: "
+                f"the values look like degC (or degF), not kelvin",
+                tab.span(None, j), severity="warning", hint=switch.format("degC") + " (or degF)"))
+
+
+def _check_sensor_columns(net: Network, tab, out_cols, Y, require_outputs: bool, problems: list[Diagnostic],
+                          warnings: list[Diagnostic], notes: list[str]) -> None:
+    """Sensor columns with no value in any row: a warning each when another sensor has data (a note when
+    outputs are not required); an error when none has (and outputs are required)."""
+    empty = [(s, j) for k, (s, j) in enumerate(zip(net.sensors, out_cols))
+             if j is not None and not np.isfinite(Y[:, k]).any()]
+    if not empty:
+        return
+    if require_outputs and len(empty) == len(net.sensors):
+        names = ", ".join(f"{tab.shown(j)!r} (sensor {s.name})" for s, j in empty)
+        problems.append(Diagnostic(
+            f"{tab.prefix()}no sensor column has a value in any row: {names}", tab.span(None, empty[0][1]),
+            hint="training and evaluation need measurements: check the file, or point the sensors' "
+                 "`column \"...\"` at the measured columns"))
+        return
+    for s, j in empty:
+        msg = f"sensor {s.name} (column {tab.shown(j)!r}) has no value in any row: it is not measured in this file"
+        if require_outputs:
+            warnings.append(Diagnostic(f"{tab.prefix()}{msg}", tab.span(None, j), severity="warning",
+                                       hint="check the file, or the sensor's `column \"...\"` in the network"))
+        else:
+            notes.append(msg)
 
 
 def _check_time(tab, t: np.ndarray, tj, problems: list[Diagnostic]) -> None:
@@ -230,48 +426,81 @@ def _check_time(tab, t: np.ndarray, tj, problems: list[Diagnostic]) -> None:
         problems.append(Diagnostic(f"{tab.prefix()}the time column has non-finite values", tab.span(None, tj)))
 
 
-def _on_model_grid(net: Network, tab, t: np.ndarray, tj, U: np.ndarray, Y: np.ndarray, dt, notes: list[str]):
-    """``(t_k = k·step, inputs, sensors, step)``: the rows as they are when the file is on the step's grid,
-    else resampled (sensors and temperature inputs linearly, other inputs as interval means of their
-    zero-order hold), with a note saying so."""
-    n = tab.n_rows
-    steps = np.diff(t)
-    file_dt = float(np.median(steps))
-    mean_step = float(t[-1] - t[0]) / (n - 1)
+def _segments(t: np.ndarray, dt):
+    """Rows with data at times ``t`` → ``(bounds [(a, b)], step, file_dt, gaps, limit)``: the segments between
+    jumps longer than ``GAP_STEPS`` periods (``gaps``: the indices ``g`` of jumps ``t[g] → t[g+1]``), the model
+    step, the median row spacing and the gap threshold in s."""
+    d = np.diff(t)
+    file_dt = float(np.median(d))
+    limit = GAP_STEPS * max(file_dt, float(dt) if dt is not None else 0.0)
+    gaps = np.flatnonzero(d > limit)
+    cuts = [0, *(int(g) + 1 for g in gaps), len(t)]
+    bounds = list(zip(cuts[:-1], cuts[1:]))
+    inner = np.delete(d, gaps)
     if dt is not None:
         step = float(dt)
-    elif np.all(np.abs(steps - mean_step) <= 1e-6 * mean_step):
-        step = float(f"{mean_step:.9g}")  # a regular file: its own step (float noise removed)
+    elif inner.size and np.all(np.abs(inner - inner.mean()) <= 1e-6 * inner.mean()):
+        step = float(f"{inner.mean():.9g}")  # a regular file: its own step (float noise removed)
     else:
-        step = _nice_step(file_dt)  # an irregular one: its median step, rounded
-    grid_n = int(math.floor(t[-1] / step * (1 + 1e-9) + 1e-9)) + 1
-    on_grid = abs(t[-1] - (n - 1) * step) <= 1e-6 * step * max(n, 1) and \
+        step = _nice_step(float(np.median(inner)) if inner.size else file_dt)  # an irregular one: its median step
+    return bounds, step, file_dt, gaps, limit
+
+
+def _gap_diagnostic(tab, tj, rows: np.ndarray, t: np.ndarray, g: int, limit: float, step: float) -> Diagnostic:
+    """The error for a gap when the caller needs one continuous run."""
+    r0, r1 = int(rows[g]), int(rows[g + 1])
+    gap = float(t[g + 1] - t[g])
+    return Diagnostic(
+        f"{tab.prefix()}gap of {gap:g} s ({gap / step:.0f} steps of {step:g} s) with no data between "
+        f"{tab.where(r0)} and {tab.where(r1)}; longer than {GAP_STEPS:g} periods ({limit:g} s), so not interpolated",
+        tab.span(r1, tj), hint="this command needs one continuous run: split the file at the gap (or fill it)")
+
+
+def _on_model_grid(net: Network, t: np.ndarray, U: np.ndarray, Y: np.ndarray, step: float, file_dt: float,
+                   notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One segment (rows at file times ``t``, no long gap) → ``(t_k = t_0 + k·step, inputs, sensors)``: the rows
+    as they are when they lie on the step's grid, else resampled (temperature inputs linearly, other inputs as
+    interval means of their zero-order hold, sensors linearly but NaN inside holes longer than ``HOLE_STEPS``
+    periods), with a note saying so."""
+    n = len(t)
+    t0 = float(t[0])
+    r = t - t0
+    steps = np.diff(r)
+    on_grid = abs(r[-1] - (n - 1) * step) <= 1e-6 * step * max(n, 1) and \
         bool(np.all(np.abs(steps - step) <= 1e-6 * step))
     if on_grid:
-        return np.arange(n, dtype=np.float64) * step, U, Y, step
-    if grid_n < 2:
-        raise DataError(Diagnostic(
-            f"{tab.prefix()}the file spans {t[-1]:g} s, less than one step of {step:g} s",
-            tab.span(None, tj), hint="use a smaller --dt"))
+        return t0 + np.arange(n, dtype=np.float64) * step, U, Y
+    grid_n = int(math.floor(r[-1] / step * (1 + 1e-9) + 1e-9)) + 1
     tt = np.arange(grid_n, dtype=np.float64) * step
     Ug = np.empty((grid_n, U.shape[1]))
     for k, inp in enumerate(net.inputs):
         if inp.is_temperature:
-            Ug[:, k] = _interp_linear(t, U[:, k], tt)
+            Ug[:, k] = _interp_linear(r, U[:, k], tt)
         else:
-            Ug[:, k] = _interval_mean_zoh(t, U[:, k], tt, step)
+            Ug[:, k] = _interval_mean_zoh(r, U[:, k], tt, step)
     Yg = np.empty((grid_n, Y.shape[1]))
     for k in range(Y.shape[1]):
-        Yg[:, k] = _interp_linear(t, Y[:, k], tt)
-    irregular = float(np.max(np.abs(steps - file_dt))) > 1e-6 * file_dt
+        Yg[:, k] = _interp_linear(r, Y[:, k], tt)
+    hole = HOLE_STEPS * max(file_dt, step)
+    holes = np.flatnonzero(steps > hole)
+    masked = 0
+    if holes.size:
+        i = np.clip(np.searchsorted(r, tt, side="right") - 1, 0, n - 2)
+        inside = (steps[i] > hole) & (tt > r[i] + 1e-6 * step) & (tt < r[i + 1] - 1e-6 * step)
+        Yg[inside] = np.nan
+        masked = int(inside.sum())
+    seg_dt = float(np.median(steps))
+    irregular = float(np.max(np.abs(steps - seg_dt))) > 1e-6 * seg_dt
     why = (f"irregular sampling (steps {steps.min():g} to {steps.max():g} s)" if irregular
-           else f"the file's step {file_dt:g} s differs from dt")
-    gap = float(steps.max())
-    notes.append(
-        f"resampled {n} rows to {grid_n} steps of {step:g} s because of {why}: sensors and temperature inputs "
-        f"linearly, other inputs as the interval mean of their zero-order hold"
-        + (f"; largest gap {gap:g} s ({gap / step:.0f} steps) interpolated" if gap > 10 * step else ""))
-    return tt, Ug, Yg, step
+           else f"the file's step {seg_dt:g} s differs from dt")
+    note = (f"resampled {n} rows to {grid_n} steps of {step:g} s because of {why}: sensors and temperature inputs "
+            f"linearly, other inputs as the interval mean of their zero-order hold")
+    if holes.size:
+        note += (f"; {holes.size} short gap(s) of missing rows (longest {steps[holes].max():g} s, at most "
+                 f"{GAP_STEPS:g} periods): inputs carried across them, sensors not interpolated "
+                 f"({masked} step(s) left unmeasured)")
+    notes.append(note)
+    return t0 + tt, Ug, Yg
 
 
 # ---------------------------------------------------------------------------------------------

@@ -143,8 +143,8 @@ class _Session:
         train_exps, val_exps = read(self.train_arg, net), read(self.val_arg, net)
         if not train_exps:
             raise TnnError(Diagnostic("no training data given", hint="pass at least one CSV file"))
-        train_paths = [e.path for e in train_exps]
-        val_paths = [e.path for e in val_exps]
+        train_paths = list(dict.fromkeys(e.path for e in train_exps))  # a file split at gaps is read once
+        val_paths = list(dict.fromkeys(e.path for e in val_exps))
         kinds = self.kinds
         unused = _unused_columns(net, train_exps + val_exps) if (kinds is None or "unused_column" in kinds) else []
         net_x = net
