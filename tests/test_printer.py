@@ -322,13 +322,22 @@ def _tree(children):
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.recursive(_LEAF, _tree, max_leaves=16))
 def test_random_expressions_round_trip(expr):
-    round_trip(_expr_net(expr))
+    net = _expr_net(expr)
+    assume(net is not None)
+    round_trip(net)
 
 
-def _expr_net(expr) -> Network:
+def _expr_net(expr) -> Network | None:
+    """The test network with the parameter ``g = expr``; ``None`` where validation rejects the value of a constant
+    part of ``expr`` (``u / 0``, ``log(-1)``: tests/test_values_checked.py)."""
     base = tnn_dsl.loads("network e\ninput u : [1]\nparam k = 2\nboundary b = 20 degC\nnode n C = 1 J/K\n"
                          "G n -- b = 1 W/K\n", "e.thn")
-    return validate(base.model_copy(update={"params": list(base.params) + [Param(name="g", expr=expr)]}))
+    try:
+        return validate(base.model_copy(update={"params": list(base.params) + [Param(name="g", expr=expr)]}))
+    except TnnError as err:
+        if all(" in `g`" in d.message or d.message.startswith("`g` is not") for d in err.diagnostics):
+            return None
+        raise
 
 
 _SMALL = [Ref(name="u", kind="input"), Num(value=2.0), Num(value=-3.0), Num(value=50.0, unit="%"),
@@ -345,4 +354,6 @@ def test_every_operator_pair_round_trips(outer):
         exprs = [Unary(arg=x)] if outer == "neg" else [Binary(op=outer, left=x, right=u),
                                                        Binary(op=outer, left=u, right=x)]
         for e in exprs:
-            round_trip(_expr_net(e))
+            net = _expr_net(e)
+            if net is not None:  # `u / (2 - 2)`: a division by zero
+                round_trip(net)

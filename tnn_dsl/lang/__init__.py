@@ -1,8 +1,8 @@
 """The ``.thn`` language: text in, validated IR out.
 
 Owns: the grammar loading and the Lark parser with its catalogue of malformed examples (``parser``), unit
-parsing and dimension algebra (``units``, pint underneath), the one validation pass (``validate``), and the
-printer back to ``.thn`` text (``printer``: :func:`print_thn`).
+parsing and dimension algebra (``units``, pint underneath), the one validation pass (``validate``; the values of
+constant expressions: ``constants``), and the printer back to ``.thn`` text (``printer``: :func:`print_thn`).
 May import: ``tnn_dsl.core``, ``tnn_dsl.ir``.
 """
 

@@ -10,7 +10,9 @@
 It reports (all at once, sorted by position): undefined and duplicate names (with a note "first
 defined here"), dimension mismatches naming both units, non-positive capacities/resistances/
 conductances/time constants, bounds that exclude the value, `free` on a derived parameter, `per experiment`
-on a derived, a fixed or a learned parameter, dependency cycles between parameters, elements on missing
+on a derived, a fixed or a learned parameter, the same value checks for an expression of constants evaluated with
+the written values (``C = c0 - 8 J/K``; :mod:`.constants`), a division by a constant zero in any expression, a
+node's ``C_x`` or a boundary's ``T_x`` taking a declared name, dependency cycles between parameters, elements on missing
 nodes, learn targets that do not exist and learn inputs that are neither a node, an input nor a parameter,
 and connected groups of nodes with no conduction path to a boundary or a fluid inlet (their steady state is
 undefined)."""
@@ -22,6 +24,7 @@ import re
 
 from ..core import Diagnostic, TnnError
 from ..ir import (
+    POSITIVE_ROLES,
     Binary,
     Call,
     LearnFunction,
@@ -35,7 +38,9 @@ from ..ir import (
     Temp,
     Unary,
     map_children,
+    walk,
 )
+from .constants import ConstValues
 from .units import describe_dim, dim_div, dim_eq, dim_mul, dim_pow, format_dim, unit_dim
 
 _T_NUM = re.compile(r"^T(\d+)$")
@@ -109,22 +114,45 @@ class _V:
                 values[i.name] = i
         self.inputs = {i.name: i for i in net.inputs}
         node_owner_dups = self._dup_node_names
+        shadowed: set[int] = set()  # the later of two declarations of a name, reported: left out of `params`
         for p in net.params:
             if p.name in values:
                 prev = values[p.name]
                 same_owner = isinstance(prev, Param) and prev.owner is not None and prev.owner == p.owner
                 owner_name = (p.owner or "").split(" ", 1)[-1]
                 if not same_owner and owner_name not in node_owner_dups and owner_name not in dup_owner:
-                    what = "an input" if not isinstance(prev, Param) else "a parameter"
-                    self.err(f"the name `{p.name}` is already {what}", p.span,
-                             related=[("first defined here", prev.span)])
+                    implicit = self._implicit_collision(p, prev)
+                    shadowed.add(id(implicit if implicit is not None else p))
+                    if implicit is None:
+                        what = "an input" if not isinstance(prev, Param) else "a parameter"
+                        self.err(f"the name `{p.name}` is already {what}", p.span,
+                                 related=[("first defined here", prev.span)])
                 continue
             values[p.name] = p
         del dup_nodes
-        self.params = {p.name: p for p in net.params}
+        self.params = {p.name: p for p in net.params if id(p) not in shadowed}
         self.elements = elements
 
     _dup_node_names: set = set()
+
+    def _implicit_collision(self, p: Param, prev) -> Param | None:
+        """Report a node's capacity (``C_x``) or a boundary's temperature (``T_x``), named by the element,
+        that takes a name the user declared, and return it (the user's declaration keeps the name);
+        ``None`` if neither of the two is such a parameter."""
+        for implicit, other in ((p, prev), (prev, p)):
+            kind, _, el = (implicit.owner or "").partition(" ") if isinstance(implicit, Param) else ("", "", "")
+            if kind not in ("node", "boundary"):
+                continue
+            slot = "temperature" if kind == "boundary" else "capacity"
+            what = "an input" if not isinstance(other, Param) else "a parameter"
+            decl = "input" if not isinstance(other, Param) else "parameter"
+            prefix = "T" if kind == "boundary" else "C"
+            self.err(f"{kind} `{el}` names its {slot} parameter `{p.name}`, but `{p.name}` is already {what}",
+                     implicit.span, related=[(f"the {decl} `{p.name}` is declared here", other.span)],
+                     hint=f"a {kind} `NAME` defines the parameter `{prefix}_NAME`: rename the {decl} "
+                          f"(e.g. `{p.name}_in`) or the {kind}")
+            return implicit
+        return None
 
     def _unique(self, first, name, el, what):
         if name in first:
@@ -293,7 +321,11 @@ class _V:
                 if positive and lo is not None and lo < 0:
                     self.err(f"the lower bound of `{p.name}` is negative but {self._what(p)} must be positive",
                              p.span)
-            elif p.free:
+            else:
+                v = self.consts.value(p.name)
+                if v is not None and d is not None and (expected_unit is None or dim_eq(d, unit_dim(expected_unit))):
+                    self._evaluated_checks(p, v, key, d, expected_unit)
+            if not isinstance(p.expr, Num) and p.free:
                 self.err(f"`{p.name}` is an expression and cannot be `free`", p.span,
                          hint="only a constant is fitted; make the constants inside the expression free instead")
             if p.per_experiment and not isinstance(p.expr, Num):
@@ -303,6 +335,24 @@ class _V:
             elif p.per_experiment and not p.free:
                 self.err("a per-experiment value must be free: write `free per experiment`", p.span,
                          hint="only a fitted constant takes its own value in each data file")
+
+    def _evaluated_checks(self, p: Param, v: float, key, d, expected_unit):
+        """The checks of a written value, for the value of an expression of constants (``C = c0 - 8 J/K``)."""
+        unit = f" {expected_unit}" if expected_unit not in (None, "1") else "" if expected_unit else " (SI)"
+        what = self._what(p)
+        got = f"{'it' if what == f'`{p.name}`' else f'`{p.name}`'} evaluates to {v:g}{unit} with the written values"
+        span = p.expr.span or p.span
+        deps = sorted({e.name for e in walk(self.resolved_exprs.get(p.name, p.expr))
+                       if isinstance(e, Ref) and e.kind == "param"})
+        uses = (" (it uses " + ", ".join(f"`{n}`" for n in deps) + ")") if deps else ""
+        if (p.role in POSITIVE_ROLES or key in _POSITIVE_KEYS) and v <= 0:
+            self.err(f"{what} must be positive, but {got}", span,
+                     hint=f"a zero or negative value has no physical meaning here; check the expression{uses}")
+        if key == "emissivity" and v > 1:
+            self.err(f"{what} must be at most 1, but {got}", span, hint=f"check the expression{uses}")
+        if p.role == "temperature" and v <= 0 and dim_eq(d, {"K": 1.0}):
+            self.err(f"{what} is at or below absolute zero: {got}", span,
+                     hint=f"temperatures are evaluated in kelvin; check the expression{uses}")
 
     def _what(self, p: Param) -> str:
         owner = p.owner or ""
@@ -492,6 +542,7 @@ class _V:
         for p in self.net.params:
             if p.name in self.params and self.params[p.name] is p:
                 self.param_dim(p.name)
+        self.consts = ConstValues(self.params, self.resolved_exprs, lambda msg, span, hint: self.err(msg, span, hint))
         self.slot_checks()
         self.element_checks()
         if not self.diags:
