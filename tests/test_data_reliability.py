@@ -282,3 +282,29 @@ def test_tnnc_train_quiet_still_prints_data_warnings(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 0, err
     assert "warning:" in err and "looks like kelvin" in err and "note:" not in err
+
+
+def test_tnnc_diagnose_quiet_prints_data_warnings_first(tmp_path, capsys, monkeypatch):
+    """``tnnc diagnose --quiet`` prints the data's warnings before the doctor runs (the doctor itself is replaced
+    here: this test is about what the command prints)."""
+    import tnn_dsl.doctor
+    from tnn_dsl.cli import main
+
+    net = tmp_path / "one.thn"
+    net.write_text('network one "one node"\nunits temperature = degC\ninput Ta : temperature column "Ta"\n'
+                   'boundary amb = Ta\nnode n C = 100 J/K free in [1 J/K, 1000 J/K]\n'
+                   'R n -- amb = 0.5 K/W as Rn\nsensor y = n column "y"\n')
+    rows = "\n".join(f"{k},{293.15 + 0.01 * k:.4f},{293.5 + 0.005 * k:.4f}" for k in range(60))
+    data = write(tmp_path / "k.csv", f"time,Ta,y\n{rows}\n")
+
+    from tnn_dsl.core import TnnError
+
+    def not_run(*a, **k):
+        raise TnnError("the doctor is not run in this test")
+
+    monkeypatch.setattr(tnn_dsl.doctor, "diagnose", not_run)
+    rc = main(["diagnose", str(net), data, "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "not run in this test" in err
+    assert "warning:" in err and "looks like kelvin" in err
+    assert err.index("looks like kelvin") < err.index("not run in this test")

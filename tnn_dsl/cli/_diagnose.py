@@ -49,6 +49,14 @@ def run(args) -> int:
     check_outputs(args, [(args.output, THN, "-o"), (args.report, REPORT_DIR, "--report"), (args.json, JSON, "--json")],
                   inputs=[args.net, *args.train, *(args.val or [])])
     t0 = time.monotonic()
+    # the data's warnings (a sensor column empty, temperatures in the wrong unit), shown even with --quiet
+    import tnn_dsl
+
+    from ..data import read_data, warning_lines
+
+    net = tnn_dsl.load(args.net)
+    for w in warning_lines(read_data(net, [*args.train, *(args.val or [])])):
+        print(w, file=sys.stderr)
 
     def progress(msg: str) -> None:
         if not args.quiet:
