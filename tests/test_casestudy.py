@@ -254,3 +254,17 @@ def test_heat_pipe_floor_is_inactive_in_distribution(tmp_path):
             t_mean = 0.5 * (df[f"T_{a}"] + df[f"T_{b}"])
             factor = 1 + slope * (df["u1"] - 0.5) - 0.02 * (t_mean - 25.0)
             assert factor.min() > 0.1, (key, a, b, factor.min())
+
+
+def test_a_users_file_named_like_the_marker_is_never_replaced_or_removed(tmp_path):
+    """``--force`` into a directory holding a file of the generator's marker name that it did not write: refused
+    before anything is written, and the file is left as it was."""
+    from tnn_dsl import TnnError
+    from tnn_dsl.studies.casestudy import _INCOMPLETE
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / _INCOMPLETE).write_text("my notes\n")
+    with pytest.raises(TnnError, match="was not written by this generator"):
+        generate_case_study(out, widen=(), n_ood=0, durations=SHORT, force=True)
+    assert (out / _INCOMPLETE).read_text() == "my notes\n" and sorted(p.name for p in out.iterdir()) == [_INCOMPLETE]

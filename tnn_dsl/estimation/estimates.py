@@ -21,8 +21,8 @@ import numpy as np
 from ..core.htmlview import html_table, pre, safe_repr_html, view
 from ..data import unit_factor
 
-__all__ = ["Estimates", "estimation_summary", "covariance_from_information", "display_factor", "normal_p", "si_unit",
-           "file_temperatures", "SINGULAR", "LOG_SE_MAX", "AT_BOUND"]
+__all__ = ["Estimates", "estimation_summary", "estimate_row", "covariance_from_information", "display_factor",
+           "normal_p", "si_unit", "file_temperatures", "SINGULAR", "LOG_SE_MAX", "AT_BOUND"]
 
 SINGULAR = 1e-9
 AT_BOUND = 1e-6
@@ -275,3 +275,27 @@ def file_temperatures(est: Estimates, network: Any) -> Estimates:
             r["estimate_unit"], r["se_unit"] = v, se
         r["unit"] = unit
     return est
+
+
+def estimate_row(name: str, kind: str, estimate: float, log: bool, se_z: float, dF: float, z: float,
+                 at_bound: bool, singular: bool, dim: dict[str, float], unit: str | None) -> dict[str, Any]:
+    """One row of the coefficient table (:class:`Estimates`): the rules of this module applied to an estimate
+    (SI) fitted in coordinate ``z`` (``log`` or linear) with standard error ``se_z`` there; ``unit`` the file's
+    unit of a parameter (shown beside SI where :func:`display_factor` knows it); σ_w rows (``kind="sigma_w"``) in
+    K/√s."""
+    from ..ir.emit import format_quantity
+
+    status = "at bound" if at_bound else ("not identifiable" if singular else "ok")
+    sz = float(se_z) if status == "ok" else math.nan
+    se = abs(estimate) * sz if log else sz
+    t = estimate / se if status == "ok" and se > 0 else math.nan
+    if log and status == "ok" and sz > LOG_SE_MAX:
+        status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
+    fac = display_factor(unit) if unit else None
+    sigma_w = kind == "sigma_w"
+    return {"name": name, "kind": kind, "estimate": estimate, "se": se,
+            "unit_si": "K/√s" if sigma_w else si_unit(dim),
+            "display": f"{estimate:.6g} K/√s" if sigma_w else format_quantity(estimate, dim),
+            "unit": unit if fac else None, "estimate_unit": estimate / fac if fac else None,
+            "se_unit": se / fac if fac else None, "t": t, "p": normal_p(t), "dF": float(dF),
+            "coordinate": "log" if log else "linear", "z": float(z), "se_z": sz, "status": status}

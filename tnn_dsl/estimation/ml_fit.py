@@ -49,8 +49,7 @@ import numpy as np
 from ..compiler import backend_of
 from ..compiler import compile as compile_network
 from ..core import Diagnostic, TnnError
-from ..ir.emit import format_quantity
-from .estimates import AT_BOUND, LOG_SE_MAX, Estimates, display_factor, normal_p, si_unit
+from .estimates import AT_BOUND, Estimates, display_factor, estimate_row
 from .estimates import covariance_from_information as _covariance
 from .likelihood import LikelihoodProblem
 
@@ -383,18 +382,6 @@ def _rows(model, joint: _Joint, z, g, se_z, at_bound, singular) -> list[dict[str
                 est = float(joint.problems[r].x0_ref[k] + z[i])
             else:
                 est = math.exp(z[i])
-        status = "at bound" if at_bound[i] else ("not identifiable" if singular[i] else "ok")
-        sz = float(se_z[i]) if status == "ok" else math.nan
-        se = abs(est) * sz if log else sz
-        t = est / se if status == "ok" and se > 0 else math.nan
-        if log and status == "ok" and sz > LOG_SE_MAX:
-            status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
-        fac = display_factor(unit) if unit else None
-        unit_si = "K/√s" if kind == "sigma_w" else si_unit(dim)
-        rows.append({"name": name, "kind": kind, "estimate": est, "se": se, "unit_si": unit_si,
-                     "display": f"{est:.6g} K/√s" if kind == "sigma_w" else format_quantity(est, dim),
-                     "unit": unit if fac else None,
-                     "estimate_unit": est / fac if fac else None, "se_unit": se / fac if fac else None,
-                     "t": t, "p": normal_p(t), "dF": float(g[i]), "coordinate": "log" if log else "linear",
-                     "z": float(z[i]), "se_z": sz, "status": status})
+        rows.append(estimate_row(name, kind, est, log, se_z[i], g[i], z[i], bool(at_bound[i]), bool(singular[i]),
+                                 dim, unit))
     return rows

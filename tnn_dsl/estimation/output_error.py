@@ -35,8 +35,7 @@ import numpy as np
 
 from ..compiler import backend_of
 from ..core import Diagnostic, TnnError
-from ..ir.emit import format_quantity
-from .estimates import LOG_SE_MAX, Estimates, covariance_from_information, display_factor, normal_p, si_unit
+from .estimates import Estimates, covariance_from_information, estimate_row
 
 __all__ = ["output_error_estimates", "OE_AT_BOUND"]
 
@@ -147,8 +146,8 @@ def output_error_estimates(model: Any, params: Any, records: Sequence[tuple[str,
     rows = []
     for i, (name, lg) in enumerate(zip(free, logged)):
         par = model.network.param(name)
-        rows.append(_row(name, "parameter", float(pn[name]), lg, se_z[i], grad[i], z[i], at_bound[i], singular[i],
-                         par.dim, par.unit))
+        rows.append(estimate_row(name, "parameter", float(pn[name]), lg, se_z[i], grad[i], z[i], bool(at_bound[i]),
+                                 bool(singular[i]), par.dim, par.unit))
     states = []
     for r_i, (rec_name, *_rest, T0) in enumerate(records):
         T0 = np.asarray(T0, dtype=np.float64).reshape(ns)
@@ -157,17 +156,13 @@ def output_error_estimates(model: Any, params: Any, records: Sequence[tuple[str,
         for s_i, s in enumerate(model.state_names):
             i = nf + r_i * ns + s_i
             labels.append(f"x0[{s}]{suffix} - x0_ref")
-            rows.append(_row(f"x0[{s}]{suffix}", "x0", float(T0[s_i]), False, se_z[i], grad[i], 0.0, False,
+            rows.append(estimate_row(f"x0[{s}]{suffix}", "x0", float(T0[s_i]), False, se_z[i], grad[i], 0.0, False,
                              singular[i], {"K": 1.0}, None))
     for j, s in enumerate(model.output_names):
         if n_j[j] > 0:
-            rows.append({"name": f"sigma_v[{s}]", "kind": "sigma_v", "estimate": float(math.sqrt(sig2[j])),
-                         "se": float(math.sqrt(sig2[j] / (2.0 * n_j[j]))), "unit_si": "K",
-                         "display": format_quantity(float(math.sqrt(sig2[j])), {"K": 1.0}), "unit": None,
-                         "estimate_unit": None, "se_unit": None, "t": math.sqrt(2.0 * n_j[j]),
-                         "p": normal_p(math.sqrt(2.0 * n_j[j])), "dF": 0.0, "coordinate": "linear",
-                         "z": float(math.sqrt(sig2[j])), "se_z": float(math.sqrt(sig2[j] / (2.0 * n_j[j]))),
-                         "status": "ok"})
+            sd, se = math.sqrt(sig2[j]), math.sqrt(sig2[j] / (2.0 * n_j[j]))  # se of a normal sample's σ
+            rows.append(estimate_row(f"sigma_v[{s}]", "sigma_v", sd, False, se, 0.0, sd, False, False, {"K": 1.0},
+                                     None))
     out_notes = ["output error: standard errors from the Gauss–Newton information scaled by the residual variance; "
                  "a free run's residuals are correlated in time, so they are optimistic (the likelihood fit, "
                  "--objective ml, models that correlation)"] + list(notes)
@@ -202,18 +197,3 @@ def _jacobian(B, yhat, v0: np.ndarray) -> np.ndarray:
         e[i] = _FD_STEP
         cols.append((run(v0 + e) - run(v0 - e)) / (2.0 * _FD_STEP))
     return np.stack(cols, axis=-1)
-
-
-def _row(name, kind, est, log, sz, dF, z, at_bound, singular, dim, unit) -> dict[str, Any]:
-    status = "at bound" if at_bound else ("not identifiable" if singular else "ok")
-    sz = float(sz) if status == "ok" else math.nan
-    se = abs(est) * sz if log else sz
-    t = est / se if status == "ok" and se > 0 else math.nan
-    if log and status == "ok" and sz > LOG_SE_MAX:
-        status, sz, se, t = "not identifiable", math.nan, math.nan, math.nan
-    fac = display_factor(unit) if unit else None
-    return {"name": name, "kind": kind, "estimate": est, "se": se, "unit_si": si_unit(dim),
-            "display": format_quantity(est, dim), "unit": unit if fac else None,
-            "estimate_unit": est / fac if fac else None, "se_unit": se / fac if fac else None, "t": t,
-            "p": normal_p(t), "dF": float(dF), "coordinate": "log" if log else "linear", "z": float(z), "se_z": sz,
-            "status": status}

@@ -324,8 +324,14 @@ def generate_case_study(
         return {**summary, "cached": True}
 
     out.mkdir(parents=True, exist_ok=True)
-    # a half-regenerated directory must never look valid, but stays recognisable as ours
-    write_text_atomic(out / _INCOMPLETE, _WHAT + "\n")
+    # a half-regenerated directory must never look valid, but stays recognisable as ours; a file of that name
+    # that this generator did not write is never replaced (nor removed at the end)
+    marker = out / _INCOMPLETE
+    if marker.exists() and not (marker.is_file() and marker.read_text(encoding="utf-8", errors="replace")
+                                == _WHAT + "\n"):
+        raise TnnError(Diagnostic(f"{marker} exists and was not written by this generator",
+                                  hint="move it away or choose another -o directory"))
+    write_text_atomic(marker, _WHAT + "\n")
     if _is_our_manifest(out / "manifest.json"):  # only our own: a user's file of that name is left until replaced
         (out / "manifest.json").unlink()
     truth = _truth(backend, tpath)
