@@ -8,7 +8,9 @@ missing radiation path, a sensor offset or lag, a heat capacity behind a link or
 column, a wrong constant) by a score test, fits the best few, keeps one only if it pays on the held-out data
 (Diebold–Mariano test on the held-out squared errors with a charge for the extra parameters, p < 0.05, and at
 least 10 % lower MAE), and repeats (forward selection). Writes the extended network (-o), a JSON document
-(--json) and a self-contained HTML report (--report).
+(--json) and a self-contained HTML report (--report). Every free run starts from an estimated initial state
+(--init, default estimate: fitted with the parameters on a training file, from a burn-in that is not scored on
+a held-out file); a file that does not start at rest is named in a warning.
 """
 
 from __future__ import annotations
@@ -37,6 +39,13 @@ def register(subparsers) -> None:
                         "is left)")
     p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
                    help="training time for each of the linear and MLP extensions in that comparison (default 60)")
+    p.add_argument("--init", choices=("estimate", "measured", "steady"), default="estimate",
+                   help="initial state of every free run: estimate (default: a training file's fitted with the "
+                        "parameters, a held-out file's from a burn-in at its start that is not scored), measured "
+                        "(steady state of the first inputs with sensed nodes at their first readings) or steady "
+                        "(steady state of the first inputs)")
+    p.add_argument("--burn-in", type=float, default=None, metavar="SECONDS", dest="burn_in",
+                   help="burn-in of a held-out file for --init estimate (default: a tenth of the file)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_force_flag(p)
     p.set_defaults(func=run)
@@ -64,7 +73,8 @@ def run(args) -> int:
 
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
-                 mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force)
+                 mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force, init=args.init,
+                 burn_in=args.burn_in)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")

@@ -3,7 +3,7 @@
 Given a network and measured data it answers, in one call: where the simulation is wrong, why (a cause
 named in words and as ``.thn`` structure), what the extended model is, and how much better it is on data
 it was not fitted on. The question answered is the *simulation* one ("is my free-run simulation right?",
-output error from the initial steady state), not the one-step-predictor one of Kalman-filter methods.
+output error from each file's initial state, ``init``), not the one-step-predictor one of Kalman-filter methods.
 
 Steps (see docs/architecture.md, "Diagnosis"):
 
@@ -19,8 +19,8 @@ Steps (see docs/architecture.md, "Diagnosis"):
    not the trainer's number (the trainer validates the tail from its measured state and keeps its
    best-*validation* iterate). Candidate fits (step 4) run until the SSE drops by less than 1e-4
    relatively, at most ``FIT_ITER`` iterations.
-2. **Residuals** on the held-out rows (``val`` files, else the last 30 % of each training file, simulated
-   as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
+2. **Residuals** on the held-out rows (``val`` files after their burn-in, else the last 30 % of each training
+   file, simulated as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (:mod:`tnn_dsl.analysis.residuals`).
 3. **Candidates** from the IR (:mod:`.candidates`), all exactly null, in ONE extended network, plus structural
    ones (a sensor lag, a missing thermal mass on a link, a heat capacity behind a source) that are not.
@@ -39,7 +39,9 @@ Steps (see docs/architecture.md, "Diagnosis"):
    k extra parameters; p < 0.05) and MAE at least 10 % lower. Compensation guard (thesis §6.2.4): among
    fitted candidates whose held-out SSE is within noise of the best, the one with fewer parameters, then the
    more physical placement wins (a parameter of an element beats a heat load at a node, a parameter the
-   user already declared uncertain beats one they did not; see ``_place``); runners-up are reported.
+   user already declared uncertain beats one they did not; see ``_place``); runners-up are reported. A fit
+   whose simulation diverges, or whose values or temperatures are not physical (:mod:`.plausibility`), is
+   never accepted and the reason is shown.
 5. **Extend**: the accepted findings applied to the IR (``learn`` functions, links, radiation, sensor offsets and
    lags, thermal masses, capacities behind sources, with their fitted values), printed as ``.thn`` by
    :func:`tnn_dsl.lang.print_thn` and re-loaded to check it is valid; the gain on held-out data. Repeat 3–5
@@ -59,7 +61,8 @@ __all__ = ["diagnose", "Diagnosis", "Finding"]
 def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | None = None, backend: str = "jax",
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
-             mlp_time: float = 60.0, force: bool = False) -> Diagnosis:
+             mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
+             burn_in: float | None = None) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -83,13 +86,21 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         When the extended model's held-out residual is still not white, train the extension with its
         ``linear`` clauses and with them as MLPs and keep the MLP only if it pays on held-out data
         (:mod:`tnn_dsl.doctor.mlp_check`); ``mlp_time`` s of training for each (skipped when the budget is short).
+    init : "estimate" | "measured" | "steady"
+        Where each free run starts (:mod:`tnn_dsl.fit.initial`). ``estimate`` (default): a training file's
+        initial state is fitted with the parameters (and is a nuisance direction of the score test); a held-out
+        file's is estimated from its first ``burn_in`` seconds (default a tenth of the file) with the parameters
+        fixed, and those samples are not scored. ``measured``: the steady state of the first inputs with the
+        sensed nodes at their first readings. ``steady``: the steady state of the first inputs (the summary warns
+        when a file does not start at rest).
 
     Returns
     -------
     Diagnosis
     """
     run = _Session(net_or_path, train, val, budget_s, backend, progress, top=top, max_rounds=max_rounds,
-                   output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force)
+                   output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
+                   burn_in=burn_in)
     run.read_data()
     run.fit_baseline()
     run.analyse_residuals()

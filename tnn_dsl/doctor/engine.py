@@ -34,18 +34,50 @@ class _Col:
     upper: float | None = None
 
 
+X0_PREFIX = "x0:"
+"""Keys ``x0:<experiment index>:<state name>`` (scalars, K) of the engine's parameter dict: where each experiment's
+free run starts (rules ``estimate`` and ``measured``)."""
+
+DOCTOR_INIT_RULES = ("estimate", "measured", "steady")
+"""The initial-state rules the doctor offers (:mod:`tnn_dsl.fit.initial`; ``filter`` is a rule of free runs of a
+trained model, not of a fit)."""
+
+
+def x0_key(i: int, state: str) -> str:
+    """The parameter key of experiment ``i``'s initial value of ``state`` (K)."""
+    return f"{X0_PREFIX}{i}:{state}"
+
+
+@dataclass
+class _InitPlan:
+    """Where the doctor's free runs start (the rule of :mod:`tnn_dsl.fit.initial`).
+
+    ``estimate``: each training file's initial state is fitted with the parameters (Levenberg–Marquardt columns,
+    so the score test treats it as a nuisance); a held-out file's is estimated from its first ``burn[i]`` samples
+    with the parameters fixed, and those samples are not scored. ``measured``: the steady state of the first
+    inputs with the sensed nodes at their first readings, fixed. ``steady``: the steady state of the first inputs
+    at the current parameters (the thesis's rule)."""
+
+    rule: str = "steady"
+    burn: tuple[int, ...] = ()
+
+
 class _Engine:
     """A compiled model over a set of experiments with train/val row masks.
 
     ``cols`` is the fixed list of scalar parameters the engine may move (free + candidate columns);
     ``params`` the current numpy parameter dict. Jacobians are taken w.r.t. θ at 0 where the column's
-    value is ``base·exp(θ)`` (log) or ``base + θ``."""
+    value is ``base·exp(θ)`` (log) or ``base + θ``. Under the ``estimate`` and ``measured`` rules the
+    parameters hold each experiment's initial state (:func:`x0_key`); a held-out file's is re-estimated
+    from its burn-in whenever the parameters have changed and its rows are simulated (``x0_stale``)."""
 
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
-                 params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0):
+                 params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0,
+                 init: _InitPlan | None = None):
         from ..compiler import compile as _compile
 
         self.net = net
+        self.init = init or _InitPlan()
         self.backend = backend
         self.model = model if model is not None else _compile(net, backend=backend, dtype="float64")
         self.exps = experiments
@@ -55,8 +87,11 @@ class _Engine:
         self.n_score_exps = max(i + 1 for i, h in enumerate(has_train) if h) if any(has_train) else len(experiments)
         self.cols = cols
         self.col_index = {(c.key, c.index): i for i, c in enumerate(cols)}
+        self._params: dict[str, np.ndarray] = {}
         self.params = params if params is not None else {
             k: np.array(v, dtype=float) for k, v in self.model.to_numpy(self.model.init_params(seed=0)).items()}
+        # experiments the training rows never touch: their initial state comes from their burn-in
+        self.val_only = [i for i, h in enumerate(has_train) if not h]
         self.y = np.concatenate([e.outputs for e in experiments], axis=0)  # (N, n_out)
         ok = np.isfinite(self.y)
         self.train_mask = train_mask & ok
@@ -69,6 +104,64 @@ class _Engine:
         self._setup_backend()
 
     # -- parameter plumbing ---------------------------------------------------------------------
+
+    @property
+    def params(self) -> dict[str, np.ndarray]:
+        """The current numpy parameter dict (setting it marks the held-out files' initial states stale)."""
+        return self._params
+
+    @params.setter
+    def params(self, value: dict[str, np.ndarray]) -> None:
+        self._params = value
+        self.x0_stale = True
+
+    def x0_keys(self, i: int) -> list[str]:
+        """Experiment ``i``'s initial-state keys, in state order (empty under ``steady``)."""
+        if self.init.rule == "steady":
+            return []
+        return [x0_key(i, n) for n in self.model.state_names]
+
+    def initial_states(self, which: Sequence[int], rule: str = "estimate", keep: set[str] | frozenset = frozenset()
+                       ) -> None:
+        """Set the initial states of experiments ``which`` by ``rule`` (``estimate``: a MAP fit to the file's
+        burn-in with the current parameters fixed; ``measured``: the steady state with the sensed nodes at their
+        first readings; :func:`tnn_dsl.fit.initial.initial_state`) in place; keys in ``keep`` are left as they
+        are."""
+        from dataclasses import replace
+
+        from ..core import TnnError
+        from ..fit.initial import initial_state
+
+        if self.init.rule == "steady":
+            return
+        pb = self._to(self._params)
+        for i in which:
+            e = self.exps[i]
+            burn = self.init.burn[i] if i < len(self.init.burn) else None
+            try:
+                ini = initial_state(self.net, self.model, pb, replace(e, inputs=_pad(e.inputs, self.n_force)), rule,
+                                    burn_in_s=None if burn is None else burn * float(e.dt))
+            except TnnError:
+                continue  # e.g. parameters with no finite steady state: keep the previous start
+            if np.all(np.isfinite(ini.T)):
+                for k, v in zip(self.x0_keys(i), ini.T):
+                    if k not in keep:
+                        self._params[k] = np.asarray(float(v))
+
+    def steady_gap(self, i: int) -> np.ndarray:
+        """First reading minus the reading at the steady state of the first inputs, per sensor (n_out,) K, of
+        experiment ``i`` at the current parameters (NaN where unmeasured or not finite)."""
+        u0 = self._to({"u": _pad(self.exps[i].inputs[:1], self.n_force)[0]})["u"]
+        pb = self._to(self._params)
+        with np.errstate(invalid="ignore"):
+            y_ss = np.asarray(self._np(self.model.outputs(pb, self.model.steady_state(pb, u0), u0)), dtype=float)
+            return np.asarray(self.exps[i].outputs[0], dtype=float) - y_ss
+
+    def _fresh(self) -> None:
+        """Re-estimate the held-out files' initial states if the parameters changed since (``estimate``)."""
+        if self.x0_stale and self.init.rule == "estimate" and self.val_only:
+            self.initial_states(self.val_only)
+        self.x0_stale = False
 
     def _build_scatter(self):
         n = len(self.cols)
@@ -95,6 +188,13 @@ class _Engine:
         m_log = {k: xp.asarray(v) for k, v in self.m_log.items()}
         n_sc = self.n_score_exps
         lens = [e.n_steps for e in exps[:n_sc]]
+        x0_names = [self.x0_keys(i) for i in range(len(exps))]
+
+        def start(p, i, u):
+            """Experiment ``i``'s initial state (n_states,) K: its ``x0`` keys, else the steady state of ``u[0]``."""
+            if x0_names[i]:
+                return xp.stack([p[k] for k in x0_names[i]])
+            return model.steady_state(p, u[0])
 
         def with_theta(base, theta):
             p = dict(base)
@@ -106,8 +206,8 @@ class _Engine:
 
         def simulate(p):
             ys, xs = [], []
-            for u, dt in zip(u_list, dts):
-                st, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+            for i, (u, dt) in enumerate(zip(u_list, dts)):
+                st, y = model.rollout(p, start(p, i, u), u, dt)
                 ys.append(y)
                 xs.append(st)
             return xp.concat(ys, 0), xp.concat(xs, 0)
@@ -116,8 +216,8 @@ class _Engine:
             """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
             p = with_theta(base, theta)
             ys = []
-            for u, dt in zip(u_list[:n_sc], dts[:n_sc]):
-                _, y = model.rollout(p, model.steady_state(p, u[0]), u, dt)
+            for i, (u, dt) in enumerate(zip(u_list[:n_sc], dts[:n_sc])):
+                _, y = model.rollout(p, start(p, i, u), u, dt)
                 ys.append(y)
             return xp.concat(ys, 0).reshape(-1)[idx]
 
@@ -125,10 +225,10 @@ class _Engine:
             """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
             p = with_theta(base, theta)
             ys, s0 = [], 0
-            for u, dt, n in zip(u_list[:n_sc], dts[:n_sc], lens):
+            for i, (u, dt, n) in enumerate(zip(u_list[:n_sc], dts[:n_sc], lens)):
                 uu = xp.concat([u[:, : u.shape[1] - nf], F[s0: s0 + n]], axis=1)
                 s0 += n
-                _, y = model.rollout(p, model.steady_state(p, uu[0]), uu, dt)
+                _, y = model.rollout(p, start(p, i, uu), uu, dt)
                 ys.append(y)
             return xp.concat(ys, 0).reshape(-1)[idx]
 
@@ -170,7 +270,10 @@ class _Engine:
     # -- evaluation -----------------------------------------------------------------------------
 
     def simulate(self, params=None):
-        """Outputs (N, n_out) K and states (N, n_states) K for ``params`` (default: current)."""
+        """Outputs (N, n_out) K and states (N, n_states) K for ``params`` (default: current, with the held-out
+        files' initial states brought up to date)."""
+        if params is None:
+            self._fresh()
         y, x = self._sim(self._to(self.params if params is None else params))
         return np.asarray(self._np(y)), np.asarray(self._np(x))
 
@@ -345,6 +448,12 @@ class _Engine:
         self.params = params
         return {"sse": cur, "iterations": it}
 
+    def fitted_start(self) -> None:
+        """Starting values of the training files' initial states (``estimate``): each fitted to its burn-in at the
+        current parameters (the proper fit then moves them with the parameters)."""
+        if self.init.rule == "estimate":
+            self.initial_states([i for i in range(len(self.exps)) if i not in self.val_only])
+
 
 def _pad(u: np.ndarray, n: int) -> np.ndarray:
     """Inputs ``(N, n_in)`` with ``n`` zero columns appended (the forcing inputs)."""
@@ -377,8 +486,9 @@ def _with_forcing(net: Network) -> Network:
     return net.model_copy(update={"inputs": inputs, "params": params, "sources": sources}, deep=True)
 
 
-def _split_masks(experiments, val_experiments, frac: float = 0.7):
-    """Experiments to simulate and (train, val) row masks (N, n_out) over their concatenation."""
+def _split_masks(experiments, val_experiments, frac: float = 0.7, burn: Sequence[int] = ()):
+    """Experiments to simulate and (train, val) row masks (N, n_out) over their concatenation. ``burn[i]``: the
+    first samples of experiment ``i`` that are not scored (a held-out file's burn-in)."""
     exps = list(experiments) + list(val_experiments)
     n_out = exps[0].outputs.shape[1]
     tm, vm = [], []
@@ -392,6 +502,8 @@ def _split_masks(experiments, val_experiments, frac: float = 0.7):
             cut = int(round(frac * n))
             t[:cut] = True
             v[cut:] = True
+        if i < len(burn) and burn[i]:
+            v[: burn[i]] = False
         tm.append(t)
         vm.append(v)
     return exps, np.concatenate(tm), np.concatenate(vm)
@@ -459,17 +571,25 @@ class _State:
     """Fitted values carried between the engines of different (small, big) networks: free scalars by
     ``(key, index)`` and each candidate's column values by candidate key."""
 
-    def __init__(self):
+    def __init__(self, init: _InitPlan | None = None):
         self.free: dict[tuple[str, int], float] = {}
         self.cand: dict[str, list[float]] = {}
+        self.init = init or _InitPlan()
 
     def harvest(self, eng: "_Engine", ext: Extended, keys: list[str]) -> None:
         for c in eng.cols[: eng.n_free]:
             self.free[(c.key, c.index)] = float(np.asarray(eng.params[c.key]).reshape(-1)[c.index])
+        for k, v in eng.params.items():  # every experiment's initial state (held-out files' too)
+            if k.startswith(X0_PREFIX):
+                self.free[(k, 0)] = float(np.asarray(v))
         for cand in ext.candidates:
             if cand.key in keys:
                 self.cand[cand.key] = [float(np.asarray(eng.params[col.key]).reshape(-1)[col.index])
                                        for col in cand.columns]
+
+    def physical(self) -> dict[tuple[str, int], float]:
+        """The fitted free scalars without the initial states."""
+        return {k: v for k, v in self.free.items() if not k[0].startswith(X0_PREFIX)}
 
 
 def _cand_in(ext: Extended, key: str) -> Candidate | None:
@@ -518,6 +638,14 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     specs = model.param_specs
     params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
     free_cols = _free_columns(net_x, ext_s, specs, params0)
+    plan = state.init
+    if plan.rule != "steady":  # each experiment's initial state: training files' free (``estimate``)
+        has_train = [bool(m.any()) for m in np.split(train_mask, np.cumsum([e.n_steps for e in exps])[:-1])]
+        for i, h in enumerate(has_train):
+            for n in model.state_names:
+                params0[x0_key(i, n)] = np.asarray(0.0)
+                if h and plan.rule == "estimate":
+                    free_cols.append(_Col(x0_key(i, n), 0, False))
     cand_cols: list[_Col] = []
     seen: dict[tuple[str, int], int] = {(c.key, c.index): i for i, c in enumerate(free_cols)}
     cols_of: dict[str, list[int]] = {}
@@ -533,8 +661,9 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
             idx.append(seen[(col.key, col.index)])
         cols_of[cand.key] = idx
     eng = _Engine(model.network, exps, train_mask, val_mask, backend, free_cols + cand_cols, params0, model=model,
-                  n_force=n_force)
+                  n_force=n_force, init=plan)
     eng.n_free = len(free_cols)
+    eng.initial_states(range(len(exps)), "measured")  # at the nominal values; the state's fitted ones replace them
     all_u = np.concatenate([e.inputs for e in exps], 0)
     if "states" not in ref:
         _, st = eng.simulate()
@@ -565,15 +694,6 @@ def _free_columns(net: Network, ext: Extended, specs, params0) -> list[_Col]:
         for i in range(int(np.asarray(params0[name]).size)):
             cols.append(_Col(name, i, False))
     return cols
-
-
-def _free_values(eng: _Engine, free_cols: list[_Col], net: Network) -> dict:
-    out = {}
-    for c in free_cols:
-        if "." in c.key and c.key.split(".")[0] in {f.name for f in net.learned}:
-            continue
-        out[c.key] = float(np.asarray(eng.params[c.key]).reshape(-1)[c.index])
-    return out
 
 
 def _same_columns(a: Candidate, b: Candidate) -> bool:

@@ -112,9 +112,8 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
             names = names[:n0] + [c.element["node"]] + names[n0:]
             ref["mass_col"] = {"n0": n0, "sse": val_sse}
         ref["states"], ref["names"] = st, names
-    return {"cand": c, "score": s_, "eng": eng, "ext": x_s, "val_mae": float(np.nanmean(np.abs(ev))),
-            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": val_sse, "F": F, "p": pval,
-            "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": net_s}
+    return {"cand": c, "score": s_, "eng": eng, "ext": x_s, **_held_out_errors(ev), "e_val": e1, "val_sse": val_sse,
+            "F": F, "p": pval, "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": net_s, "act": act}
 
 
 def _fit_result(c: Candidate, s_: dict, eng: "_Engine", ext: Extended, e_base_val: np.ndarray) -> dict:
@@ -123,9 +122,18 @@ def _fit_result(c: Candidate, s_: dict, eng: "_Engine", ext: Extended, e_base_va
     ev = np.where(eng.val_mask, e_after, np.nan)
     e1 = e_after.ravel()[eng.val_idx]
     F, pval, n_eff = _held_out_test(e_base_val, e1, c.k)
-    return {"cand": c, "score": s_, "eng": eng, "ext": ext, "val_mae": float(np.nanmean(np.abs(ev))),
-            "val_max": float(np.nanmax(np.abs(ev))), "e_val": e1, "val_sse": eng.sse(which="val"), "F": F,
-            "p": pval, "n_eff": n_eff, "params": eng.params, "e_all": e_after, "net": None}
+    return {"cand": c, "score": s_, "eng": eng, "ext": ext, **_held_out_errors(ev), "e_val": e1,
+            "val_sse": eng.sse(which="val"), "F": F, "p": pval, "n_eff": n_eff, "params": eng.params, "e_all": e_after,
+            "net": None}
+
+
+def _held_out_errors(ev: np.ndarray) -> dict:
+    """``{"val_mae", "val_max"}`` (K) of the held-out residual ``ev`` (NaN off the held-out rows); NaN when the
+    simulation gave no finite value there (a diverged fit)."""
+    a = np.abs(ev[np.isfinite(ev)])
+    if not a.size:
+        return {"val_mae": math.nan, "val_max": math.nan}
+    return {"val_mae": float(a.mean()), "val_max": float(a.max())}
 
 
 def _train_lr_test(e0: np.ndarray, e1: np.ndarray, k: int, m: int) -> tuple[float, float]:

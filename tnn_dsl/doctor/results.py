@@ -65,6 +65,11 @@ class Diagnosis:
     left: str
     timings: dict = field(default_factory=dict)
     plots: dict = field(default_factory=dict)  # series for the report (numpy arrays)
+    notes: list[str] = field(default_factory=list)
+    """Lines for the user before the findings: the initial-state rule and its burn-in, warnings (``warning:``
+    first) such as data that do not start at rest, parameters the baseline fit moved far."""
+    initial: dict = field(default_factory=dict)
+    """How the free runs start: ``rule``, ``burn_in`` (held-out file → samples not scored)."""
 
     @property
     def accepted(self) -> list[Finding]:
@@ -80,7 +85,10 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return to_jsonable({
             "network": self.network,
-            "question": "free-run simulation (output error from the initial steady state)",
+            "question": "free-run simulation (output error from each file's initial state, rule "
+                        + str(self.initial.get("rule", "steady")) + ")",
+            "initial_state": self.initial,
+            "notes": self.notes,
             "baseline": self.baseline,
             "residuals": {k: v for k, v in self.residuals.to_dict().items() if k != "dependence"},
             "scores": self.scores[:30],
@@ -129,6 +137,7 @@ class Diagnosis:
         lines = [f"model doctor: {self.network}",
                  f"  baseline (held-out): MAE {b['val_mae']:.4g} K, max {b['val_max']:.4g} K"
                  f"  (train MAE {b['train_mae']:.4g} K)"]
+        lines += [f"  {n}" for n in self.notes]
         for r in self.residual_rows():
             lines.append(f"  residual {r['sensor']}: {'white' if r['white'] else 'NOT white'}"
                          f" (Ljung–Box p = {r['ljung_box_p']:.2g}), noise σ ≈ {r['sigma']:.3g} K")
@@ -140,8 +149,10 @@ class Diagnosis:
             mark = "ACCEPTED" if r["accepted"] else "rejected"
             lines.append(f"  [{mark}] round {r['round']}: {r['cause']}")
             lines.append(f"      clause: {r['clause']}")
-            lines.append(f"      held-out MAE {r['mae_before']:.4g} → {r['mae_after']:.4g} K"
-                         f", held-out test p = {r['p_value']:.2g} (N_eff = {r['n_eff']:.0f})"
+            after = f"{r['mae_after']:.4g} K" if math.isfinite(r["mae_after"]) else "diverged"
+            lines.append(f"      held-out MAE {r['mae_before']:.4g} → {after}"
+                         + (f", held-out test p = {r['p_value']:.2g} (N_eff = {r['n_eff']:.0f})"
+                            if math.isfinite(r["mae_after"]) else "")
                          + (f"; {r['reason']}" if r["reason"] else ""))
             if r["caution"]:
                 lines.append("      " + _caution(r["caution"]))

@@ -44,8 +44,10 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     paying = []
     for f in fits:
         gain = 1 - f["val_mae"] / mae0 if mae0 else 0.0
-        if not (math.isfinite(f["val_mae"]) and f["val_mae"] < 1e3):
-            f["reason"] = "its held-out simulation diverges (the fitted law leaves the physical range there)"
+        if f.get("physical") == "diverged" or not math.isfinite(f["val_mae"]):
+            f["reason"] = f"diverged: {f.get('why') or 'its held-out simulation is not finite'}"
+        elif f.get("physical") == "non-physical":
+            f["reason"] = f"not physical: {f['why']}"
         elif f["p"] >= P_ACCEPT:
             f["reason"] = f"not confirmed on held-out data (Diebold–Mariano p = {f['p']:.2g} ≥ {P_ACCEPT})"
         elif gain < MIN_GAIN:

@@ -5,6 +5,7 @@ in order; the state they share lives on the session."""
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import time as _time
@@ -18,11 +19,13 @@ from ..ir import Input, Network
 from .base import STRUCTURAL_KINDS, Candidate, Extended
 from .candidates import build_extended
 from .engine import (
+    DOCTOR_INIT_RULES,
     FIT_CONTINUE,
     FIT_ITER,
     FIT_ITER_FIRST,
     _cand_in,
     _Engine,
+    _InitPlan,
     _make_engine,
     _params_from_state,
     _split_masks,
@@ -97,13 +100,64 @@ def _unused_columns(net: Network, experiments) -> list[tuple[str, str]]:
     return out
 
 
+MOVED_SHARE = 0.30
+"""A free parameter the baseline fit moves by more than this share of its written value is reported."""
+
+
+def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
+    """The baseline's free constants that moved far from the values written in the network: more than
+    :data:`MOVED_SHARE` of a non-temperature value, or onto a bound (a temperature only then). Each is
+    ``{"param", "written", "fitted", "change", "at_bound", "words"}`` (SI; ``words`` a ``warning:`` line in the
+    file's units) — the nominal model absorbing something there before any candidate is scored."""
+    from .words import _fmt, _unit_of
+
+    out = []
+    for (name, i), v in fitted.items():
+        if i:
+            continue
+        try:
+            p = net.param(name)
+        except KeyError:
+            continue
+        if not (p.free and p.is_constant) or p.value is None:
+            continue
+        v0 = float(p.value)
+        temp = p.role == "temperature" or p.dim == {"K": 1}
+        span = (p.upper - p.lower) if p.lower is not None and p.upper is not None else None
+        tol = 1e-6 * (abs(span) if span else max(abs(v0), 1.0))
+        bound = ("lower" if p.lower is not None and v <= p.lower + tol else
+                 "upper" if p.upper is not None and v >= p.upper - tol else None)
+        change = (v - v0) / abs(v0) if v0 else math.inf
+        if not (bound or (not temp and abs(change) > MOVED_SHARE)):
+            continue
+        if temp:
+            show = (lambda x: f"{x - 273.15:.4g} °C") if net.temperature_unit == "degC" else (lambda x: f"{x:.4g} K")
+        else:
+            unit = _unit_of(net, name)
+            show = lambda x, u=unit: f"{_fmt(x)} {u}".rstrip()  # noqa: E731
+        what = (f"{name} moved {100 * change:+.0f} % from {show(v0)} (written) to {show(v)}" if not temp
+                else f"{name} moved from {show(v0)} (written) to {show(v)}")
+        if bound:
+            what += f", onto its {bound} bound"
+        out.append({"param": name, "written": v0, "fitted": v, "change": change, "at_bound": bound,
+                    "words": f"warning: the baseline fit: {what}: the nominal model absorbs something here"})
+    return out
+
+
 class _Session:
     """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
 
     def __init__(self, net_or_path, train, val, budget_s: float | None, backend: str,
                  progress: Callable[[str], None] | None, *, top: int, max_rounds: int, output: str | None,
-                 kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool):
+                 kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool,
+                 init: str = "estimate", burn_in: float | None = None):
         self.t_start = _time.monotonic()
+        init = "estimate" if init == "auto" else init
+        if init not in DOCTOR_INIT_RULES:
+            raise TnnError(Diagnostic(f"unknown initial-state rule {init!r} for the doctor",
+                                      hint=f"use --init {' | '.join(DOCTOR_INIT_RULES)} (default estimate)"))
+        self.init_rule, self.burn_in_s = init, burn_in
+        self.notes: list[str] = []
         self.deadline = None if budget_s is None else self.t_start + float(budget_s)
         self.say = progress or (lambda s: None)
         self.timings: dict[str, float] = {}
@@ -156,7 +210,15 @@ class _Session:
             if train_exps[0].inputs.shape[1] != len(net_x.inputs):  # Experiments given directly: cannot add
                 unused, net_x = [], net
         self.train_exps, self.val_exps, self.unused, self.net_x = train_exps, val_exps, unused, net_x
-        self.exps, self.train_mask, self.val_mask = _split_masks(train_exps, val_exps)
+        from ..fit.initial import burn_in_samples
+
+        # a held-out file's burn-in (its initial state is estimated there, never scored); training files' initial
+        # states are fitted with the parameters
+        burn = tuple(burn_in_samples(e, self.burn_in_s) if self.init_rule == "estimate" else 0
+                     for e in train_exps + val_exps)
+        self.plan = _InitPlan(self.init_rule, burn)
+        self.exps, self.train_mask, self.val_mask = _split_masks(train_exps, val_exps,
+                                                                 burn=burn if val_exps else ())
         self.all_u = np.concatenate([e.inputs for e in self.exps], 0)
         self.train_rows = self.train_mask.any(1)
         self.varying = [n for j, n in enumerate(net.input_names) if np.ptp(self.all_u[self.train_rows, j]) > 0]
@@ -175,17 +237,51 @@ class _Session:
         t0 = _time.monotonic()
         self.say("building candidates from the network ...")
         self.ext: Extended = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds)
-        self.state = _State()
+        self.state = _State(self.plan)
         self.ref: dict = {}
         eng, ext0, free_idx, _ = self.small([])
         self.lap("compile", t0)
         t0 = _time.monotonic()
-        self.say(f"fitting the nominal model ({len(free_idx)} free parameters) on {int(self.train_rows.sum())} "
-                 "samples ...")
+        eng.fitted_start()
+        n_x0 = sum(1 for j in free_idx if eng.cols[j].key.startswith("x0:"))
+        self.say(f"fitting the nominal model ({len(free_idx) - n_x0} free parameters"
+                 + (f", {n_x0} initial-state values" if n_x0 else "")
+                 + f") on {int(self.train_rows.sum())} samples ...")
         eng.fit(free_idx, max_iter=30, deadline=self.deadline, tol=1e-6)
         self.state.harvest(eng, ext0, [])
         self.lap("nominal_fit", t0)
         self.eng, self.ext0 = eng, ext0
+        self.initial_notes()
+
+    def initial_notes(self) -> None:
+        """The initial-state rule in words, and a warning for each file that does not start at rest."""
+        from ..fit.initial import FAR_FROM_STEADY_K
+
+        eng, rule = self.eng, self.init_rule
+        n_tr = len(self.train_exps)
+        held = {e.name: b for i, (e, b) in enumerate(zip(self.exps, self.plan.burn)) if i >= n_tr and b}
+        self.initial = {"rule": rule, "burn_in": held}
+        if rule == "estimate":
+            self.notes.append("initial states: fitted with the parameters for the training files"
+                              + ("; estimated from the first " + ", ".join(f"{b} samples of {p}"
+                                                                          for p, b in held.items())
+                                 + " (not scored) for the held-out files" if held else ""))
+        elif rule == "measured":
+            self.notes.append("initial states: the steady state of the first inputs with the sensed nodes at their "
+                              "first readings (--init measured)")
+        else:
+            self.notes.append("initial states: the steady state of the first inputs (--init steady)")
+        for i, e in enumerate(self.exps):
+            gap = eng.steady_gap(i)
+            if not np.isfinite(gap).any() or np.nanmax(np.abs(gap)) <= FAR_FROM_STEADY_K:
+                continue
+            k = int(np.nanargmax(np.abs(gap)))
+            what = (f"warning: {e.name} does not start at rest: at the steady state of its first inputs "
+                    f"{eng.model.output_names[k]} would read {abs(gap[k]):.2f} K "
+                    f"{'below' if gap[k] > 0 else 'above'} its first measurement")
+            self.notes.append(what + ("; the doctor starts from the steady state as asked, so the start-up transient "
+                                      "will be taken for a deficiency (use --init estimate)" if rule == "steady"
+                                      else "; its initial state is estimated, not assumed"))
 
     # -- stage 2: residual analysis -------------------------------------------------------------------
 
@@ -211,14 +307,22 @@ class _Session:
             "val_mae": res.mae, "val_max": res.max,
             "train_mae": float(np.nanmean(np.abs(e_tr))), "train_max": float(np.nanmax(np.abs(e_tr))),
             "per_sensor": res.errors,
-            "free_params": {f"{k}" + (f"[{i}]" if i else ""): v for (k, i), v in self.state.free.items()},
+            "free_params": {f"{k}" + (f"[{i}]" if i else ""): v for (k, i), v in self.state.physical().items()},
         }
         self.sigma = float(np.mean(list(res.sigma.values()))) if res.sigma else 0.0
+        self.base["moved"] = moved = _moved(self.net, self.state.physical())
+        self.notes += [m["words"] for m in moved]
+        from .plausibility import network_scales
+
+        self.scales = network_scales(self.net, self.exps)
         self.lap("residuals", t0)
         self.say(f"baseline held-out MAE {res.mae:.4g} K, max {res.max:.4g} K; residual "
                  + ("white" if all(w.get("white") for w in res.whiteness.values()) else "not white"))
         # the forward selection starts from here
         self.findings: list[Finding] = []
+        self.acc_findings: list[Finding] = []  # the accepted ones, in order, with ...
+        self.acc_fits: list[dict] = []  # ... their fits
+        self.final_act: list[int] = []
         self.scores_out: list[dict] = []
         self.accepted: list[Candidate] = []
         self.current_val = (res.mae, res.max, eng.sse(which="val"))
@@ -252,6 +356,8 @@ class _Session:
         for f in fits:
             f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
                                                         f["cand"].k, len(scored))
+        for f in fits:
+            self.judge(f)
         chosen = _choose(fits, self.current_val, self.e_base_val)
         self.record(fits, scored, chosen, rnd)
         if chosen is None:
@@ -291,8 +397,13 @@ class _Session:
         holding all of them (each exactly null at zero, fitted with only its own columns moving, so the
         compiled simulation and Jacobian are shared), then successive halving."""
         self.e_base_val = e_base_val = self.final_eng.residual().ravel()[self.final_eng.val_idx]
+        # a lag or a mass the linearised fit wants negative is not a physical candidate: it does not take a place
+        neg = [s_ for s_ in scored if s_["cand"].kind in STRUCTURAL_KINDS
+               and not (len(s_["delta"]) and float(s_["delta"][0]) > 0)]
+        if neg:
+            self.say(f"  {len(neg)} lag/mass candidate(s) whose linearised fit wants a negative value: not fitted")
         short = []
-        for s_ in _shortlist(scored, self.top):
+        for s_ in _shortlist([s_ for s_ in scored if not any(s_ is t for t in neg)], self.top):
             if s_["r2"] < MIN_R2 and short:
                 continue  # the linearised fit explains too little of the residual to pay
             short.append(s_)
@@ -349,6 +460,17 @@ class _Session:
             self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
             f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
 
+    def judge(self, f: dict) -> None:
+        """Is a fitted candidate physical (:mod:`.plausibility`)? Sets ``f["physical"]`` (``ok``, ``diverged``,
+        ``non-physical``) and ``f["why"]``."""
+        from .plausibility import judge
+
+        eng = f["eng"]
+        _, xs = eng.simulate(f["params"])
+        before = self.final_eng.params
+        f["physical"], f["why"] = judge(eng.model.network, f["params"], xs, eng.model.state_names, self.scales,
+                                        self.net.temperature_unit, before=before)
+
     def record(self, fits: list[dict], scored: list[dict], chosen: dict | None, rnd: int) -> None:
         """A :class:`Finding` per fitted candidate, best held-out SSE first, with the evidence."""
         current_val = self.current_val
@@ -357,28 +479,37 @@ class _Session:
             c = f["cand"]
             cf = _cand_in(f["ext"], c.key) or c
             prm = f["params"]
-            self.findings.append(Finding(
+            diverged = f.get("physical") == "diverged" or not math.isfinite(f["val_mae"])
+            mae, mx, sse = (math.nan, math.nan, math.nan) if diverged else (f["val_mae"], f["val_max"], f["val_sse"])
+            finding = Finding(
                 rank=rank, kind=c.kind, target=c.target, depends_on=list(c.depends_on),
                 clause=finding_clause(self.net_x, cf, prm, f.get("net")),
-                val_mae_after=f["val_mae"], val_max_after=f["val_max"], accepted=f is chosen,
+                val_mae_after=mae, val_max_after=mx, accepted=f is chosen,
                 words=_words(cf, prm, f["ext"], f["eng"], f["eng"].model), round=rnd,
                 evidence={"score": f["score"]["public"]["score"], "score_p": f["score"]["public"]["p"],
                           "r2_linearised": f["score"]["public"]["r2"], "k": c.k,
                           "val_mae_before": current_val[0], "val_sse_before": current_val[2],
-                          "val_sse_after": f["val_sse"], "dm_stat": f["F"], "p_value": f["p"], "n_eff": f["n_eff"],
+                          "val_sse_after": sse, "dm_stat": f["F"], "p_value": f["p"], "n_eff": f["n_eff"],
                           "lr_train": f.get("S_train"), "p_train": f.get("p_train"),
                           "test": ("likelihood ratio on the training rows (effective N, Bonferroni over the "
                                    "candidates scored) and Diebold–Mariano on held-out squared errors (HAC "
                                    "variance, AIC charge for k)"),
-                          "mae_gain": 1 - f["val_mae"] / current_val[0] if current_val[0] else 0.0,
-                          "reason": f.get("reason", ""),
-                          "indistinguishable_from": twins if f is chosen else []}))
+                          "mae_gain": 1 - mae / current_val[0] if current_val[0] else 0.0,
+                          "reason": f.get("reason", ""), "plausibility": f.get("physical", "ok"),
+                          "diverged": diverged,
+                          "indistinguishable_from": twins if f is chosen else []})
+            self.findings.append(finding)
+            if f is chosen:
+                self.acc_findings.append(finding)
 
     def accept(self, chosen: dict, rnd: int) -> None:
         c = chosen["cand"]
         self.say(f"round {rnd}: accepted {c.describe()} (held-out MAE {self.current_val[0]:.4g} → "
                  f"{chosen['val_mae']:.4g} K)")
         self.accepted.append(c)
+        chosen["base_net"] = self.net_x
+        self.acc_fits.append(chosen)
+        self.final_act = list(chosen.get("act") or [])
         chosen["eng"].params = chosen["params"]
         self.state.harvest(chosen["eng"], chosen["ext"], [k.key for k in self.accepted])
         self.final_eng, self.final_ext = chosen["eng"], chosen["ext"]
@@ -395,6 +526,7 @@ class _Session:
         """The accepted findings applied to the IR (:func:`extend_network`, fitted values in the new parameters),
         printed; the extended model's held-out residual."""
         t0 = _time.monotonic()
+        self.polish()
         self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
         self.ext_net = extend_network(self.net_x, self.acc_small, self.final_eng.params, self.unused)
         self.set_extension(self.ext_net)
@@ -403,6 +535,27 @@ class _Session:
         e_fin = np.where(self.final_eng.val_mask, self.final_eng.y - self.y_fin, np.nan)
         self.res_fin = R.summarise(e_fin[self.vrows], self.out_names)
         self.form = None
+
+    def polish(self) -> None:
+        """The extended model fitted to convergence on the training rows (all free parameters and the accepted
+        findings' together; each round stopped early), then every accepted finding's words and clause made from
+        these final values, so the verdict, the JSON and the written ``.thn`` say the same numbers."""
+        if not self.accepted or not self.final_act:
+            return
+        eng = self.final_eng
+        if not self.spent():
+            self.say("fitting the extended model to convergence ...")
+            eng.fit(self.final_act, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
+            self.state.harvest(eng, self.final_ext, [c.key for c in self.accepted])
+        P = eng.params
+        for finding, fit in zip(self.acc_findings, self.acc_fits):
+            c = fit["cand"]
+            cf = _cand_in(self.final_ext, c.key) or c
+            words = _words(cf, P, self.final_ext if _cand_in(self.final_ext, c.key) else fit["ext"], eng, eng.model)
+            if words != finding.words:
+                finding.evidence["words_when_accepted"] = finding.words
+                finding.words = words
+            finding.clause = finding_clause(fit["base_net"], cf, P, fit.get("net"))
 
     def set_extension(self, ext_net: Network) -> None:
         """The extension's text, its diff from the original and its changed statements (``clauses``)."""
@@ -472,4 +625,5 @@ class _Session:
         return Diagnosis(network=self.net.name, baseline=self.base, residuals=self.res, scores=self.scores_out,
                          findings=self.findings, extended_text=self.ext_text if self.accepted else self.text,
                          extended_file=ext_file, extended=extended, diff=self.diff, verdict=verdict,
-                         left=_what_is_left(res_fin), timings=self.timings, plots=plots)
+                         left=_what_is_left(res_fin), timings=self.timings, plots=plots, notes=self.notes,
+                         initial=self.initial)

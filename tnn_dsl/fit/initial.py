@@ -244,7 +244,8 @@ class _BurnInFit:
                 break
             J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
             r = (y - Y)[mask]
-            rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+            with np.errstate(over="ignore"):
+                rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
             A = np.vstack([J[mask] * W[:, None], np.diag(P)])
             b = np.concatenate([-r * W, -P * (x - prior)])
             dx = np.linalg.lstsq(A, b, rcond=None)[0]

@@ -1,0 +1,128 @@
+"""The model doctor on data that do not start at rest, and what it says about the values it fits.
+
+* Initial states (``--init``, default ``estimate``): a training file's initial state is fitted with the
+  parameters, a held-out file's is estimated from a burn-in that is not scored; a planted sensor lag is found in
+  data cut to start mid-transient, and ``--init steady`` warns that the file does not start at rest.
+* The verdict, the JSON document and the written ``.thn`` carry the same fitted numbers.
+* Plausibility (:mod:`tnn_dsl.doctor.plausibility`): values beyond the network's own scales, temperatures far
+  outside the data's and diverged simulations are named as such.
+* The baseline reports the free parameters it moved far from their written values.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import tnn_dsl
+from tnn_dsl.doctor.plausibility import judge, network_scales
+from tnn_dsl.doctor.session import _moved
+from tnn_dsl.studies.planted import plant
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+TCLAB = os.path.join(os.path.dirname(HERE), "networks", "tclab", "tclab.thn")
+BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}
+
+
+def _cut(exp, k: int):
+    """``exp`` without its first ``k`` samples: it starts wherever the planted run was then, not at rest."""
+    return replace(exp, t=exp.t[k:] - exp.t[k], inputs=exp.inputs[k:], outputs=exp.outputs[k:])
+
+
+def _mid_transient(net, backend, n_train, n_val):
+    pl = plant(net, BOUNDS, "sensor_lag", "T1", None, 15.0, noise=0.01, seed=4, n_train=n_train, n_val=n_val,
+               hold=(20, 150), backend=backend)
+    # cut each file where the board is far from the steady state of its inputs at that moment
+    return [_cut(pl.train[0], 137)], [_cut(pl.val[0], 83)]
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_lag_found_in_data_that_do_not_start_at_rest(backend, tmp_path):
+    net = tnn_dsl.load(TCLAB)
+    n_train, n_val = (900, 700) if backend == "jax" else (500, 400)
+    train, val = _mid_transient(net, backend, n_train, n_val)
+    out = tmp_path / "ext.thn"
+    d = tnn_dsl.diagnose(net, train, val, top=2, max_rounds=1, backend=backend, output=str(out), mlp_check=False)
+    assert d.initial["rule"] == "estimate"
+    b = list(d.initial["burn_in"].values())
+    assert b and b[0] == round(0.1 * val[0].n_steps), d.initial  # the held-out file's burn-in, not scored
+    acc = d.accepted
+    assert acc and acc[0].kind == "sensor_lag" and acc[0].target == "T1", d.summary()
+    # verdict, JSON and the written file say the same number
+    ext = tnn_dsl.load(str(out))
+    lag = ext.param(next(s for s in ext.sensors if s.name == "T1").lag).value
+    assert lag == pytest.approx(15.0, rel=0.15)
+    shown = float(re.search(r"τ ≈ ([0-9.e+]+) s", d.verdict).group(1))
+    assert shown == pytest.approx(lag, rel=5e-3), (d.verdict, lag)
+    doc = d.to_dict()
+    json.dumps(doc)
+    f = next(f for f in doc["findings"] if f["accepted"])
+    assert f["words"] in doc["verdict"]
+    written = float(re.search(r"lag ([0-9.e+]+) s", f["clause"]).group(1))
+    assert written == pytest.approx(lag, rel=1e-3), f["clause"]
+    assert doc["initial_state"]["rule"] == "estimate"
+    assert d.extended["val_mae"] < 0.5 * d.baseline["val_mae"], d.summary()
+
+
+def test_steady_start_warns_when_the_data_do_not_start_at_rest():
+    net = tnn_dsl.load(TCLAB)
+    train, val = _mid_transient(net, "jax", 600, 400)
+    d = tnn_dsl.diagnose(net, train, val, top=1, max_rounds=1, init="steady", mlp_check=False)
+    assert d.initial["rule"] == "steady"
+    warn = [n for n in d.notes if n.startswith("warning:") and "does not start at rest" in n]
+    assert warn and "--init estimate" in warn[0], d.notes
+    assert any("does not start at rest" in ln for ln in d.summary().splitlines())
+
+
+def test_unknown_rule_is_refused():
+    with pytest.raises(tnn_dsl.TnnError, match="initial-state rule"):
+        tnn_dsl.diagnose(TCLAB, [], init="filter")
+
+
+def _exp(y_degc: np.ndarray):
+    from tnn_dsl.data import Experiment
+
+    n = y_degc.shape[0]
+    return Experiment(name="x", path="<x>", t=np.arange(n, dtype=float), dt=1.0, inputs=np.zeros((n, 2)),
+                      outputs=y_degc + 273.15, input_names=("Q1", "Q2"), output_names=("T1", "T2"))
+
+
+def test_plausibility_names_values_and_temperatures_in_the_networks_terms():
+    net = tnn_dsl.load(TCLAB)
+    y = np.stack([np.linspace(25, 60, 50), np.linspace(24, 50, 50)], 1)
+    sc = network_scales(net, [_exp(y)])
+    assert sc.capacity == pytest.approx((0.04, 400.0)) and sc.resistance == pytest.approx((0.2, 5000.0))
+    p = {"C_h1": 4.0, "C_h2": 4.0, "U1": 0.05, "U2": 0.05, "U12": 0.02}
+    X = y + 273.15
+    assert judge(net, p, X, ["h1", "h2"], sc, "degC") == ("ok", None)
+    v, why = judge(net, {**p, "C_h2": 1e-3}, X, ["h1", "h2"], sc, "degC")
+    assert v == "non-physical" and "C_h2 = 0.001 J/K" in why and "below" in why, why
+    v, why = judge(net, {**p, "U12": 1e-6}, X, ["h1", "h2"], sc, "degC")  # 1e6 K/W
+    assert v == "non-physical" and "U12" in why and "above" in why, why
+    hot = X.copy()
+    hot[10, 1] = 273.15 + 400.0
+    v, why = judge(net, p, hot, ["h1", "h2"], sc, "degC")
+    assert v == "non-physical" and "node h2 reaches 400 °C" in why, why
+    bad = X.copy()
+    bad[20, 0] = np.nan
+    assert judge(net, p, bad, ["h1", "h2"], sc, "degC")[0] == "diverged"
+    far = X.copy()
+    far[30, 0] = 1e60
+    assert judge(net, p, far, ["h1", "h2"], sc, "degC")[0] == "diverged"
+    # a value the current model already holds out of range is not held against a candidate
+    assert judge(net, {**p, "C_h2": 1e-3}, X, ["h1", "h2"], sc, before={**p, "C_h2": 1e-3})[0] == "ok"
+
+
+def test_baseline_reports_the_parameters_it_moved():
+    net = tnn_dsl.load(TCLAB)
+    fitted = {("U1", 0): 0.0125, ("U2", 0): 0.055, ("Ta", 0): 303.15, ("a1", 0): 1.0}
+    moved = {m["param"]: m for m in _moved(net, fitted)}
+    assert set(moved) == {"U1", "Ta"}, moved  # U2 moved 10 %, a1 not at all
+    assert moved["U1"]["change"] == pytest.approx(-0.75)
+    assert "U1 moved -75 %" in moved["U1"]["words"] and moved["U1"]["words"].startswith("warning:")
+    assert moved["Ta"]["at_bound"] == "upper" and "30 °C" in moved["Ta"]["words"]

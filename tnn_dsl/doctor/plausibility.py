@@ -1,0 +1,166 @@
+"""Is a fitted candidate physical? Its values judged against the network's own scales and its simulated
+temperatures against the data's.
+
+A least-squares fit takes any values that lower the error: a heat capacity behind a source of 0.004 J/K joined
+by 8000 K/W is, to the data, a first-order lag on the source — and a node 6000 K above the board. The doctor
+accepts only candidates whose
+
+* **capacities and resistances** (every constant capacity, resistance and conductance of the fitted network,
+  conductances read as resistances) lie within :data:`DECADES` decades of the range the user wrote in the
+  network (its own node capacities and link values), and whose
+* **temperatures** (every node and sensor-lag state of the fitted model's free runs over training and held-out
+  data) stay within the data's temperature range (sensor readings and temperature inputs) widened by
+  :data:`MARGIN_K` or half that range, whichever is larger;
+
+a fit whose simulation is not finite, or leaves the data's range by orders of magnitude, has *diverged*.
+:func:`judge` says which, with the reason in the network's terms."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ir import Network
+
+__all__ = ["DECADES", "MARGIN_K", "Scales", "network_scales", "judge"]
+
+DECADES = 2.0
+"""How many decades beyond the network's own capacities and resistances a fitted one may lie."""
+
+MARGIN_K = 20.0
+"""Smallest margin (K) around the data's temperature range within which simulated temperatures must stay."""
+
+DIVERGED_FACTOR = 1000.0
+"""A simulated temperature this many data ranges (a range of at least 10 K) outside the data's range: the fit
+diverged."""
+
+
+@dataclass(frozen=True)
+class Scales:
+    """The plausible ranges of one diagnosis: capacity (J/K), resistance (K/W) and temperature (K), each
+    ``(low, high)``; ``None`` where the network gives no scale."""
+
+    capacity: tuple[float, float] | None
+    resistance: tuple[float, float] | None
+    temperature: tuple[float, float] | None
+    data_range: tuple[float, float] | None
+
+
+def _values(net: Network, params: dict | None = None) -> tuple[dict[str, float], dict[str, float]]:
+    """``({capacity param: J/K}, {link param: K/W})`` of the constant, positive capacities and link values of
+    ``net`` (from ``params`` where given, else as written)."""
+
+    def value(name: str) -> float | None:
+        try:
+            p = net.param(name)
+        except KeyError:
+            return None
+        if not p.is_constant:
+            return None
+        if params is not None and name in params:
+            v = float(np.asarray(params[name]).reshape(-1)[0])
+        else:
+            v = p.value
+        return float(v) if v is not None and math.isfinite(v) and v > 0 else None
+
+    learned = net.learned_targets()
+    caps = {n.capacitance: v for n in net.nodes if n.capacitance not in learned
+            for v in [value(n.capacitance)] if v is not None}
+    res = {}
+    for link in net.links:
+        if link.value in learned:
+            continue
+        v = value(link.value)
+        if v is not None:
+            res[link.value] = v if link.form == "R" else 1.0 / v
+    return caps, res
+
+
+def network_scales(net: Network, experiments) -> Scales:
+    """The ranges of ``net`` as written and of the data ``experiments`` (outputs and temperature inputs, K)."""
+    caps, res = _values(net)
+    f = 10.0 ** DECADES
+
+    def span(vals):
+        return (min(vals) / f, max(vals) * f) if vals else None
+
+    temps = []
+    t_inputs = [j for j, i in enumerate(net.inputs) if i.dim == {"K": 1}]
+    for e in experiments:
+        y = np.asarray(e.outputs, dtype=float)
+        temps.append(y[np.isfinite(y)])
+        if t_inputs:
+            u = np.asarray(e.inputs, dtype=float)[:, t_inputs]
+            temps.append(u[np.isfinite(u)])
+    allt = np.concatenate(temps) if temps else np.zeros(0)
+    if allt.size:
+        lo, hi = float(allt.min()), float(allt.max())
+        m = max(MARGIN_K, 0.5 * (hi - lo))
+        trange, drange = (lo - m, hi + m), (lo, hi)
+    else:
+        trange = drange = None
+    return Scales(span(list(caps.values())), span(list(res.values())), trange, drange)
+
+
+def _fmt(v: float, unit: str) -> str:
+    return f"{v:.3g} {unit}"
+
+
+def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: Scales,
+          temperature_unit: str = "K", before: dict | None = None) -> tuple[str, str | None]:
+    """``(verdict, reason)`` of a fitted network ``net`` with numpy ``params`` whose free runs gave ``states
+    (N, n_states)`` K: ``("ok", None)``, ``("diverged", why)`` or ``("non-physical", why)``.
+    ``temperature_unit`` is the file's (``degC`` temperatures are written in °C in the reason). ``before``: the
+    current model's numpy parameters; a value already outside its range there is not held against a candidate
+    (the baseline's own drift is reported separately)."""
+
+    def temp(v: float) -> str:
+        return f"{v - 273.15:.4g} °C" if temperature_unit == "degC" else f"{v:.4g} K"
+
+    X = np.asarray(states, dtype=float)
+    if not np.all(np.isfinite(X)):
+        return "diverged", "its simulation is not finite (the fitted values leave the range where it is stable)"
+    names = list(state_names)
+    if scales.data_range is not None and X.size:
+        lo, hi = scales.data_range
+        far = DIVERGED_FACTOR * max(hi - lo, 10.0)
+        if float(X.max()) > hi + far or float(X.min()) < lo - far:
+            return "diverged", (f"its simulation runs away ({temp(float(X.max() if X.max() > hi + far else X.min()))}"
+                                f" against data within {temp(lo)} … {temp(hi)})")
+    reasons = []
+    caps, res = _values(net, params)
+    if before is not None:
+        caps0, res0 = _values(net, before)
+        c_lo, c_hi = scales.capacity or (0.0, math.inf)
+        r_lo, r_hi = scales.resistance or (0.0, math.inf)
+        caps = {k: v for k, v in caps.items() if k not in before or c_lo <= caps0.get(k, c_lo) <= c_hi}
+        res = {k: v for k, v in res.items() if k not in before or r_lo <= res0.get(k, r_lo) <= r_hi}
+    f = 10.0 ** DECADES
+    if scales.capacity is not None:
+        lo, hi = scales.capacity
+        for k, v in caps.items():
+            if not lo <= v <= hi:
+                reasons.append(f"{k} = {_fmt(v, 'J/K')} is more than {DECADES:g} decades "
+                               f"{'below' if v < lo else 'above'} the network's capacities "
+                               f"({_fmt(lo * f, 'J/K')} … {_fmt(hi / f, 'J/K')})")
+    if scales.resistance is not None:
+        lo, hi = scales.resistance
+        for k, v in res.items():
+            if not lo <= v <= hi:
+                reasons.append(f"{k} = {_fmt(v, 'K/W')} (as a resistance) is more than {DECADES:g} decades "
+                               f"{'below' if v < lo else 'above'} the network's resistances "
+                               f"({_fmt(lo * f, 'K/W')} … {_fmt(hi / f, 'K/W')})")
+    if scales.temperature is not None and X.size:
+        lo, hi = scales.temperature
+        for j, n in enumerate(names):
+            x = X[:, j]
+            if float(x.max()) > hi or float(x.min()) < lo:
+                v = float(x.max()) if float(x.max()) > hi else float(x.min())
+                what = f"node {n}" if not n.endswith(".lag") else f"the lag state of sensor {n[:-4]}"
+                d0, d1 = scales.data_range or (lo, hi)
+                reasons.append(f"{what} reaches {temp(v)} (the data lie within {temp(d0)} … {temp(d1)})")
+    if reasons:
+        return "non-physical", "; ".join(reasons[:3]) + (f" (and {len(reasons) - 3} more)" if len(reasons) > 3 else "")
+    return "ok", None
