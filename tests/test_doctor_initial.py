@@ -44,8 +44,8 @@ def _mid_transient(net, backend, n_train, n_val):
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_lag_found_in_data_that_do_not_start_at_rest(backend, tmp_path):
     net = tnn_dsl.load(TCLAB)
-    n_train, n_val = (900, 700) if backend == "jax" else (500, 400)
-    train, val = _mid_transient(net, backend, n_train, n_val)
+    # the same data on both backends (they agree to round-off; shorter runs leave tclab.thn's constants unidentified)
+    train, val = _mid_transient(net, backend, 900, 700)
     out = tmp_path / "ext.thn"
     d = tnn_dsl.diagnose(net, train, val, top=2, max_rounds=1, backend=backend, output=str(out), mlp_check=False)
     assert d.initial["rule"] == "estimate"
