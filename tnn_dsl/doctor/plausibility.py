@@ -109,12 +109,15 @@ def _fmt(v: float, unit: str) -> str:
 
 
 def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: Scales,
-          temperature_unit: str = "K", before: dict | None = None) -> tuple[str, str | None]:
+          temperature_unit: str = "K", before: dict | None = None,
+          current: dict[str, tuple[float, float]] | None = None) -> tuple[str, str | None]:
     """``(verdict, reason)`` of a fitted network ``net`` with numpy ``params`` whose free runs gave ``states
     (N, n_states)`` K: ``("ok", None)``, ``("diverged", why)`` or ``("non-physical", why)``.
     ``temperature_unit`` is the file's (``degC`` temperatures are written in °C in the reason). ``before``: the
     current model's numpy parameters; a value already outside its range there is not held against a candidate
-    (the baseline's own drift is reported separately)."""
+    (the baseline's own drift is reported separately). ``current``: each state's (min, max) K in the current
+    model's free runs; a state may go where the current model already goes (a Peltier's cold side far below the
+    one sensor's readings is the network's, not the candidate's), widened by the same margin."""
 
     def temp(v: float) -> str:
         return f"{v - 273.15:.4g} °C" if temperature_unit == "degC" else f"{v:.4g} K"
@@ -156,8 +159,12 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
         lo, hi = scales.temperature
         for j, n in enumerate(names):
             x = X[:, j]
-            if float(x.max()) > hi or float(x.min()) < lo:
-                v = float(x.max()) if float(x.max()) > hi else float(x.min())
+            lo_j, hi_j = lo, hi
+            if current and n in current:
+                m = max(MARGIN_K, 0.5 * (hi - lo) / 2.0)
+                lo_j, hi_j = min(lo, current[n][0] - m), max(hi, current[n][1] + m)
+            if float(x.max()) > hi_j or float(x.min()) < lo_j:
+                v = float(x.max()) if float(x.max()) > hi_j else float(x.min())
                 what = f"node {n}" if not n.endswith(".lag") else f"the lag state of sensor {n[:-4]}"
                 d0, d1 = scales.data_range or (lo, hi)
                 reasons.append(f"{what} reaches {temp(v)} (the data lie within {temp(d0)} … {temp(d1)})")

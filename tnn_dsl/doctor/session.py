@@ -468,8 +468,11 @@ class _Session:
         eng = f["eng"]
         _, xs = eng.simulate(f["params"])
         before = self.final_eng.params
+        _, xc = self.final_eng.simulate()
+        current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
+                   for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
         f["physical"], f["why"] = judge(eng.model.network, f["params"], xs, eng.model.state_names, self.scales,
-                                        self.net.temperature_unit, before=before)
+                                        self.net.temperature_unit, before=before, current=current)
 
     def record(self, fits: list[dict], scored: list[dict], chosen: dict | None, rnd: int) -> None:
         """A :class:`Finding` per fitted candidate, best held-out SSE first, with the evidence."""
