@@ -268,16 +268,21 @@ def test_a_duplicated_column_name_is_an_error_at_its_second_occurrence(tmp_path)
     assert e.n_steps == 2
 
 
-def test_tnnc_train_quiet_still_prints_data_warnings(tmp_path, capsys):
-    """``-q`` hides progress and notes, never a data warning (kelvin values in a degC file)."""
-    from tnn_dsl.cli import main
-
+def _kelvin_in_degc_file(tmp_path):
+    """A one-node degC network and a data file whose temperatures are written in kelvin: ``(net path, data)``."""
     net = tmp_path / "one.thn"
     net.write_text('network one "one node"\nunits temperature = degC\ninput Ta : temperature column "Ta"\n'
                    'boundary amb = Ta\nnode n C = 100 J/K free in [1 J/K, 1000 J/K]\n'
                    'R n -- amb = 0.5 K/W as Rn\nsensor y = n column "y"\n')
     rows = "\n".join(f"{k},{293.15 + 0.01 * k:.4f},{293.5 + 0.005 * k:.4f}" for k in range(60))
-    data = write(tmp_path / "k.csv", f"time,Ta,y\n{rows}\n")
+    return net, write(tmp_path / "k.csv", f"time,Ta,y\n{rows}\n")
+
+
+def test_tnnc_train_quiet_still_prints_data_warnings(tmp_path, capsys):
+    """``-q`` hides progress and notes, never a data warning (kelvin values in a degC file)."""
+    from tnn_dsl.cli import main
+
+    net, data = _kelvin_in_degc_file(tmp_path)
     rc = main(["train", str(net), data, "-o", str(tmp_path / "m"), "--epochs", "2", "--lbfgs-iters", "0", "-q"])
     err = capsys.readouterr().err
     assert rc == 0, err
@@ -290,12 +295,7 @@ def test_tnnc_diagnose_quiet_prints_data_warnings_first(tmp_path, capsys, monkey
     import tnn_dsl.doctor
     from tnn_dsl.cli import main
 
-    net = tmp_path / "one.thn"
-    net.write_text('network one "one node"\nunits temperature = degC\ninput Ta : temperature column "Ta"\n'
-                   'boundary amb = Ta\nnode n C = 100 J/K free in [1 J/K, 1000 J/K]\n'
-                   'R n -- amb = 0.5 K/W as Rn\nsensor y = n column "y"\n')
-    rows = "\n".join(f"{k},{293.15 + 0.01 * k:.4f},{293.5 + 0.005 * k:.4f}" for k in range(60))
-    data = write(tmp_path / "k.csv", f"time,Ta,y\n{rows}\n")
+    net, data = _kelvin_in_degc_file(tmp_path)
 
     from tnn_dsl.core import TnnError
 

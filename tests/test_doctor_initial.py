@@ -108,6 +108,9 @@ def test_plausibility_names_values_and_temperatures_in_the_networks_terms():
     hot[10, 1] = 273.15 + 400.0
     v, why = judge(net, p, hot, ["h1", "h2"], sc, "degC")
     assert v == "non-physical" and "node h2 reaches 400 °C" in why, why
+    # where the current model's own free run already goes (an unsensed node far from the sensors) is allowed
+    cur = {"h1": (298.0, 335.0), "h2": (297.0, 700.0)}
+    assert judge(net, p, hot, ["h1", "h2"], sc, "degC", current=cur) == ("ok", None)
     bad = X.copy()
     bad[20, 0] = np.nan
     assert judge(net, p, bad, ["h1", "h2"], sc, "degC")[0] == "diverged"

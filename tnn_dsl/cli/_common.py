@@ -53,16 +53,24 @@ def add_integration(p, default: str | None = "rk4", default_help: str | None = N
 INIT_CHOICES = ("estimate", "filter", "steady", "measured")
 
 
-def add_init(p) -> None:
-    """``--init estimate|filter|steady|measured`` (default estimate) and ``--burn-in SECONDS``: how a free run
-    starts (see :mod:`tnn_dsl.fit.initial`)."""
-    p.add_argument("--init", choices=INIT_CHOICES, default="estimate",
-                   help="initial state: estimate (default: fitted to a burn-in at the file's start, not scored; a "
-                        "training file continues from its fitted state), filter (EKF over the burn-in), steady "
-                        "(steady state of the first inputs) or measured (that, with sensed nodes at the first "
-                        "readings)")
+_INIT_HELP = {
+    "estimate": "estimate (default: fitted to a burn-in at the file's start, not scored; a training file continues "
+                "from its fitted state)",
+    "filter": "filter (EKF over the burn-in)",
+    "steady": "steady (steady state of the first inputs)",
+    "measured": "measured (that, with sensed nodes at the first readings)",
+}
+
+
+def add_init(p, choices: tuple[str, ...] = INIT_CHOICES, estimate_help: str | None = None) -> None:
+    """``--init`` (one of ``choices``, default estimate) and ``--burn-in SECONDS``: how a free run starts (see
+    :mod:`tnn_dsl.fit.initial`); ``estimate_help`` replaces the default rule's description."""
+    words = [estimate_help if c == "estimate" and estimate_help else _INIT_HELP[c] for c in choices]
+    p.add_argument("--init", choices=choices, default="estimate",
+                   help="initial state: " + ", ".join(words[:-1]) + " or " + words[-1])
     p.add_argument("--burn-in", type=float, default=None, metavar="SECONDS", dest="burn_in",
-                   help="burn-in for --init estimate/filter (default: a tenth of the file, at least 10 samples)")
+                   help="burn-in for --init " + "/".join(c for c in choices if c in ("estimate", "filter"))
+                        + " (default: a tenth of the file, at least 10 samples)")
 
 
 def add_time_columns(p) -> None:

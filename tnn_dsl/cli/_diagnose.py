@@ -19,7 +19,15 @@ import json
 import sys
 import time
 
-from ._common import add_backend, add_command, add_force_flag, add_network_and_data, check_outputs, write_json
+from ._common import (
+    add_backend,
+    add_command,
+    add_force_flag,
+    add_init,
+    add_network_and_data,
+    check_outputs,
+    write_json,
+)
 
 
 def register(subparsers) -> None:
@@ -39,13 +47,9 @@ def register(subparsers) -> None:
                         "is left)")
     p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
                    help="training time for each of the linear and MLP extensions in that comparison (default 60)")
-    p.add_argument("--init", choices=("estimate", "measured", "steady"), default="estimate",
-                   help="initial state of every free run: estimate (default: a training file's fitted with the "
-                        "parameters, a held-out file's from a burn-in at its start that is not scored), measured "
-                        "(steady state of the first inputs with sensed nodes at their first readings) or steady "
-                        "(steady state of the first inputs)")
-    p.add_argument("--burn-in", type=float, default=None, metavar="SECONDS", dest="burn_in",
-                   help="burn-in of a held-out file for --init estimate (default: a tenth of the file)")
+    add_init(p, ("estimate", "steady", "measured"),
+             estimate_help="estimate (default: a training file's fitted with the parameters, a held-out file's from "
+                           "a burn-in at its start that is not scored)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_force_flag(p)
     p.set_defaults(func=run)

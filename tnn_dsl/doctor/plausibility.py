@@ -46,6 +46,8 @@ class Scales:
     resistance: tuple[float, float] | None
     temperature: tuple[float, float] | None
     data_range: tuple[float, float] | None
+    margin: float = MARGIN_K
+    """K by which ``data_range`` is widened into ``temperature`` (and a state's current range, in :func:`judge`)."""
 
 
 def _values(net: Network, params: dict | None = None) -> tuple[dict[str, float], dict[str, float]]:
@@ -100,8 +102,8 @@ def network_scales(net: Network, experiments) -> Scales:
         m = max(MARGIN_K, 0.5 * (hi - lo))
         trange, drange = (lo - m, hi + m), (lo, hi)
     else:
-        trange = drange = None
-    return Scales(span(list(caps.values())), span(list(res.values())), trange, drange)
+        trange, drange, m = None, None, MARGIN_K
+    return Scales(span(list(caps.values())), span(list(res.values())), trange, drange, m)
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -134,35 +136,26 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
                                 f" against data within {temp(lo)} … {temp(hi)})")
     reasons = []
     caps, res = _values(net, params)
-    if before is not None:
-        caps0, res0 = _values(net, before)
-        c_lo, c_hi = scales.capacity or (0.0, math.inf)
-        r_lo, r_hi = scales.resistance or (0.0, math.inf)
-        caps = {k: v for k, v in caps.items() if k not in before or c_lo <= caps0.get(k, c_lo) <= c_hi}
-        res = {k: v for k, v in res.items() if k not in before or r_lo <= res0.get(k, r_lo) <= r_hi}
+    caps0, res0 = _values(net, before) if before is not None else ({}, {})
     f = 10.0 ** DECADES
-    if scales.capacity is not None:
-        lo, hi = scales.capacity
-        for k, v in caps.items():
-            if not lo <= v <= hi:
-                reasons.append(f"{k} = {_fmt(v, 'J/K')} is more than {DECADES:g} decades "
-                               f"{'below' if v < lo else 'above'} the network's capacities "
-                               f"({_fmt(lo * f, 'J/K')} … {_fmt(hi / f, 'J/K')})")
-    if scales.resistance is not None:
-        lo, hi = scales.resistance
-        for k, v in res.items():
-            if not lo <= v <= hi:
-                reasons.append(f"{k} = {_fmt(v, 'K/W')} (as a resistance) is more than {DECADES:g} decades "
-                               f"{'below' if v < lo else 'above'} the network's resistances "
-                               f"({_fmt(lo * f, 'K/W')} … {_fmt(hi / f, 'K/W')})")
+    for values, values0, rng, unit, what in ((caps, caps0, scales.capacity, "J/K", "capacities"),
+                                            (res, res0, scales.resistance, "K/W", "resistances")):
+        if rng is None:
+            continue
+        lo, hi = rng
+        for k, v in values.items():
+            if lo <= v <= hi or (k in values0 and not lo <= values0[k] <= hi):
+                continue  # in range, or already out of range in the current model (not this candidate's doing)
+            reasons.append(f"{k} = {_fmt(v, unit)}{' (as a resistance)' if unit == 'K/W' else ''} is more than "
+                           f"{DECADES:g} decades {'below' if v < lo else 'above'} the network's {what} "
+                           f"({_fmt(lo * f, unit)} … {_fmt(hi / f, unit)})")
     if scales.temperature is not None and X.size:
         lo, hi = scales.temperature
         for j, n in enumerate(names):
             x = X[:, j]
             lo_j, hi_j = lo, hi
             if current and n in current:
-                m = max(MARGIN_K, 0.5 * (hi - lo) / 2.0)
-                lo_j, hi_j = min(lo, current[n][0] - m), max(hi, current[n][1] + m)
+                lo_j, hi_j = min(lo, current[n][0] - scales.margin), max(hi, current[n][1] + scales.margin)
             if float(x.max()) > hi_j or float(x.min()) < lo_j:
                 v = float(x.max()) if float(x.max()) > hi_j else float(x.min())
                 what = f"node {n}" if not n.endswith(".lag") else f"the lag state of sensor {n[:-4]}"

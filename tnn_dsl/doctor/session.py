@@ -356,8 +356,11 @@ class _Session:
         for f in fits:
             f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
                                                         f["cand"].k, len(scored))
+        _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
+        current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
+                   for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
         for f in fits:
-            self.judge(f)
+            self.judge(f, current)
         chosen = _choose(fits, self.current_val, self.e_base_val)
         self.record(fits, scored, chosen, rnd)
         if chosen is None:
@@ -460,17 +463,14 @@ class _Session:
             self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
             f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
 
-    def judge(self, f: dict) -> None:
+    def judge(self, f: dict, current: dict[str, tuple[float, float]]) -> None:
         """Is a fitted candidate physical (:mod:`.plausibility`)? Sets ``f["physical"]`` (``ok``, ``diverged``,
-        ``non-physical``) and ``f["why"]``."""
+        ``non-physical``) and ``f["why"]``; ``current``: each state's range (K) in the current model's runs."""
         from .plausibility import judge
 
         eng = f["eng"]
         _, xs = eng.simulate(f["params"])
         before = self.final_eng.params
-        _, xc = self.final_eng.simulate()
-        current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
-                   for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
         f["physical"], f["why"] = judge(eng.model.network, f["params"], xs, eng.model.state_names, self.scales,
                                         self.net.temperature_unit, before=before, current=current)
 
