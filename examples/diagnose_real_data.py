@@ -51,6 +51,7 @@ def run_one(name: str, net: Path, train: list[Path], val: list[Path] | None, arg
           flush=True)
     d = tnn_dsl.diagnose(str(net), [str(p) for p in train], [str(p) for p in val] if val else None,
                          backend=args.backend, budget_s=args.budget, top=args.top, init=args.init,
+                         objective=args.objective,
                          output=str(out / "extended.thn") if out else None,
                          progress=lambda s: print(f"  [{time.perf_counter() - t0:6.1f} s] {s}", flush=True))
     print(d.summary())
@@ -75,6 +76,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="keep JSON, extended networks and HTML reports here")
     ap.add_argument("--budget", type=float, default=None, help="wall-clock budget per diagnosis (s)")
     ap.add_argument("--top", type=int, default=5)
+    ap.add_argument("--objective", choices=("output-error", "ml"), default="output-error",
+                    help="what decides between candidates (default output-error)")
     ap.add_argument("--init", choices=("estimate", "measured", "steady"), default="estimate",
                     help="initial state of the doctor's free runs (default estimate)")
     args = ap.parse_args(argv)

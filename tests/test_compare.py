@@ -164,7 +164,7 @@ def fake_fits(monkeypatch):
         ll, k, *n = fits[net.name]
         return _fit(label, net.name, ll, k, *(n or [500]))
 
-    monkeypatch.setattr(C, "_fit_one", fake)
+    monkeypatch.setattr(C, "fit_and_score", fake)
     monkeypatch.setattr(C, "_experiments", lambda net, data, read: [object()] if data else [])
     return fits
 
@@ -272,9 +272,9 @@ def test_one_step_rms_backends_agree(tmp_path):
     torch end-to-end test: the fit is JAX's, the filter runs on both)."""
     net = _bm("ti")
     exps = C._experiments(net, [_prefix(tmp_path, 150)], {"time_unit": "h"})
-    fit = C._fit_one("A", net, exps, [], "ml", {"backend": "jax", "epochs": 40}, None)
+    fit = C.fit_and_score("A", net, exps, [], "ml", {"backend": "jax", "epochs": 40}, None)
     notes: list[str] = []
-    rms_t, per_t = C._one_step(fit.trained, "ml", "torch", exps, exps, notes)
+    rms_t, per_t, _ = C._one_step(fit.trained, "ml", "torch", exps, exps, notes)
     assert fit.one_step_rms is not None and 0 < fit.one_step_rms < fit.free_run_mae
     assert rms_t == pytest.approx(fit.one_step_rms, rel=1e-8)
     assert per_t["Ti"] == pytest.approx(fit.one_step_rms_sensors["Ti"], rel=1e-8)

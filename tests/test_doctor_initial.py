@@ -96,7 +96,7 @@ def test_plausibility_names_values_and_temperatures_in_the_networks_terms():
     net = tnn_dsl.load(TCLAB)
     y = np.stack([np.linspace(25, 60, 50), np.linspace(24, 50, 50)], 1)
     sc = network_scales(net, [_exp(y)])
-    assert sc.capacity == pytest.approx((0.04, 400.0)) and sc.resistance == pytest.approx((0.2, 5000.0))
+    assert sc.capacity == pytest.approx((0.004, 4000.0)) and sc.resistance == pytest.approx((0.02, 50000.0))
     p = {"C_h1": 4.0, "C_h2": 4.0, "U1": 0.05, "U2": 0.05, "U12": 0.02}
     X = y + 273.15
     assert judge(net, p, X, ["h1", "h2"], sc, "degC") == ("ok", None)

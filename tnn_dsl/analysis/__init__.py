@@ -15,9 +15,10 @@ from .hankel import excitation
 from .identifiability import fisher_analysis
 from .report import SensitivityReport
 from .sensitivities import sensitivity
-from .significance import held_out_test
+from .significance import held_out_loglik_test, held_out_test
 
 __all__ = [
     "residuals", "SensitivityReport", "excitation", "fisher_analysis", "sensitivity", "held_out_test",
+    "held_out_loglik_test",
     "Comparison", "Nesting", "compare_models", "nesting",
 ]

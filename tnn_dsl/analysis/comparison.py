@@ -47,7 +47,7 @@ from ..core import Diagnostic, TnnError
 from ..core.htmlview import html_list, html_table, pre, safe_repr_html, view
 from ..ir import Network
 
-__all__ = ["Nesting", "ModelFit", "Comparison", "nesting", "compare_models", "OBJECTIVES", "ALPHA"]
+__all__ = ["Nesting", "ModelFit", "Comparison", "nesting", "compare_models", "fit_and_score", "OBJECTIVES", "ALPHA"]
 
 OBJECTIVES = ("ml", "output-error")
 ALPHA = 0.05
@@ -353,6 +353,9 @@ class ModelFit:
     estimation_notes: list[str] = field(default_factory=list)
     """The fit's own notes (convergence, estimates without a standard error); in :meth:`to_dict`, not the table."""
     trained: Any = None
+    one_step_loglik_rows: Any = None
+    """``(n_scored,)`` the Gaussian log-likelihood of each scored sample's innovations (summed over its sensors; NaN
+    where nothing was read), in the order of the scored files and rows; not in :meth:`to_dict`."""
 
     def to_dict(self) -> dict[str, Any]:
         return _clean({"label": self.label, "network": self.network, "file": self.file, "loglik": self.loglik,
@@ -535,10 +538,10 @@ def _start(pred: dict[str, Any]) -> tuple[int, np.ndarray]:
 
 
 def _one_step(tm: Any, objective: str, backend: str, train_exps: list, scored: list,
-              notes: list[str]) -> tuple[float | None, dict[str, float]]:
+              notes: list[str]) -> tuple[float | None, dict[str, float], np.ndarray | None]:
     """The one-step-ahead RMS (K) of the Kalman filter over ``scored`` (each from its free run's initial state,
     after its burn-in), with the ``ml`` fit's noise levels or, for an output-error fit, noise levels fitted to the
-    training data with the parameters held."""
+    training data with the parameters held: ``(RMS, per sensor, per-sample log-likelihood (n,) or None)``."""
     from ..estimation import fit_ml, innovations
 
     model = tm.compiled(backend)
@@ -558,45 +561,52 @@ def _one_step(tm: Any, objective: str, backend: str, train_exps: list, scored: l
                          substeps=sub)
         except (TnnError, FloatingPointError, np.linalg.LinAlgError, ValueError) as err:
             notes.append(f"no one-step RMS: the noise levels could not be fitted ({err})")
-            return None, {}
+            return None, {}, None
         levels = _noise_levels(tm, {"rows": est.rows}, model)
         if levels is None:
             notes.append("no one-step RMS: the noise-level fit gave no σ_w/σ_v")
-            return None, {}
+            return None, {}, None
         if objective != "ml":
             notes.append("one-step RMS: Kalman filter with noise levels fitted to the training data, the parameters "
                          "held at the output-error fit")
     errs: list[np.ndarray] = []
+    lls: list[np.ndarray] = []
     for e, pred in zip(scored, tm.predict(scored, backend=backend)):
         k0, T0 = _start(pred)
         inn = innovations(model, params, np.asarray(e.inputs, float)[k0:], np.asarray(e.outputs, float)[k0:],
                           float(e.dt), log_sigma_w=levels[0], log_sigma_v=levels[1], x0=T0, integrator=integ,
                           substeps=sub)
-        errs.append(inn.innovations[max(0, int(pred.get("burn_in", 0)) - k0):])
+        skip = max(0, int(pred.get("burn_in", 0)) - k0)
+        errs.append(inn.innovations[skip:])
+        lls.append(np.concatenate([np.full(k0 + skip, np.nan), inn.loglik_rows[skip:]]))
     E = np.concatenate(errs) if errs else np.zeros((0, len(model.output_names)))
     per = {}
     for j, s in enumerate(model.output_names):
         v = E[:, j][np.isfinite(E[:, j])]
         per[s] = float(np.sqrt(np.mean(v**2))) if v.size else math.nan
     allv = E[np.isfinite(E)]
-    return (float(np.sqrt(np.mean(allv**2))) if allv.size else math.nan), per
+    return (float(np.sqrt(np.mean(allv**2))) if allv.size else math.nan), per, (np.concatenate(lls) if lls else None)
 
 
-def _fit_one(label: str, net: Network, exps: list, vals: list, objective: str,
-             options: dict[str, Any], log: Callable[[str], None] | None) -> ModelFit:
+def fit_and_score(label: str, net: Network, exps: list, vals: list, objective: str,
+                  options: dict[str, Any], log: Callable[[str], None] | None, *, val_in_training: bool = True
+                  ) -> ModelFit:
+    """Train ``net`` on ``exps`` (:func:`tnn_dsl.fit.train` with ``objective`` and ``options``; ``vals`` its
+    validation data unless ``val_in_training`` is false: then nothing of ``vals`` is seen before scoring) and score
+    it on ``vals`` (else on ``exps``): a :class:`ModelFit`."""
     import time
 
     from ..fit import train
 
     t0 = time.perf_counter()
-    tm = train(net, exps, vals or None, objective=objective, log=log, **options)
+    tm = train(net, exps, (vals or None) if val_in_training else None, objective=objective, log=log, **options)
     seconds = time.perf_counter() - t0
     backend = tm.backend
     est = tm.meta.get("estimation")
     scored = vals or exps
     metrics = tm.evaluate(scored, backend=backend)
     notes: list[str] = []
-    rms, rms_s = _one_step(tm, objective, backend, exps, scored, notes)
+    rms, rms_s, ll_rows = _one_step(tm, objective, backend, exps, scored, notes)
     warnings = list(tm.meta.get("warnings") or [])
     if est is None:
         warnings.append("no likelihood: the fit gave no estimates")
@@ -608,7 +618,7 @@ def _fit_one(label: str, net: Network, exps: list, vals: list, objective: str,
                                           for s, v in (metrics.get("sensors") or {}).items()},
                     one_step_rms=rms, one_step_rms_sensors=rms_s, scored_on="validation" if vals else "training",
                     train_seconds=seconds, notes=notes, warnings=warnings,
-                    estimation_notes=list((est or {}).get("notes") or []), trained=tm)
+                    estimation_notes=list((est or {}).get("notes") or []), trained=tm, one_step_loglik_rows=ll_rows)
 
 
 def _net(x: Network | str | os.PathLike) -> Network:
@@ -660,7 +670,7 @@ def compare_models(a: Network | str | os.PathLike, b: Network | str | os.PathLik
             exps, vals = [p for p, _ in parts], [q for _, q in parts]
         if log is not None:
             log(f"fitting {label}: {net.name} ({objective}) ...")
-        fits.append(_fit_one(label, net, exps, vals, objective, options, log))
+        fits.append(fit_and_score(label, net, exps, vals, objective, options, log))
     fa, fb = fits
     nest = nesting(net_a, net_b)
     notes: list[str] = []

@@ -50,6 +50,10 @@ def register(subparsers) -> None:
     add_init(p, ("estimate", "steady", "measured"),
              estimate_help="estimate (default: a training file's fitted with the parameters, a held-out file's from "
                            "a burn-in at its start that is not scored)")
+    p.add_argument("--objective", choices=("output-error", "ml"), default="output-error",
+                   help="what decides between candidates: output-error (default; the free run, held-out test on "
+                        "squared errors) or ml (the Kalman-filter likelihood: likelihood-ratio test with the held-out "
+                        "one-step log-likelihood as the check, largest likelihood first; slower)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_force_flag(p)
     p.set_defaults(func=run)
@@ -78,7 +82,7 @@ def run(args) -> int:
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
                  mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force, init=args.init,
-                 burn_in=args.burn_in)
+                 burn_in=args.burn_in, objective=args.objective)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")

@@ -62,7 +62,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
-             burn_in: float | None = None) -> Diagnosis:
+             burn_in: float | None = None, objective: str = "output-error") -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -93,6 +93,12 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         fixed, and those samples are not scored. ``measured``: the steady state of the first inputs with the
         sensed nodes at their first readings. ``steady``: the steady state of the first inputs (the summary warns
         when a file does not start at rest).
+    objective : "output-error" | "ml"
+        What decides between candidates (:mod:`tnn_dsl.doctor.likelihood`). ``output-error`` (default): the
+        free-run error, held-out Diebold–Mariano test on squared errors. ``ml``: each physical shortlisted candidate
+        is also fitted by maximum likelihood of the one-step predictor (Kalman filter) on the training rows; accepted
+        by a likelihood-ratio test with the held-out one-step log-likelihood as the check; the largest likelihood
+        first (Bacher & Madsen's forward selection). The values reported and written are then the likelihood fit's.
 
     Returns
     -------
@@ -100,7 +106,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     """
     run = _Session(net_or_path, train, val, budget_s, backend, progress, top=top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
-                   burn_in=burn_in)
+                   burn_in=burn_in, objective=objective)
     run.read_data()
     run.fit_baseline()
     run.analyse_residuals()

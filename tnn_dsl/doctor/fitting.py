@@ -19,7 +19,7 @@ from .structural import apply_structural
 
 
 def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kinds, acc_keys, exps, train_mask, val_mask,
-                    backend, state, ref, dt_min, deadline, e_base_val, say) -> dict | None:
+                    backend, state, ref, dt_min, deadline, e_base_val, say, delta=None) -> dict | None:
     """Fit a structural (not exactly null) candidate on its own network: the base network with the edit
     built in (:func:`apply_structural`), started from the score test's Gauss–Newton value.
 
@@ -32,8 +32,12 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     explained most, times the Gauss–Newton amplitude of the lag column, clipped to [0.2, 5]) and at the
     Gauss–Newton ``C_h`` of the capacity column (clipped to [10⁻³, 10] × the heated node's capacity; a tenth of
     it if not positive), ``R_h = τ/C_h``; ``C_h`` is bounded below by 10⁻⁴ of that capacity, ``R_h`` by
-    ``0.05·dt/C_h``."""
-    t0 = float(s_["delta"][0]) if len(s_["delta"]) else 0.0
+    ``0.05·dt/C_h``.
+
+    ``delta`` replaces the score test's Gauss–Newton values as the start (the likelihood objective fits a lag or a
+    mass whose linearised output-error fit wants a negative value from the smallest start instead)."""
+    delta = s_["delta"] if delta is None else delta
+    t0 = float(delta[0]) if len(delta) else 0.0
     frac = 0.5
     if c.kind == "sensor_lag":
         if not t0 > 0:
@@ -69,7 +73,7 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
         node = next(n for n in net_x.nodes if n.name == el["at"])
         pc = net_x.param(node.capacitance)
         c_node = float(pc.value) if pc.is_constant and pc.value and pc.value > 0 else None
-        c_gn = float(s_["delta"][1]) if len(s_["delta"]) > 1 else 0.0  # the capacity column's Gauss–Newton C_h
+        c_gn = float(delta[1]) if len(delta) > 1 else 0.0  # the capacity column's Gauss–Newton C_h
         if c_node:
             cap0 = float(np.clip(c_gn, 1e-3 * c_node, 10.0 * c_node)) if c_gn > 0 else 0.1 * c_node
         else:

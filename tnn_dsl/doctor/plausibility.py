@@ -10,7 +10,8 @@ accepts only candidates whose
   network (its own node capacities and link values), and whose
 * **temperatures** (every node and sensor-lag state of the fitted model's free runs over training and held-out
   data) stay within the data's temperature range (sensor readings and temperature inputs) widened by
-  :data:`MARGIN_K` or half that range, whichever is larger;
+  :data:`MARGIN_K` or half that range, whichever is larger (a node a source heats and no sensor reads may run
+  up to :data:`HEATED_MARGIN_K` above the hottest reading: a heater's element);
 
 a fit whose simulation is not finite, or leaves the data's range by orders of magnitude, has *diverged*.
 :func:`judge` says which, with the reason in the network's terms."""
@@ -24,13 +25,18 @@ import numpy as np
 
 from ..ir import Network
 
-__all__ = ["DECADES", "MARGIN_K", "Scales", "network_scales", "judge"]
+__all__ = ["DECADES", "MARGIN_K", "HEATED_MARGIN_K", "Scales", "network_scales", "judge"]
 
-DECADES = 2.0
+DECADES = 3.0
 """How many decades beyond the network's own capacities and resistances a fitted one may lie."""
 
 MARGIN_K = 20.0
 """Smallest margin (K) around the data's temperature range within which simulated temperatures must stay."""
+
+HEATED_MARGIN_K = 500.0
+"""Margin (K) above the data's hottest temperature for a node a source heats directly and no sensor reads: a
+heater's element runs far hotter than the room it heats (Bacher & Madsen's heater node), but not thousands of
+kelvin hotter."""
 
 DIVERGED_FACTOR = 1000.0
 """A simulated temperature this many data ranges (a range of at least 10 K) outside the data's range: the fit
@@ -151,11 +157,15 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
                            f"({_fmt(lo * f, unit)} … {_fmt(hi / f, unit)})")
     if scales.temperature is not None and X.size:
         lo, hi = scales.temperature
+        sensed = {s.node for s in net.sensors}
+        heated = {src.node for src in net.sources} - sensed
         for j, n in enumerate(names):
             x = X[:, j]
             lo_j, hi_j = lo, hi
+            if n in heated and scales.data_range is not None:
+                hi_j = max(hi_j, scales.data_range[1] + HEATED_MARGIN_K)
             if current and n in current:
-                lo_j, hi_j = min(lo, current[n][0] - scales.margin), max(hi, current[n][1] + scales.margin)
+                lo_j, hi_j = min(lo_j, current[n][0] - scales.margin), max(hi_j, current[n][1] + scales.margin)
             if float(x.max()) > hi_j or float(x.min()) < lo_j:
                 v = float(x.max()) if float(x.max()) > hi_j else float(x.min())
                 what = f"node {n}" if not n.endswith(".lag") else f"the lag state of sensor {n[:-4]}"

@@ -70,6 +70,9 @@ class Diagnosis:
     first) such as data that do not start at rest, parameters the baseline fit moved far."""
     initial: dict = field(default_factory=dict)
     """How the free runs start: ``rule``, ``burn_in`` (held-out file → samples not scored)."""
+    objective: str = "output-error"
+    """What the selection maximises: ``output-error`` (free-run error, held-out Diebold–Mariano on squared errors)
+    or ``ml`` (the Kalman-filter likelihood, likelihood-ratio tests; evidence ``likelihood`` per finding)."""
 
     @property
     def accepted(self) -> list[Finding]:
@@ -85,8 +88,10 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return to_jsonable({
             "network": self.network,
-            "question": "free-run simulation (output error from each file's initial state, rule "
+            "question": ("one-step prediction (Kalman-filter likelihood) for the selection; " if self.objective == "ml"
+                         else "") + "free-run simulation (output error from each file's initial state, rule "
                         + str(self.initial.get("rule", "steady")) + ")",
+            "objective": self.objective,
             "initial_state": self.initial,
             "notes": self.notes,
             "baseline": self.baseline,
@@ -120,6 +125,7 @@ class Diagnosis:
                 "clause": f.clause, "mae_before": ev.get("val_mae_before", math.nan), "mae_after": f.val_mae_after,
                 "p_value": ev.get("p_value", math.nan), "n_eff": ev.get("n_eff", 0), "reason": ev.get("reason") or "",
                 "caution": "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})" for t in twins[:3]) if twins else "",
+                "likelihood": ev.get("likelihood"),
             })
         return rows
 
@@ -137,6 +143,12 @@ class Diagnosis:
         lines = [f"model doctor: {self.network}",
                  f"  baseline (held-out): MAE {b['val_mae']:.4g} K, max {b['val_max']:.4g} K"
                  f"  (train MAE {b['train_mae']:.4g} K)"]
+        lk = b.get("likelihood")
+        if lk:
+            rms = lk.get("one_step_rms_val")
+            lines.append(f"  objective ml: nominal model log L {lk['loglik']:.2f} (k = {lk['k']}, "
+                         f"{lk['n_obs']} readings)"
+                         + (f", held-out one-step RMS {rms:.4g} K" if rms is not None else ""))
         lines += [f"  {n}" for n in self.notes]
         for r in self.residual_rows():
             lines.append(f"  residual {r['sensor']}: {'white' if r['white'] else 'NOT white'}"
@@ -154,6 +166,18 @@ class Diagnosis:
                          + (f", held-out test p = {r['p_value']:.2g} (N_eff = {r['n_eff']:.0f})"
                             if math.isfinite(r["mae_after"]) else "")
                          + (f"; {r['reason']}" if r["reason"] else ""))
+            lk = r["likelihood"]
+            if lk:
+                lines.append(f"      likelihood: log L {lk['loglik_before']:.2f} → {lk['loglik']:.2f}, "
+                             f"LR = {lk['lr']:.4g} on {lk['df']} df (p = {lk['p_lr']:.2g} after ×{lk['m']}); "
+                             "held-out one-step log L "
+                             f"{lk['val_loglik_gain']:+.4g} (p = {lk['p_val_loglik']:.2g})"
+                             + (", NOT converged" if lk.get("converged") is False else ""))
+                est = [f"{e['name']} = {e['estimate']:.4g}" + (f" ± {e['se']:.2g}" if e.get("status") == "ok"
+                                                               else f" ({e.get('status')})") + " (SI)"
+                       for e in lk.get("estimates") or []]
+                if est:
+                    lines.append("      estimates: " + ", ".join(est))
             if r["caution"]:
                 lines.append("      " + _caution(r["caution"]))
         lines += ["  " + ln for ln in self.verdict_lines()]
@@ -172,6 +196,12 @@ class Diagnosis:
             g = self.gain
             lines.append(f"gain: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K "
                          f"(÷{g['val_mae_ratio']:.2f}), max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K")
+        lk0, lk1 = self.baseline.get("likelihood"), self.extended.get("likelihood")
+        if lk0 and lk1 and self.accepted:
+            r0, r1 = lk0.get("one_step_rms_val"), lk1.get("one_step_rms_val")
+            lines.append(f"likelihood: log L {lk0['loglik']:.2f} → {lk1['loglik']:.2f} (k {lk0['k']} → {lk1['k']})"
+                         + (f", held-out one-step RMS {r0:.4g} → {r1:.4g} K" if r0 is not None and r1 is not None
+                            else ""))
         lines.append(f"what is left: {self.left}")
         return lines
 

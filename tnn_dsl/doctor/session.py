@@ -150,8 +150,15 @@ class _Session:
     def __init__(self, net_or_path, train, val, budget_s: float | None, backend: str,
                  progress: Callable[[str], None] | None, *, top: int, max_rounds: int, output: str | None,
                  kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool,
-                 init: str = "estimate", burn_in: float | None = None):
+                 init: str = "estimate", burn_in: float | None = None, objective: str = "output-error"):
+        from .likelihood import OBJECTIVES
+
         self.t_start = _time.monotonic()
+        if objective not in OBJECTIVES:
+            raise TnnError(Diagnostic(f"unknown objective {objective!r} for the doctor",
+                                      hint="use --objective output-error (the default) or --objective ml"))
+        self.objective = objective
+        self.ml = None
         init = "estimate" if init == "auto" else init
         if init not in DOCTOR_INIT_RULES:
             raise TnnError(Diagnostic(f"unknown initial-state rule {init!r} for the doctor",
@@ -252,6 +259,15 @@ class _Session:
         self.lap("nominal_fit", t0)
         self.eng, self.ext0 = eng, ext0
         self.initial_notes()
+        if self.objective == "ml":
+            from .likelihood import LikelihoodSelection
+
+            t0 = _time.monotonic()
+            self.ml = LikelihoodSelection(self.train_exps, self.val_exps, self.backend, self.burn_in_s, self.say)
+            if not self.ml.start(self.net):
+                raise TnnError(Diagnostic(f"network {self.net.name!r} has no finite likelihood on these data",
+                                          hint="check its values and ranges, or use --objective output-error"))
+            self.lap("nominal_ml_fit", t0)
 
     def initial_notes(self) -> None:
         """The initial-state rule in words, and a warning for each file that does not start at rest."""
@@ -311,6 +327,10 @@ class _Session:
         }
         self.sigma = float(np.mean(list(res.sigma.values()))) if res.sigma else 0.0
         self.base["moved"] = moved = _moved(self.net, self.state.physical())
+        if self.ml is not None and self.ml.current is not None:
+            cur = self.ml.current
+            self.base["likelihood"] = {"loglik": cur.loglik, "k": cur.k, "n_obs": cur.n_obs, "aic": cur.aic,
+                                       "bic": cur.bic, "converged": cur.converged, "one_step_rms_val": cur.one_step_rms}
         self.notes += [m["words"] for m in moved]
         from .plausibility import network_scales
 
@@ -359,9 +379,12 @@ class _Session:
         _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
         current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
                    for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
+        self.current_ranges = current
         for f in fits:
             self.judge(f, current)
-        chosen = _choose(fits, self.current_val, self.e_base_val)
+        chosen = self.ml_choose(fits) if self.ml is not None else _choose(fits, self.current_val, self.e_base_val)
+        if chosen is not None and self.ml is not None:
+            self.adopt_ml(chosen)
         self.record(fits, scored, chosen, rnd)
         if chosen is None:
             self.say(f"round {rnd}: no candidate pays on held-out data")
@@ -403,6 +426,8 @@ class _Session:
         # a lag or a mass the linearised fit wants negative is not a physical candidate: it does not take a place
         neg = [s_ for s_ in scored if s_["cand"].kind in STRUCTURAL_KINDS
                and not (len(s_["delta"]) and float(s_["delta"][0]) > 0)]
+        ml_neg = neg if self.objective == "ml" else []  # the likelihood may still want them: fitted from the smallest
+        neg = [] if ml_neg else neg
         if neg:
             self.say(f"  {len(neg)} lag/mass candidate(s) whose linearised fit wants a negative value: not fitted")
         short = []
@@ -427,9 +452,12 @@ class _Session:
                 break
             self.say(f"  fitting {c.describe()} (k={c.k}) ...")
             if c.kind in STRUCTURAL_KINDS:
+                # a lag or mass whose linearised fit wants a negative value starts at its smallest (lag, mass) or at
+                # the score test's lag (behind a source)
+                small = [1.0 if c.kind == "source_mass" else 1e-300] if any(s_ is t for t in ml_neg) else None
                 f = _fit_structural(c, s_, self.net_x, self.varying, self.extra, self.kinds, acc_keys, self.exps,
                                     self.train_mask, self.val_mask, self.backend, self.state, self.ref, self.dt_min,
-                                    self.deadline, e_base_val, self.say)
+                                    self.deadline, e_base_val, self.say, delta=small)
                 if f is not None:
                     fits.append(f)
                 continue
@@ -463,22 +491,87 @@ class _Session:
             self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
             f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
 
-    def judge(self, f: dict, current: dict[str, tuple[float, float]]) -> None:
+    def ml_choose(self, fits: list[dict]) -> dict | None:
+        """The likelihood objective's decision (:mod:`.likelihood`): each physical candidate written as a network
+        (the current model plus it) and fitted by maximum likelihood; of those passing the likelihood-ratio test
+        and the held-out check, the largest log-likelihood."""
+        from .likelihood import P_LR, ml_values, with_plausible_bounds
+
+        ml = self.ml
+        # an output-error fit that diverged gives no start; a non-physical one may still reach physical values
+        ok = [f for f in fits if f.get("physical") != "diverged" and math.isfinite(f["val_mae"])]
+        for f in fits:
+            if f not in ok:
+                f["reason"] = f"diverged: {f.get('why') or 'its held-out simulation is not finite'}"
+        for f in ok:
+            c = f["cand"]
+            acc = [_cand_in(f["ext"], a.key) or a for a in self.accepted]
+            cf = _cand_in(f["ext"], c.key) or c
+            try:
+                net_c = extend_network(f["net"] if f["net"] is not None else self.net_x, acc + [cf], f["params"],
+                                       self.unused)
+                for a in acc + [cf]:  # every new capacity/resistance within its plausible range (with_plausible_bounds)
+                    if a.kind in STRUCTURAL_KINDS:
+                        net_c = with_plausible_bounds(net_c, a, self.scales)
+            except (TnnError, ValueError, KeyError) as exc:
+                f["reason"] = f"not written as a network: {exc}"
+                continue
+            self.say(f"  likelihood fit: {c.describe()} ...")
+            fit = ml.fit(c.describe(), net_c)
+            if fit is None:
+                f["reason"] = "its likelihood fit failed"
+                continue
+            f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)))
+            P = {k: np.array(v, copy=True) for k, v in f["params"].items()}
+            for k, v in ml_values(fit).items():
+                if k in P and np.shape(P[k]) == np.shape(v) and np.ndim(v) == 0:
+                    P[k] = np.asarray(v, dtype=np.float64)
+            f["physical_output_error"] = f.get("physical")
+            self.judge(f, self.current_ranges, params=P)  # the likelihood fit's values are the ones that count
+        paying = []
+        for f in ok:
+            t = f.get("ml")
+            if t is None:
+                continue
+            if f.get("physical") != "ok":
+                f["reason"] = f"{'not physical' if f['physical'] == 'non-physical' else 'diverged'}: {f['why']}"
+            elif t["p_lr"] >= P_LR:
+                f["reason"] = (f"likelihood-ratio test not passed (LR = {t['lr']:.3g} on {t['df']} df, p = "
+                               f"{t['p_lr']:.2g} ≥ {P_LR} after ×{t['m']})")
+            elif t["p_val_loglik"] >= P_LR:
+                f["reason"] = (f"not confirmed on held-out data (one-step log-likelihood {t['val_loglik_gain']:+.4g}, "
+                               f"Diebold–Mariano p = {t['p_val_loglik']:.2g} ≥ {P_LR})")
+            else:
+                paying.append(f)
+        if not paying:
+            return None
+        pick = max(paying, key=lambda f: f["ml"]["loglik"])
+        for f in paying:
+            if f is not pick:
+                f["reason"] = (f"a smaller likelihood than the chosen one (log L {f['ml']['loglik']:.2f} < "
+                               f"{pick['ml']['loglik']:.2f})")
+        return pick
+
+    def judge(self, f: dict, current: dict[str, tuple[float, float]], params: dict | None = None) -> None:
         """Is a fitted candidate physical (:mod:`.plausibility`)? Sets ``f["physical"]`` (``ok``, ``diverged``,
-        ``non-physical``) and ``f["why"]``; ``current``: each state's range (K) in the current model's runs."""
+        ``non-physical``) and ``f["why"]``; ``current``: each state's range (K) in the current model's runs;
+        ``params``: the values to judge (default the candidate's fitted ones)."""
         from .plausibility import judge
 
         eng = f["eng"]
-        _, xs = eng.simulate(f["params"])
+        params = f["params"] if params is None else params
+        _, xs = eng.simulate(params)
         before = self.final_eng.params
-        f["physical"], f["why"] = judge(eng.model.network, f["params"], xs, eng.model.state_names, self.scales,
+        f["physical"], f["why"] = judge(eng.model.network, params, xs, eng.model.state_names, self.scales,
                                         self.net.temperature_unit, before=before, current=current)
 
     def record(self, fits: list[dict], scored: list[dict], chosen: dict | None, rnd: int) -> None:
         """A :class:`Finding` per fitted candidate, best held-out SSE first, with the evidence."""
         current_val = self.current_val
         twins = _indistinguishable(chosen["score"], scored) if chosen is not None else []
-        for rank, f in enumerate(sorted(fits, key=lambda f: f["val_sse"]), start=1):
+        order = ((lambda f: -f["ml"]["loglik"] if f.get("ml") else math.inf) if self.ml is not None
+                 else (lambda f: f["val_sse"]))
+        for rank, f in enumerate(sorted(fits, key=order), start=1):
             c = f["cand"]
             cf = _cand_in(f["ext"], c.key) or c
             prm = f["params"]
@@ -501,6 +594,14 @@ class _Session:
                           "reason": f.get("reason", ""), "plausibility": f.get("physical", "ok"),
                           "diverged": diverged,
                           "indistinguishable_from": twins if f is chosen else []})
+            if f.get("ml") is not None:
+                finding.evidence["likelihood"] = dict(f["ml"])
+                if f.get("values_from"):
+                    finding.evidence["values_from"] = f["values_from"]
+                finding.evidence["test"] = (
+                    "likelihood ratio of the one-step (Kalman-filter) likelihood on the training rows, χ² on the "
+                    "added estimated quantities (Bonferroni over the candidates fitted), and Diebold–Mariano on the "
+                    "held-out rows' one-step log-likelihood (AIC charge for the added quantities)")
             self.findings.append(finding)
             if f is chosen:
                 self.acc_findings.append(finding)
@@ -517,6 +618,8 @@ class _Session:
         self.state.harvest(chosen["eng"], chosen["ext"], [k.key for k in self.accepted])
         self.final_eng, self.final_ext = chosen["eng"], chosen["ext"]
         self.current_val = (chosen["val_mae"], chosen["val_max"], chosen["val_sse"])
+        if self.ml is not None:
+            self.ml.accept(chosen["ml_fit"], chosen["ml_net"])
         if chosen["net"] is not None:  # a structural edit becomes part of the base network (its parameter free)
             self.net_x = chosen["net"]
             self.ext = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds)
@@ -542,11 +645,12 @@ class _Session:
     def polish(self) -> None:
         """The extended model fitted to convergence on the training rows (all free parameters and the accepted
         findings' together; each round stopped early), then every accepted finding's words and clause made from
-        these final values, so the verdict, the JSON and the written ``.thn`` say the same numbers."""
+        these final values, so the verdict, the JSON and the written ``.thn`` say the same numbers. Under ``ml`` the
+        values are the likelihood fit's, taken at acceptance (:meth:`adopt_ml`), and are not refitted here."""
         if not self.accepted or not self.final_act:
             return
         eng = self.final_eng
-        if not self.spent():
+        if self.ml is None and not self.spent():
             self.say("fitting the extended model to convergence ...")
             eng.fit(self.final_act, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
             self.state.harvest(eng, self.final_ext, [c.key for c in self.accepted])
@@ -559,6 +663,30 @@ class _Session:
                 finding.evidence["words_when_accepted"] = finding.words
                 finding.words = words
             finding.clause = finding_clause(fit["base_net"], cf, P, fit.get("net"))
+
+    def adopt_ml(self, chosen: dict) -> None:
+        """Under ``ml``: the chosen candidate's likelihood estimates (its physical constants, by name and shape) put
+        in its engine, then only the training files' initial states refitted to them (output error), and its
+        held-out numbers taken again: the next round starts from the likelihood fit, and the words, the JSON, the
+        written ``.thn`` and the free run reported are the likelihood fit's. A learned function's coefficients keep
+        their output-error values (the likelihood fits them as weights of another layout); the evidence says so."""
+        from .likelihood import ml_values
+
+        eng = chosen["eng"]
+        P = {k: np.array(v, copy=True) for k, v in chosen["params"].items()}
+        for k, v in ml_values(chosen["ml_fit"]).items():
+            if k in P and np.shape(P[k]) == np.shape(v) and np.ndim(v) == 0 and not k.startswith("x0:"):
+                P[k] = np.asarray(v, dtype=np.float64)
+        eng.params = P
+        x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith("x0:")]
+        if x0_cols and not self.spent():
+            eng.fit(x0_cols, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
+        keep = {k: chosen[k] for k in ("score", "act", "net", "ml", "ml_fit", "ml_net", "physical", "why")
+                if k in chosen}
+        chosen.update(_fit_result(chosen["cand"], chosen["score"], eng, chosen["ext"], self.e_base_val), **keep)
+        dep = chosen["cand"].kind not in STRUCTURAL_KINDS or any(c.kind not in STRUCTURAL_KINDS for c in self.accepted)
+        chosen["values_from"] = ("the likelihood fit" + (" (a learned function's coefficients: the output-error fit)"
+                                                         if dep else ""))
 
     def set_extension(self, ext_net: Network) -> None:
         """The extension's text, its diff from the original and its changed statements (``clauses``)."""
@@ -614,6 +742,11 @@ class _Session:
         res_fin, form = self.res_fin, self.form
         extended = {"val_mae": res_fin.mae, "val_max": res_fin.max, "clauses": self.clauses,
                     "per_sensor": res_fin.errors, "form": "linear"}
+        if self.ml is not None and self.ml.current is not None:
+            cur = self.ml.current
+            extended["likelihood"] = {"loglik": cur.loglik, "k": cur.k, "n_obs": cur.n_obs, "aic": cur.aic,
+                                      "bic": cur.bic, "converged": cur.converged,
+                                      "one_step_rms_val": cur.one_step_rms}
         if form is not None:
             extended["mlp_check"] = form
             if form.get("choice") == "mlp":  # the held-out numbers of the trained MLP extension
@@ -629,4 +762,4 @@ class _Session:
                          findings=self.findings, extended_text=self.ext_text if self.accepted else self.text,
                          extended_file=ext_file, extended=extended, diff=self.diff, verdict=verdict,
                          left=_what_is_left(res_fin), timings=self.timings, plots=plots, notes=self.notes,
-                         initial=self.initial)
+                         initial=self.initial, objective=self.objective)

@@ -437,7 +437,8 @@ class Innovations:
     ``predicted (N, n_outputs)`` K: ``ŷ_{k|k−1}`` for every sensor; ``innovations (N, n_outputs)`` K:
     ``y_k − ŷ_{k|k−1}``, NaN where the reading is missing; ``std (N, n_outputs)`` K: the innovation's standard
     deviation ``√(H P⁻ Hᵀ + R)_jj`` (for a missing reading: the prediction's); ``states``/``state_std``
-    ``(N, n_states)`` K: ``x_{k|k−1}`` and ``√diag P_{k|k−1}``; ``loglik``: ``log L``."""
+    ``(N, n_states)`` K: ``x_{k|k−1}`` and ``√diag P_{k|k−1}``; ``loglik``: ``log L``; :attr:`loglik_rows` its
+    per-sample terms (sensor by sensor)."""
 
     predicted: np.ndarray
     innovations: np.ndarray
@@ -452,6 +453,17 @@ class Innovations:
     def standardized(self) -> np.ndarray:
         """``ε / std`` (N, n_outputs): ≈ white N(0, 1) for a model and noise levels consistent with the data."""
         return self.innovations / self.std
+
+    @property
+    def loglik_rows(self) -> np.ndarray:
+        """``(N,)`` each sample's Gaussian log-likelihood ``Σ_j −½(log 2π s_j² + ε_j²/s_j²)`` over its sensors
+        read (NaN where none was): the terms of ``log L`` (with one innovation covariance per sensor, its
+        diagonal), for comparing two predictors sample by sample."""
+        eps, sd = self.innovations, self.std
+        ok = np.isfinite(eps) & np.isfinite(sd) & (sd > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            terms = np.where(ok, -0.5 * (np.log(2.0 * np.pi * sd**2) + (eps / sd) ** 2), 0.0)
+        return np.where(ok.any(axis=1), terms.sum(axis=1), np.nan)
 
 
 def innovations(model: Any, params: Mapping[str, Any], inputs: Any, outputs: Any, dt: float, *, log_sigma_w: Any,
