@@ -114,3 +114,46 @@ def test_likelihood_takes_the_heater_node_first_on_bacher_madsen(backend, tmp_pa
     doc = json.loads(json.dumps(d.to_dict()))
     assert doc["objective"] == "ml" and doc["baseline"]["likelihood"]["loglik"] == pytest.approx(lk["loglik_before"])
     assert "likelihood: log L" in d.summary()
+
+
+TCLAB = os.path.join(ROOT, "networks", "tclab", "tclab.thn")
+
+
+def _fan_files(tmp_path, backend: str):
+    """TCLab data whose ambient conductance U1 grows with a fan's command, a column ``fan`` the network does not
+    read (U1 × 1.6 at full fan), written as CSV files as a user would have them."""
+    from tnn_dsl.data.write import write_csv
+
+    text = open(TCLAB, encoding="utf-8").read().replace(
+        'input Q2 : [%]  column "Q2_pct"', 'input Q2 : [%]  column "Q2_pct"\ninput fan : [1]  column "fan"')
+    src = tmp_path / "tclab_fan.thn"
+    src.write_text(text, encoding="utf-8")
+    from tnn_dsl.studies.planted import plant
+
+    net = tnn_dsl.load(str(src))
+    pl = plant(net, {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0), "fan": (0.0, 1.0)}, "param_dependence", "U1", "fan", 0.6,
+               noise=0.01, seed=3, n_train=1000, n_val=600, hold=(40, 200), backend=backend)
+    paths = []
+    for name, e in (("train", pl.train[0]), ("val", pl.val[0])):
+        u, y = np.asarray(e.inputs), np.asarray(e.outputs)
+        p = tmp_path / f"{name}.csv"
+        write_csv(p, e.t, {"Q1_pct": 100 * u[:, 0], "Q2_pct": 100 * u[:, 1], "fan": u[:, 2],
+                           "T1_degC": y[:, 0], "T2_degC": y[:, 1]}, "degC", kelvin=["T1_degC", "T2_degC"])
+        paths.append(str(p))
+    return paths
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_parameter_depending_on_an_unused_column_is_found_and_the_column_declared(backend, tmp_path):
+    train, val = _fan_files(tmp_path, backend)
+    out = tmp_path / "ext.thn"
+    d = tnn_dsl.diagnose(TCLAB, [train], [val], backend=backend, top=3, max_rounds=1, mlp_check=False,
+                         output=str(out))
+    acc = d.accepted
+    assert acc and acc[0].kind == "param_dependence" and acc[0].target == "U1" and acc[0].depends_on == ["fan"], \
+        d.summary()
+    ext = tnn_dsl.load(str(out))
+    fan = [i for i in ext.inputs if i.name == "fan"]
+    assert fan and fan[0].column == "fan"  # the column is declared as an input in the extension
+    assert any("fan" in [x.name for x in fn.inputs] and "U1" in [t.name for t in fn.targets] for fn in ext.learned)
+    assert d.extended["val_mae"] < 0.5 * d.baseline["val_mae"], d.summary()

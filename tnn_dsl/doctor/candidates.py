@@ -163,9 +163,11 @@ class _Extension:
     # -- one linear learned function holding many candidates ---------------------------------------
 
     def _dependence_kind(self, k: str, v: str, target_kind: str) -> str:
-        if k == "input" and v in self.extra_inputs:
-            return "unused_column"
-        return "heat_load" if target_kind == "heat_load" else "param_dependence"
+        """A heat load driven by an unused data column is ``unused_column``; a parameter depending on one (a fan's
+        command changing a conductance) is a ``param_dependence`` like any other."""
+        if target_kind == "heat_load":
+            return "unused_column" if k == "input" and v in self.extra_inputs else "heat_load"
+        return "param_dependence"
 
     def add_function(self, fname: str, entries, target_kind: str) -> None:
         """``entries``: ``[(target name, [(kind, var)], with_bias)]`` → one linear function (a ``const`` if it
@@ -217,7 +219,8 @@ class _Extension:
 
     def parameter_dependences(self) -> None:
         """Parameter dependence and wrong constants: ONE learned function ``dx_params`` over every eligible
-        parameter; its inputs are the varying inputs and the temperatures of the parameter's own element."""
+        parameter; its inputs are the varying inputs, the data columns the network does not use (declared as inputs
+        in the extension if a finding reads one) and the temperatures of the parameter's own element."""
         net, entries = self.net, []
         for p in net.params:
             if p.role not in _DEP_ROLES or p.name in self.learned or p.name in self.sensor_params:
@@ -230,7 +233,7 @@ class _Extension:
                 continue
             vars_: list[tuple[str, str]] = []
             if "param_dependence" in self.kinds:
-                vars_ = [("input", i) for i in self.varying]
+                vars_ = [("input", i) for i in self.varying] + [("input", c) for c in self.extra_inputs]
                 vars_ += [("node", n) for n in self.node_order(self.pnodes.get(p.name, set()) & self.node_names)]
             with_bias = not p.free  # a free constant already moves along its own direction
             if vars_ or with_bias:

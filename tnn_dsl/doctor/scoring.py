@@ -75,7 +75,8 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         if Fm:
             F = np.concatenate([F, np.stack(Fm)], axis=0)
     J_all = cur.forced_jacobian(active_base, F)
-    direct = d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # (n_train, m)
+    direct = (d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T if len(cand_idx)  # (n_train, m)
+              else np.zeros((len(cur.train_idx), 0)))  # only structural candidates (``kinds``)
     n0 = len(active_base)
     J_all[:, n0: n0 + direct.shape[1]] += direct
     if struct:
