@@ -233,7 +233,9 @@ class _Extension:
                 continue
             vars_: list[tuple[str, str]] = []
             if "param_dependence" in self.kinds:
-                vars_ = [("input", i) for i in self.varying] + [("input", c) for c in self.extra_inputs]
+                vars_ = [("input", i) for i in self.varying]
+                if p.role != "heat_flow":  # a heat flow driven by an unused column is a heat load (its own family)
+                    vars_ += [("input", c) for c in self.extra_inputs]
                 vars_ += [("node", n) for n in self.node_order(self.pnodes.get(p.name, set()) & self.node_names)]
             with_bias = not p.free  # a free constant already moves along its own direction
             if vars_ or with_bias:
