@@ -493,26 +493,9 @@ class Comparison:
 
 def _experiments(net: Network, data: Any, read: dict[str, Any]) -> list[Any]:
     """Paths read for ``net`` (with ``read``'s time options) and/or Experiments whose columns are ``net``'s."""
-    from ..data import read_data
+    from ..data.reading import as_experiments
 
-    if data is None:
-        return []
-    if isinstance(data, (str, os.PathLike)) or hasattr(data, "inputs"):
-        data = [data]
-    out, paths = [], []
-    for d in data:
-        if hasattr(d, "inputs") and hasattr(d, "outputs"):
-            if (tuple(getattr(d, "input_names", ())) != tuple(net.input_names)
-                    or tuple(getattr(d, "output_names", ())) != tuple(s.name for s in net.sensors)):
-                raise TnnError(Diagnostic(
-                    f"experiment {getattr(d, 'name', '?')!r} was read for other inputs or sensors than network "
-                    f"{net.name!r} has", hint="pass the data files' paths: each network reads its own columns"))
-            out.append(d)
-        else:
-            paths.append(os.fspath(d))
-    if paths:
-        out.extend(read_data(net, paths, read.get("time_col"), read.get("dt"), time_unit=read.get("time_unit")))
-    return out
+    return as_experiments(net, data, same_columns=True, **read)
 
 
 def _noise_levels(tm: Any, est: dict[str, Any] | None, model: Any) -> tuple[np.ndarray, np.ndarray] | None:

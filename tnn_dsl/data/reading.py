@@ -508,10 +508,13 @@ def _on_model_grid(net: Network, t: np.ndarray, U: np.ndarray, Y: np.ndarray, st
 # ---------------------------------------------------------------------------------------------
 
 
-def as_experiments(net: Network, data: Any) -> list[Experiment]:
+def as_experiments(net: Network, data: Any, *, same_columns: bool = False, time_col: str | None = None,
+                   dt: float | None = None, time_unit: str | None = None) -> list[Experiment]:
     """Paths (one or many) and/or :class:`Experiment` objects → a list of ``Experiment`` for ``net``
-    (paths are read with :func:`read_data`; ``None`` gives ``[]``). The one place the trainer, the
-    sensitivity pass and saved models turn "data" arguments into experiments."""
+    (paths are read with :func:`read_data` and the time options; ``None`` gives ``[]``). The one place the
+    trainer, the sensitivity pass, saved models and model comparison turn "data" arguments into experiments.
+    ``same_columns``: an ``Experiment`` read for other inputs or sensors than ``net``'s is an error (comparing two
+    networks, each must read its own columns)."""
     if data is None:
         return []
     if isinstance(data, (str, os.PathLike)) or hasattr(data, "inputs"):
@@ -519,9 +522,14 @@ def as_experiments(net: Network, data: Any) -> list[Experiment]:
     exps, paths = [], []
     for d in data:
         if hasattr(d, "inputs") and hasattr(d, "outputs"):
+            if same_columns and (tuple(getattr(d, "input_names", ())) != tuple(net.input_names)
+                                 or tuple(getattr(d, "output_names", ())) != tuple(s.name for s in net.sensors)):
+                raise DataError(Diagnostic(
+                    f"experiment {getattr(d, 'name', '?')!r} was read for other inputs or sensors than network "
+                    f"{net.name!r} has", hint="pass the data files' paths: each network reads its own columns"))
             exps.append(d)
         else:
             paths.append(os.fspath(d))
     if paths:
-        exps.extend(read_data(net, paths))
+        exps.extend(read_data(net, paths, time_col, dt, time_unit=time_unit))
     return exps

@@ -2,10 +2,12 @@
 candidates and its held-out guard.
 
 Each round the output-error machinery still proposes (score test, shortlist, a proper output-error fit of each
-shortlisted candidate, its plausibility). Under ``ml`` every physical candidate is then written as a network (the
-current model plus that one element, :func:`~tnn_dsl.doctor.extension.extend_network`) and fitted by maximum
+shortlisted candidate). Under ``ml`` every candidate whose output-error fit did not diverge is then written as a
+network (the current model plus that one element, :func:`~tnn_dsl.doctor.extension.extend_network`; new capacities
+and resistances bounded to their plausible range, :func:`with_plausible_bounds`) and fitted by maximum
 likelihood of the one-step predictor (the continuous–discrete Kalman filter; :func:`tnn_dsl.fit.train` with
-``objective="ml"``, two starts, the better kept) on the training rows only. A candidate is accepted when
+``objective="ml"``, two starts, the better kept) on the training rows only, and judged physical or not on the
+values it reaches (:mod:`.plausibility`). A physical candidate is accepted when
 
 * the likelihood-ratio test against the current model passes: ``LR = 2(log L₁ − log L₀)`` against χ² on the
   added estimated quantities (parameters, noise levels, initial states), Bonferroni-corrected over the candidates
@@ -29,14 +31,15 @@ import numpy as np
 from scipy import stats
 
 from ..analysis import held_out_loglik_test
-from ..analysis.comparison import ModelFit, fit_and_score
+from ..analysis.comparison import OBJECTIVES, ModelFit, fit_and_score
 from ..core import TnnError
 from ..ir import Network
+from .engine import X0_PREFIX
 
-__all__ = ["P_LR", "OBJECTIVES", "LikelihoodSelection", "ml_values", "with_plausible_bounds"]
+__all__ = ["P_LR", "OBJECTIVES", "LikelihoodSelection", "with_ml_values", "likelihood_summary",
+           "with_plausible_bounds"]
 
 P_LR = 0.05  # the likelihood-ratio test and the held-out check, each
-OBJECTIVES = ("output-error", "ml")
 
 
 def _for(net: Network, exps: list) -> list:
@@ -141,19 +144,12 @@ def with_plausible_bounds(net: Network, cand: Any, scales: Any) -> Network:
         if p.name in ranges and p.value is not None:
             lo, hi = ranges[p.name]
             upd: dict[str, Any] = {"lower": lo, "upper": hi}
-            if not lo <= p.value <= hi:
-                v = float(np.clip(p.value, lo, hi))
-                upd["expr"] = Num(value=v, dim=dict(p.dim)) if p.unit is None else _in_unit(v, p.unit)
+            if not lo <= p.value <= hi:  # SI, kept in SI (the printer writes it in the file's units)
+                upd.update(expr=Num(value=float(np.clip(p.value, lo, hi)), dim=dict(p.dim)), unit=None)
             params.append(p.model_copy(update=upd))
         else:
             params.append(p)
     return net.model_copy(update={"params": params})
-
-
-def _in_unit(value_si: float, unit: str):
-    from .extension import _num
-
-    return _num(value_si, unit, 6)
 
 
 def _new_rows(cand: ModelFit, before: Network | None) -> list[dict[str, Any]]:
@@ -165,6 +161,17 @@ def _new_rows(cand: ModelFit, before: Network | None) -> list[dict[str, Any]]:
             if r.get("kind") == "parameter" and r.get("name") not in old]
 
 
-def ml_values(cand: ModelFit) -> dict[str, np.ndarray]:
-    """The likelihood fit's parameter table (numpy, SI)."""
-    return {k: np.asarray(v, dtype=np.float64) for k, v in (cand.trained.params if cand.trained else {}).items()}
+def with_ml_values(params: dict[str, np.ndarray], cand: ModelFit) -> dict[str, np.ndarray]:
+    """A copy of the doctor's numpy parameter dict ``params`` with the likelihood fit's scalar constants (same name,
+    both scalar) put in; initial states (``x0:…``) and a learned function's weights (another layout) are kept."""
+    out = {k: np.array(v, copy=True) for k, v in params.items()}
+    for k, v in (cand.trained.params if cand.trained is not None else {}).items():
+        if k in out and not k.startswith(X0_PREFIX) and np.ndim(out[k]) == 0 and np.size(v) == 1:
+            out[k] = np.asarray(float(np.asarray(v).reshape(-1)[0]), dtype=np.float64)
+    return out
+
+
+def likelihood_summary(fit: ModelFit) -> dict[str, Any]:
+    """What the baseline and the extension report of a likelihood fit."""
+    return {"loglik": fit.loglik, "k": fit.k, "n_obs": fit.n_obs, "aic": fit.aic, "bic": fit.bic,
+            "converged": fit.converged, "one_step_rms_val": fit.one_step_rms}

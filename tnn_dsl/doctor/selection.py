@@ -9,7 +9,7 @@ import math
 from ..analysis import held_out_test as _held_out_test
 from .base import Candidate
 
-__all__ = ["P_ACCEPT", "MIN_GAIN", "CLOSE_RATIO"]
+__all__ = ["P_ACCEPT", "MIN_GAIN", "CLOSE_RATIO", "unphysical_reason"]
 
 P_ACCEPT = 0.05  # held-out confirmation: one-sided Diebold–Mariano p below this
 MIN_GAIN = 0.10  # minimum relative MAE reduction on held-out data
@@ -29,6 +29,16 @@ def _place(c: Candidate) -> float:
     return _PLACEMENT.get(c.kind, 3) - (0.5 if c.element.get("learned") else 0.0)
 
 
+def unphysical_reason(f: dict) -> str | None:
+    """Why a fitted candidate cannot be accepted whatever the tests say (``diverged: …``, ``not physical: …``), or
+    ``None`` when its plausibility verdict is ok and its held-out simulation finite."""
+    if f.get("physical") == "diverged" or not math.isfinite(f["val_mae"]):
+        return f"diverged: {f.get('why') or 'its held-out simulation is not finite'}"
+    if f.get("physical") == "non-physical":
+        return f"not physical: {f['why']}"
+    return None
+
+
 def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     """Pick the candidate that pays on held-out data: a Diebold–Mariano test with a charge for its k
     parameters (p < ``P_ACCEPT``) and a held-out MAE gain of at least ``MIN_GAIN``. Among those within noise
@@ -44,10 +54,9 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     paying = []
     for f in fits:
         gain = 1 - f["val_mae"] / mae0 if mae0 else 0.0
-        if f.get("physical") == "diverged" or not math.isfinite(f["val_mae"]):
-            f["reason"] = f"diverged: {f.get('why') or 'its held-out simulation is not finite'}"
-        elif f.get("physical") == "non-physical":
-            f["reason"] = f"not physical: {f['why']}"
+        bad = unphysical_reason(f)
+        if bad:
+            f["reason"] = bad
         elif f["p"] >= P_ACCEPT:
             f["reason"] = f"not confirmed on held-out data (Diebold–Mariano p = {f['p']:.2g} ≥ {P_ACCEPT})"
         elif gain < MIN_GAIN:

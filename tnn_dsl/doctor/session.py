@@ -23,6 +23,7 @@ from .engine import (
     FIT_CONTINUE,
     FIT_ITER,
     FIT_ITER_FIRST,
+    X0_PREFIX,
     _cand_in,
     _Engine,
     _InitPlan,
@@ -35,7 +36,7 @@ from .extension import _check_text, changed_lines, doctor_targets, extend_networ
 from .fitting import _fit_result, _fit_structural, _train_lr_test
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
-from .selection import MIN_GAIN, _choose
+from .selection import MIN_GAIN, _choose, unphysical_reason
 from .structural import structural_candidates
 from .words import _what_is_left, _words
 
@@ -250,7 +251,7 @@ class _Session:
         self.lap("compile", t0)
         t0 = _time.monotonic()
         eng.fitted_start()
-        n_x0 = sum(1 for j in free_idx if eng.cols[j].key.startswith("x0:"))
+        n_x0 = sum(1 for j in free_idx if eng.cols[j].key.startswith(X0_PREFIX))
         self.say(f"fitting the nominal model ({len(free_idx) - n_x0} free parameters"
                  + (f", {n_x0} initial-state values" if n_x0 else "")
                  + f") on {int(self.train_rows.sum())} samples ...")
@@ -328,9 +329,9 @@ class _Session:
         self.sigma = float(np.mean(list(res.sigma.values()))) if res.sigma else 0.0
         self.base["moved"] = moved = _moved(self.net, self.state.physical())
         if self.ml is not None and self.ml.current is not None:
-            cur = self.ml.current
-            self.base["likelihood"] = {"loglik": cur.loglik, "k": cur.k, "n_obs": cur.n_obs, "aic": cur.aic,
-                                       "bic": cur.bic, "converged": cur.converged, "one_step_rms_val": cur.one_step_rms}
+            from .likelihood import likelihood_summary
+
+            self.base["likelihood"] = likelihood_summary(self.ml.current)
         self.notes += [m["words"] for m in moved]
         from .plausibility import network_scales
 
@@ -379,10 +380,10 @@ class _Session:
         _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
         current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
                    for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
-        self.current_ranges = current
         for f in fits:
             self.judge(f, current)
-        chosen = self.ml_choose(fits) if self.ml is not None else _choose(fits, self.current_val, self.e_base_val)
+        chosen = (self.ml_choose(fits, current) if self.ml is not None
+                  else _choose(fits, self.current_val, self.e_base_val))
         if chosen is not None and self.ml is not None:
             self.adopt_ml(chosen)
         self.record(fits, scored, chosen, rnd)
@@ -426,8 +427,9 @@ class _Session:
         # a lag or a mass the linearised fit wants negative is not a physical candidate: it does not take a place
         neg = [s_ for s_ in scored if s_["cand"].kind in STRUCTURAL_KINDS
                and not (len(s_["delta"]) and float(s_["delta"][0]) > 0)]
-        ml_neg = neg if self.objective == "ml" else []  # the likelihood may still want them: fitted from the smallest
-        neg = [] if ml_neg else neg
+        ml_neg: list[dict] = []
+        if self.objective == "ml":  # the likelihood may still want them: fitted from their smallest value
+            ml_neg, neg = neg, []
         if neg:
             self.say(f"  {len(neg)} lag/mass candidate(s) whose linearised fit wants a negative value: not fitted")
         short = []
@@ -491,18 +493,19 @@ class _Session:
             self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
             f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
 
-    def ml_choose(self, fits: list[dict]) -> dict | None:
-        """The likelihood objective's decision (:mod:`.likelihood`): each physical candidate written as a network
-        (the current model plus it) and fitted by maximum likelihood; of those passing the likelihood-ratio test
-        and the held-out check, the largest log-likelihood."""
-        from .likelihood import P_LR, ml_values, with_plausible_bounds
+    def ml_choose(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> dict | None:
+        """The likelihood objective's decision (:mod:`.likelihood`): each candidate whose output-error fit did not
+        diverge written as a network (the current model plus it) and fitted by maximum likelihood, then judged
+        physical or not on those values; of the physical ones passing the likelihood-ratio test and the held-out
+        check, the largest log-likelihood."""
+        from .likelihood import P_LR, with_ml_values, with_plausible_bounds
 
         ml = self.ml
         # an output-error fit that diverged gives no start; a non-physical one may still reach physical values
         ok = [f for f in fits if f.get("physical") != "diverged" and math.isfinite(f["val_mae"])]
         for f in fits:
             if f not in ok:
-                f["reason"] = f"diverged: {f.get('why') or 'its held-out simulation is not finite'}"
+                f["reason"] = unphysical_reason(f)
         for f in ok:
             c = f["cand"]
             acc = [_cand_in(f["ext"], a.key) or a for a in self.accepted]
@@ -522,19 +525,14 @@ class _Session:
                 f["reason"] = "its likelihood fit failed"
                 continue
             f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)))
-            P = {k: np.array(v, copy=True) for k, v in f["params"].items()}
-            for k, v in ml_values(fit).items():
-                if k in P and np.shape(P[k]) == np.shape(v) and np.ndim(v) == 0:
-                    P[k] = np.asarray(v, dtype=np.float64)
-            f["physical_output_error"] = f.get("physical")
-            self.judge(f, self.current_ranges, params=P)  # the likelihood fit's values are the ones that count
+            self.judge(f, current, params=with_ml_values(f["params"], fit))  # the likelihood's values count
         paying = []
         for f in ok:
             t = f.get("ml")
             if t is None:
                 continue
             if f.get("physical") != "ok":
-                f["reason"] = f"{'not physical' if f['physical'] == 'non-physical' else 'diverged'}: {f['why']}"
+                f["reason"] = unphysical_reason(f)
             elif t["p_lr"] >= P_LR:
                 f["reason"] = (f"likelihood-ratio test not passed (LR = {t['lr']:.3g} on {t['df']} df, p = "
                                f"{t['p_lr']:.2g} ≥ {P_LR} after ×{t['m']})")
@@ -670,15 +668,11 @@ class _Session:
         held-out numbers taken again: the next round starts from the likelihood fit, and the words, the JSON, the
         written ``.thn`` and the free run reported are the likelihood fit's. A learned function's coefficients keep
         their output-error values (the likelihood fits them as weights of another layout); the evidence says so."""
-        from .likelihood import ml_values
+        from .likelihood import with_ml_values
 
         eng = chosen["eng"]
-        P = {k: np.array(v, copy=True) for k, v in chosen["params"].items()}
-        for k, v in ml_values(chosen["ml_fit"]).items():
-            if k in P and np.shape(P[k]) == np.shape(v) and np.ndim(v) == 0 and not k.startswith("x0:"):
-                P[k] = np.asarray(v, dtype=np.float64)
-        eng.params = P
-        x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith("x0:")]
+        eng.params = with_ml_values(chosen["params"], chosen["ml_fit"])
+        x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith(X0_PREFIX)]
         if x0_cols and not self.spent():
             eng.fit(x0_cols, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
         keep = {k: chosen[k] for k in ("score", "act", "net", "ml", "ml_fit", "ml_net", "physical", "why")
@@ -743,10 +737,9 @@ class _Session:
         extended = {"val_mae": res_fin.mae, "val_max": res_fin.max, "clauses": self.clauses,
                     "per_sensor": res_fin.errors, "form": "linear"}
         if self.ml is not None and self.ml.current is not None:
-            cur = self.ml.current
-            extended["likelihood"] = {"loglik": cur.loglik, "k": cur.k, "n_obs": cur.n_obs, "aic": cur.aic,
-                                      "bic": cur.bic, "converged": cur.converged,
-                                      "one_step_rms_val": cur.one_step_rms}
+            from .likelihood import likelihood_summary
+
+            extended["likelihood"] = likelihood_summary(self.ml.current)
         if form is not None:
             extended["mlp_check"] = form
             if form.get("choice") == "mlp":  # the held-out numbers of the trained MLP extension
