@@ -103,8 +103,10 @@ class Case:
     """One planted effect. ``plant`` = (candidate kind, target, dependence, strength) for
     ``tnn_dsl.studies.planted.plant`` (strength in the candidate's own coordinates, see there); ``edit`` = a
     structural truth: ``("lag", sensor, seconds)``, ``("mass", node, other, C J/K)`` (a new node in series on
-    the link node–other, the link split into two of twice its conductance) or ``("truth", file)``; ``column``
-    = (node, column name, W per unit): a heat load driven by a data column the network does not read.
+    the link node–other, the link split into two of twice its conductance), ``("quad", node, input, coefficient)``
+    (a source ``coefficient·input²``) or ``("truth", file)``; ``column`` = (node, column name, W per unit): a heat
+    load driven by a data column the network does not read, or ``("param", parameter, column name, rel)``: the
+    parameter scaled by ``1 + rel·column``.
     ``truth`` = (kind, target, dependence or "") the doctor should name; ``equivalent`` its identical-equation
     alternatives (with the reason in ``why``)."""
 
@@ -116,6 +118,7 @@ class Case:
     column: tuple | None = None
     equivalent: tuple = ()
     why: str = ""
+    then: str = ""  # a curved term (``I²``) the accepted findings should name after the linear law
 
     @property
     def name(self) -> str:
@@ -143,6 +146,12 @@ def _cases() -> list[Case]:
         Case("tclab", "thermal_mass", ("thermal_mass", "h1--amb", ""), edit=("mass", "h1", "amb", 3.0)),
         # the heater's own mass (1 J/K behind 10 K/W, τ = 10 s) between the heater power and h1
         Case("tclab", "source_mass", ("source_mass", "Q_src_h1", ""), edit=("source", "h1", "a1 * Q1", 1.0, 10.0)),
+        # a fan (a data column the network does not read) raising the convective conductance of heater 1
+        Case("tclab", "column_dependence", ("param_dependence", "U1", "fan"), column=("param", "U1", "fan", 1.0)),
+        # heater 1's driver warming h2 with the square of its command: the linear law first, then the square
+        Case("tclab", "quadratic_load", ("heat_load", "Q[h2]", "Q1"), edit=("quad", "h2", "Q1", "0.6 W"),
+             equivalent=(("param_dependence", "Q_src_h2", "Q1"),), then="Q1²",
+             why="the source at h2 is a derived heat flow: `Q_src_h2` depending on Q1 adds the same linear term"),
         Case("tclab", "null", ("none", "", "")),
     ]
     # ---- building (Bacher & Madsen Ti) -------------------------------------------------------------
@@ -169,6 +178,13 @@ def _cases() -> list[Case]:
         Case("building", "thermal_mass", ("thermal_mass", "ti--amb", ""), edit=("mass", "ti", "amb", 1.37e7)),
         # the heaters' own mass (0.5 kWh/K behind 1 K/kW, τ = 30 min): Bacher & Madsen's TiTh
         Case("building", "source_mass", ("source_mass", "Q_heat", ""), edit=("source", "ti", "Ph", 1.8e6, 1e-3)),
+        # ventilation (a data column the network does not read) lowering the envelope resistance
+        Case("building", "column_dependence", ("param_dependence", "Ria", "vent"),
+             column=("param", "Ria", "vent", -0.4)),
+        # a heat load growing with the square of the heating power (kW): the linear law first, then the square
+        Case("building", "quadratic_load", ("heat_load", "Q[ti]", "Ph"), edit=("quad", "ti", "Ph", "0.06 kW/kW^2"),
+             equivalent=(("param_dependence", "Q_heat", "Ph"), ("param_dependence", "Q_solar", "Ph")), then="Ph²",
+             why="Q_heat or Q_solar depending on Ph adds the same linear heat flow at ti"),
         Case("building", "null", ("none", "", "")),
     ]
     # ---- thesis case study (nominal) ---------------------------------------------------------------
@@ -185,6 +201,12 @@ def _cases() -> list[Case]:
         Case("casestudy", "unused_column", ("unused_column", "Q[hx2]", "pump"), column=("hx2", "pump", 1.0)),
         Case("casestudy", "sensor_lag", ("sensor_lag", "T_out", ""), edit=("lag", "T_out", 20.0)),
         Case("casestudy", "thermal_mass", ("thermal_mass", "hx2--hp", ""), edit=("mass", "hx2", "hp", 300.0)),
+        # the second fluid's pump speed (a data column the network does not read) changing its heat exchanger's UA
+        Case("casestudy", "column_dependence", ("param_dependence", "f2.UA", "pump"),
+             column=("param", "f2.UA", "pump", 1.0)),
+        # Joule heating of a lead at hx2: a load growing with the square of the current
+        Case("casestudy", "quadratic_load", ("heat_load", "Q[hx2]", "I"), edit=("quad", "hx2", "I", "1 W/A^2"),
+             then="I²"),
         Case("casestudy", "null", ("none", "", "")),
     ]
     return c
@@ -228,6 +250,9 @@ def _edit_text(text: str, edit: tuple) -> str:
         out, n = pat.subn(repl, text, count=1)
         assert n == 1, f"source {node} = {expr} not found"
         return out
+    if edit[0] == "quad":  # a heat load growing with the square of an input: ``source NODE = COEF * INPUT^2``
+        _, node, inp, coef = edit
+        return text.rstrip("\n") + f"\nsource {node} = {coef} * {inp}^2  as Q_planted_quadratic\n"
     raise ValueError(edit)
 
 
@@ -276,21 +301,31 @@ def make_data(case: Case, noise: float, seed: int, quick: bool, workdir: str):
                                    output_names=tuple(s.name for s in net.sensors)))
         return net, exps[:1], exps[1:]
     # a data column the model does not read: the truth has it as an input driving a heat load
-    node, col, gain = case.column
     from tnn_dsl.data.units import unit_factor
     from tnn_dsl.data.write import write_csv
     from tnn_dsl.ir.network import Binary, Input, Num, Param, Ref, Source
 
-    pname = f"Q_planted_{col}"
-    watt = {"kg": 1.0, "m": 2.0, "s": -3.0}
-    q = Param(name=pname, expr=Binary(op="*", left=Num(value=float(gain), dim=watt, unit="W"),
-                                      right=Ref(name=col, kind="input")),
-              dim=watt, unit="W", role="heat_flow", owner=f"source {pname}")
-    truth = net.model_copy(update={
-        "inputs": list(net.inputs) + [Input(name=col, column=col, dim={}, unit=None)],
-        "params": list(net.params) + [q],
-        "sources": list(net.sources) + [Source(name=pname, node=node, value=pname)],
-    }, deep=True)
+    if case.column[0] == "param":  # a parameter scaled by (1 + rel·column): a fan changing a conductance
+        _, target, col, rel = case.column
+        factor = Binary(op="+", left=Num(value=1.0), right=Binary(op="*", left=Num(value=float(rel)),
+                                                                 right=Ref(name=col, kind="input")))
+        params = [p.model_copy(update={"expr": Binary(op="*", left=p.expr, right=factor), "free": False,
+                                       "lower": None, "upper": None})
+                  if p.name == target else p for p in net.params]
+        truth = net.model_copy(update={"inputs": list(net.inputs) + [Input(name=col, column=col, dim={}, unit=None)],
+                                       "params": params}, deep=True)
+    else:
+        node, col, gain = case.column
+        pname = f"Q_planted_{col}"
+        watt = {"kg": 1.0, "m": 2.0, "s": -3.0}
+        q = Param(name=pname, expr=Binary(op="*", left=Num(value=float(gain), dim=watt, unit="W"),
+                                          right=Ref(name=col, kind="input")),
+                  dim=watt, unit="W", role="heat_flow", owner=f"source {pname}")
+        truth = net.model_copy(update={
+            "inputs": list(net.inputs) + [Input(name=col, column=col, dim={}, unit=None)],
+            "params": list(net.params) + [q],
+            "sources": list(net.sources) + [Source(name=pname, node=node, value=pname)],
+        }, deep=True)
     paths = []
     for which, n, s_in, s_col, s_noise in (("train", n_tr, 1000, 5000, 3000), ("val", n_va, 2000, 6000, 4000)):
         u = _inputs(spec, names, n, s_in + seed)
@@ -352,6 +387,8 @@ def score(case: Case, d, noise: float) -> dict:
     r["accepted"] = bool(f is not None and f.accepted and got in eq)
     if case.truth[2]:
         r["dep"] = bool(f is not None and case.truth[2] in f.depends_on)
+    if case.then:
+        r["shape"] = any(case.then in a.depends_on for a in d.accepted)
     return r
 
 

@@ -15,10 +15,12 @@ from ..ir import (
     walk,
 )
 
-__all__ = ["STRUCTURAL_KINDS", "MASS_FRACTION_BOUNDS", "Column", "Candidate", "Extended", "refs_in", "temps_in",
-           "element_value", "var_label", "fn_name"]
+__all__ = ["STRUCTURAL_KINDS", "BOUNDED_AT_ZERO_KINDS", "MASS_FRACTION_BOUNDS", "Column", "Candidate", "Extended",
+           "refs_in", "temps_in", "element_value", "var_label", "fn_name"]
 
 STRUCTURAL_KINDS = ("sensor_lag", "thermal_mass", "source_mass")
+# exactly-null candidates whose one new parameter starts at its lower bound 0 (a conductance, a radiating area)
+BOUNDED_AT_ZERO_KINDS = ("missing_link", "radiation")
 
 
 MASS_FRACTION_BOUNDS = (0.05, 0.95)

@@ -9,8 +9,10 @@ nominal point.
 Candidates come from the IR (not from a list of names):
 
 * ``param_dependence`` — a parameter P (R, G, C, component coefficient, source value, generic param)
-  depends on a variable v (an input, or the temperature of a node of P's own element):
-  ``learn P as linear(v)``; columns ``dx_P.W[v]`` and ``dx_P.b``.
+  depends on a variable v (an input, or the temperature of a node of P's own element; a capacity only on its node's
+  temperature): ``learn P as linear(v)``; columns ``dx_P.W[v]`` and ``dx_P.b``. Curved shapes (this kind and
+  ``heat_load``): the square ``v²`` or a product ``v·w``, one column of the same function made a ``poly`` of degree
+  2 (:meth:`_Extension.curved_shapes`), scored once the linear ``v`` (or ``w``) of the target is accepted.
 * ``wrong_constant`` — a fixed parameter that is simply wrong: ``learn P as const``; column ``dx_P.b``.
 * ``heat_load`` — an unmodelled heat load at node n, constant or depending on v (inputs, T(n) and its
   neighbours, data columns the model does not use): ``learn Q[n] as linear(v)``.
@@ -41,6 +43,7 @@ All edited networks are built as IR directly (the validation pass would refuse a
 
 from __future__ import annotations
 
+from ..compiler.learned import monomial_index
 from ..ir import LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref
 from .base import _AREA_DIM, _DEP_ROLES, _GK_DIM, _K_DIM, Candidate, Column, Extended, _unique_name, refs_in, var_label
 
@@ -102,15 +105,17 @@ ALL_NULL_KINDS = ("param_dependence", "wrong_constant", "heat_load", "missing_li
 
 
 def build_extended(net: Network, varying_inputs: list[str], extra_inputs: list[str] | None = None,
-                   kinds: tuple[str, ...] | None = None, only: set[str] | None = None) -> Extended:
+                   kinds: tuple[str, ...] | None = None, only: set[str] | None = None,
+                   shapes: bool = True) -> Extended:
     """Every exactly-null candidate of ``net`` in one extended network.
 
     ``varying_inputs`` are the inputs that vary in the training data (only those can explain anything);
     ``extra_inputs`` are names of inputs already added to ``net`` for data columns the model did not use
     (they drive heat-load candidates only). ``kinds`` restricts the candidate kinds. ``only`` (a set of
     :attr:`Candidate.key`) builds the small network holding just those candidates (the proper fits and
-    the final extension use it; ``only=set()`` is the original network)."""
-    b = _Extension(net, varying_inputs, extra_inputs, kinds or ALL_NULL_KINDS, only)
+    the final extension use it; ``only=set()`` is the original network). ``shapes``: also the quadratic and
+    product dependences (:meth:`_Extension.curved_shapes`)."""
+    b = _Extension(net, varying_inputs, extra_inputs, kinds or ALL_NULL_KINDS, only, shapes)
     if "param_dependence" in b.kinds or "wrong_constant" in b.kinds:
         b.parameter_dependences()
     if "heat_load" in b.kinds or "unused_column" in b.kinds:
@@ -131,7 +136,7 @@ class _Extension:
     kinds add to, and the candidates with their columns."""
 
     def __init__(self, net: Network, varying_inputs: list[str], extra_inputs: list[str] | None,
-                 kinds: tuple[str, ...], only: set[str] | None):
+                 kinds: tuple[str, ...], only: set[str] | None, shapes: bool = True):
         self.net, self.kinds, self.only = net, kinds, only
         self.extra_inputs = list(extra_inputs or [])
         self.varying = [i for i in varying_inputs if i not in self.extra_inputs]
@@ -150,9 +155,18 @@ class _Extension:
         self.cands: list[Candidate] = []
         self.fn_vars: dict[str, list[tuple[str, str]]] = {}
         self.replaced: dict[str, str] = {}
+        self.shapes = shapes
 
     def keep(self, kind: str, target: str, dep: str = "") -> bool:
         return self.only is None or f"{kind}:{target}:{dep}" in self.only
+
+    def wanted(self, kind: str, target: str, label: str, others: list[str]) -> bool:
+        """Whether variable ``label`` of ``target`` is needed: its linear, quadratic or a product candidate is kept
+        (a product with a data column counts under either kind)."""
+        deps = [label, f"{label}²"] + [f"{a}·{b}" for a, b in ((label, o) for o in others)] \
+            + [f"{a}·{b}" for a, b in ((o, label) for o in others)]
+        kinds = {kind, "unused_column", "heat_load", "param_dependence"}
+        return any(self.keep(kd, target, d) for kd in kinds for d in deps)
 
     def unique(self, name: str) -> str:
         return _unique_name(name, self.pnames)
@@ -181,8 +195,8 @@ class _Extension:
         if self.only is not None:
             kept = []
             for t, vs, with_bias in entries:
-                vs2 = [(k, v) for k, v in vs if self.keep(self._dependence_kind(k, v, target_kind), target(t),
-                                                           var_label(k, v))]
+                vs2 = [(k, v) for k, v in vs if self.wanted(self._dependence_kind(k, v, target_kind), target(t),
+                                                             var_label(k, v), [var_label(*w) for w in vs])]
                 if vs2 or self.keep(const_kind, target(t)):
                     kept.append((t, vs2, with_bias))
             entries = kept
@@ -195,8 +209,13 @@ class _Extension:
                     union.append(v)
         n_out = len(entries)
         targets = [LearnTarget(kind=target_kind, name=t) for t, _, _ in entries]
+        curved = self.curved_shapes(fname, entries, union, target_kind, target) if union and self.shapes else []
+        # with a curved candidate the function is a poly of degree 2 (its first-degree monomials are the linear
+        # candidates' columns; at W = 0, b = 0 it is exactly null, like the linear one)
+        row = ({tuple(int(a) for a in m): r for r, m in enumerate(monomial_index(len(union), 2))} if curved else None)
         if union:
-            self.learned_fns.append(LearnFunction(name=fname, kind="linear", targets=targets,
+            self.learned_fns.append(LearnFunction(name=fname, kind="poly" if curved else "linear",
+                                                  degree=2 if curved else None, targets=targets,
                                                   inputs=[LearnInput(kind=k, name=v) for k, v in union]))
             bias_key = f"{fname}.b"
         else:
@@ -208,12 +227,53 @@ class _Extension:
             if with_bias and const_kind in self.kinds:
                 self.cands.append(Candidate(const_kind, target(t), [], list(bias), fn=fname, element={"output": j}))
             for k, v in vs:
+                if not self.keep(self._dependence_kind(k, v, target_kind), target(t), var_label(k, v)):
+                    continue  # kept for a curved shape only
                 i = union.index((k, v))
+                r = row[(0, i + 1)] if row else i
                 # the bias comes with every dependence: the inputs are centred on their mid-range, so a
                 # law ``a·v`` (a heat load driven by a column that is 0 when off) needs the offset too
                 self.cands.append(Candidate(self._dependence_kind(k, v, target_kind), target(t), [var_label(k, v)],
-                                            [Column(f"{fname}.W", i * n_out + j)] + bias, fn=fname, vars=[(k, v)],
+                                            [Column(f"{fname}.W", r * n_out + j)] + bias, fn=fname, vars=[(k, v)],
                                             element={"output": j}))
+        self.cands += curved
+
+    def curved_shapes(self, fname: str, entries, union: list[tuple[str, str]], target_kind: str,
+                      target) -> list[Candidate]:
+        """Dependences beyond linear, as refinements of a linear one, in the same function (then a ``poly`` of
+        degree 2 over the same variables): target j depends on the square of a variable v (``v²``) or on the
+        product of two of its variables (``v·w``), one new column each (k = 1). A curved candidate is scored only
+        once a linear dependence of the same target on one of its variables has been accepted
+        (``element["parents"]``: the session's gate), so a flexible basis never outbids the physical candidates of
+        a structured residual; the score test and the parameter charge then decide, and a target with an accepted
+        curved term is written ``as poly(…; degree = 2)``."""
+        mono = {tuple(int(a) for a in m): r for r, m in enumerate(monomial_index(len(union), 2))}
+        n_out = len(entries)
+        cands = []
+        for j, (t, vs, _) in enumerate(entries):
+            idx = [1 + union.index(v) for v in vs]
+            parent = {v: f"{self._dependence_kind(*v, target_kind)}:{target(t)}:{var_label(*v)}" for v in vs}
+            for a, (k, v) in zip(idx, vs):
+                dep = f"{var_label(k, v)}²"
+                kind = self._dependence_kind(k, v, target_kind)
+                if self.keep(kind, target(t), dep):
+                    cands.append(Candidate(kind, target(t), [dep], [Column(f"{fname}.W", mono[(a, a)] * n_out + j)],
+                                           fn=fname, vars=[(k, v)],
+                                           element={"output": j, "shape": "quadratic", "parents": [parent[(k, v)]]}))
+            for x in range(len(vs)):
+                for y in range(x + 1, len(vs)):
+                    (k1, v1), (k2, v2) = vs[x], vs[y]
+                    dep = f"{var_label(k1, v1)}·{var_label(k2, v2)}"
+                    kind = ("unused_column" if target_kind == "heat_load" and any(
+                        kk == "input" and vv in self.extra_inputs for kk, vv in (vs[x], vs[y]))
+                        else self._dependence_kind(k1, v1, target_kind))
+                    if self.keep(kind, target(t), dep):
+                        a, b = sorted((idx[x], idx[y]))
+                        cands.append(Candidate(kind, target(t), [dep], [Column(f"{fname}.W", mono[(a, b)] * n_out + j)],
+                                               fn=fname, vars=[vs[x], vs[y]],
+                                               element={"output": j, "shape": "product",
+                                                        "parents": [parent[vs[x]], parent[vs[y]]]}))
+        return cands
 
     # -- the kinds -----------------------------------------------------------------------------------
 
@@ -233,9 +293,11 @@ class _Extension:
                 continue
             vars_: list[tuple[str, str]] = []
             if "param_dependence" in self.kinds:
-                vars_ = [("input", i) for i in self.varying]
-                if p.role != "heat_flow":  # a heat flow driven by an unused column is a heat load (its own family)
-                    vars_ += [("input", c) for c in self.extra_inputs]
+                # a heat capacity (m·c_p) may change with its node's temperature, never with a command or a
+                # data column: such a "dependence" is only ever the compensation of something else
+                vars_ = [] if p.role == "capacitance" else [("input", i) for i in self.varying]
+                if p.role not in ("heat_flow", "capacitance"):  # a heat flow driven by an unused column is a
+                    vars_ += [("input", c) for c in self.extra_inputs]  # heat load (its own family)
                 vars_ += [("node", n) for n in self.node_order(self.pnodes.get(p.name, set()) & self.node_names)]
             with_bias = not p.free  # a free constant already moves along its own direction
             if vars_ or with_bias:

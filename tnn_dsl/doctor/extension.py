@@ -76,16 +76,20 @@ def _fitted_structural(net: Network, c: Candidate, params: dict) -> Network:
 
 def _merged_learned(net: Network, cands: list[Candidate]) -> list[LearnFunction]:
     """The learned functions of ``net`` and one new ``learn`` per group of dependence candidates: candidates on
-    the same target merge into one function of all their variables (``learn R as linear(u1, hx1)``), targets
+    the same target merge into one function of all their variables (``learn R as linear(u1, hx1)``; ``poly(…; degree
+    = 2)`` when one of them is quadratic or a product), targets
     with the same variables share one function, a target without variables is ``const``. A learned constant of
     ``net`` whose targets now depend on something keeps its other targets."""
     by_target: dict[str, list[tuple[str, str]]] = {}
+    curved: set[str] = set()  # targets with a quadratic or product dependence: written as poly(…; degree = 2)
     for c in cands:
         vars_ = by_target.setdefault(c.target, [])
         vars_ += [v for v in c.vars if v not in vars_]
+        if c.element.get("shape") in ("quadratic", "product"):
+            curved.add(c.target)
     groups: dict[tuple, list[str]] = {}
     for target, vars_ in by_target.items():
-        groups.setdefault(tuple(vars_), []).append(target)
+        groups.setdefault((tuple(vars_), target in curved), []).append(target)
     moved: dict[str, set[str]] = {}
     for c in cands:
         if c.element.get("learned"):
@@ -96,11 +100,12 @@ def _merged_learned(net: Network, cands: list[Candidate]) -> list[LearnFunction]
         if keep:
             learned.append(fn.model_copy(update={"targets": keep}) if len(keep) < len(fn.targets) else fn)
     taken = {fn.name for fn in learned} | set(net.param_names)
-    for key, targets in groups.items():
+    for (key, bent), targets in groups.items():
         first = "".join(ch if ch.isalnum() else "_" for ch in targets[0]).strip("_")
         out = [LearnTarget(kind="heat_load", name=t[2:-1]) if t.startswith("Q[") and t.endswith("]")
                else LearnTarget(kind="param", name=t) for t in targets]
-        learned.append(LearnFunction(name=_unique_name(f"fn_{first}", taken), kind="linear" if key else "const",
+        kind = "poly" if bent else "linear" if key else "const"
+        learned.append(LearnFunction(name=_unique_name(f"fn_{first}", taken), kind=kind, degree=2 if bent else None,
                                      targets=out, inputs=[LearnInput(kind=k, name=v) for k, v in key]))
     return learned
 

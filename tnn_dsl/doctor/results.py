@@ -114,8 +114,9 @@ class Diagnosis:
     def finding_rows(self) -> list[dict[str, Any]]:
         """One row per finding (what :meth:`summary` and the notebook view show): ``round``, ``accepted``,
         ``cause`` (in words), ``dependence`` (the variables), ``clause``, ``mae_before``/``mae_after`` (held
-        out, K), ``p_value`` and ``n_eff`` of the held-out test, ``reason`` and ``caution`` (the candidates an
-        accepted finding cannot be told apart from; empty if none)."""
+        out, K), ``p_value`` and ``n_eff`` of the held-out test, ``reason``, ``caution`` (the candidates an
+        accepted finding cannot be told apart from; empty if none) and ``separated`` (first-order twins the held-out
+        run tells apart: at least twice its held-out error, or diverged)."""
         rows = []
         for f in self.findings:
             ev = f.evidence
@@ -124,7 +125,12 @@ class Diagnosis:
                 "round": f.round, "accepted": f.accepted, "cause": f.words, "dependence": list(f.depends_on),
                 "clause": f.clause, "mae_before": ev.get("val_mae_before", math.nan), "mae_after": f.val_mae_after,
                 "p_value": ev.get("p_value", math.nan), "n_eff": ev.get("n_eff", 0), "reason": ev.get("reason") or "",
-                "caution": "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})" for t in twins[:3]) if twins else "",
+                "caution": "; ".join(f"{t['candidate']} (|cos| = {t['cos']:.3f})"
+                                     for t in [t for t in twins or [] if not t.get("separated")][:3]),
+                "separated": "; ".join(
+                    f"{t['candidate']} (held-out MAE {t['val_mae']:.4g} K against {f.val_mae_after:.4g} K)"
+                    if math.isfinite(t["val_mae"]) else f"{t['candidate']} (its fit diverged)"
+                    for t in twins or [] if t.get("separated")),
                 "likelihood": ev.get("likelihood"),
             })
         return rows
@@ -180,6 +186,9 @@ class Diagnosis:
                     lines.append("      estimates: " + ", ".join(est))
             if r["caution"]:
                 lines.append("      " + _caution(r["caution"]))
+            if r.get("separated"):
+                lines.append("      to first order the same as " + r["separated"]
+                             + ", but the held-out run separates them")
         lines += ["  " + ln for ln in self.verdict_lines()]
         if self.extended_file:
             lines.append(f"  extended network written to {self.extended_file}")

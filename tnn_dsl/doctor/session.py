@@ -16,7 +16,7 @@ import numpy as np
 from ..analysis import residuals as R
 from ..core import THN, Diagnostic, TnnError, check_output, write_text_atomic
 from ..ir import Input, Network
-from .base import STRUCTURAL_KINDS, Candidate, Extended
+from .base import BOUNDED_AT_ZERO_KINDS, STRUCTURAL_KINDS, Candidate, Extended
 from .candidates import build_extended
 from .engine import (
     DOCTOR_INIT_RULES,
@@ -356,9 +356,12 @@ class _Session:
     # -- stages 3–5: forward selection ----------------------------------------------------------------
 
     def candidates_now(self) -> list[Candidate]:
+        """The candidates of the next round: not accepted yet, and a curved shape (``v²``, ``v·w``) only where a linear
+        dependence of its target on one of its variables has been accepted."""
         done = {a.key for a in self.accepted}
         struct = structural_candidates(self.net_x, self.kinds if self.kinds else None) if self.with_struct else []
-        return [c for c in list(self.ext.candidates) + struct if c.key not in done]
+        return [c for c in list(self.ext.candidates) + struct if c.key not in done
+                and (not c.element.get("parents") or any(p in done for p in c.element["parents"]))]
 
     def selection_round(self, rnd: int) -> bool:
         """One round: score test, proper fits of the shortlist, the held-out decision. ``False``: stop."""
@@ -430,8 +433,13 @@ class _Session:
         ml_neg: list[dict] = []
         if self.objective == "ml":  # the likelihood may still want them: fitted from their smallest value
             ml_neg, neg = neg, []
+        # a new conductance or radiating area starts at its bound 0: when its linearised fit wants it negative,
+        # the one-sided score says any allowed value makes the fit worse (both objectives)
+        neg += [s_ for s_ in scored if s_["cand"].kind in BOUNDED_AT_ZERO_KINDS
+                and len(s_["delta"]) and float(s_["delta"][0]) < 0]
         if neg:
-            self.say(f"  {len(neg)} lag/mass candidate(s) whose linearised fit wants a negative value: not fitted")
+            self.say(f"  {len(neg)} candidate(s) (lag, mass, link or radiation) whose linearised fit wants a negative"
+                     " value: not fitted")
         short = []
         for s_ in _shortlist([s_ for s_ in scored if not any(s_ is t for t in neg)], self.top):
             if s_["r2"] < MIN_R2 and short:
@@ -567,6 +575,17 @@ class _Session:
         """A :class:`Finding` per fitted candidate, best held-out SSE first, with the evidence."""
         current_val = self.current_val
         twins = _indistinguishable(chosen["score"], scored) if chosen is not None else []
+        if chosen is not None:  # what the held-out run says about the twins it has a fit of (cautions agree with it)
+            by_key = {f["cand"].key: f for f in fits}
+            for t in twins:
+                g = by_key.get(t["key"])
+                if g is None or g is chosen:
+                    continue
+                mae = g["val_mae"] if g.get("physical") != "diverged" else math.nan
+                t["val_mae"] = mae
+                # separated: diverged, or at least twice the chosen one's held-out error (the rival rule of
+                # :func:`~.selection._choose`, where a rival within noise must also be within 2× the best's MAE)
+                t["separated"] = bool(not math.isfinite(mae) or mae >= 2.0 * chosen["val_mae"])
         order = ((lambda f: -f["ml"]["loglik"] if f.get("ml") else math.inf) if self.ml is not None
                  else (lambda f: f["val_sse"]))
         for rank, f in enumerate(sorted(fits, key=order), start=1):

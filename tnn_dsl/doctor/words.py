@@ -19,6 +19,10 @@ def _fmt(x: float, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
+def _is_poly(ext: Extended, fn: str | None) -> bool:
+    return any(f.name == fn and f.kind == "poly" for f in ext.network.learned)
+
+
 def _linear_coeffs(c: Candidate, params, ext: Extended):
     """For a linear learned-function candidate: (offset z0, [(var label, slope per unit, mean, scale)])
     with the raw output ``z = z0 + Σ slope·(x − mean)`` for the candidate's target (output ``j``)."""
@@ -27,6 +31,11 @@ def _linear_coeffs(c: Candidate, params, ext: Extended):
     j = int(c.element.get("output", 0))
     n = max(len(vars_), 1)
     W = np.asarray(params.get(f"{fn}.W", np.zeros((n, j + 1))))
+    if _is_poly(ext, fn) and W.size:  # the first-degree monomials' rows of a poly holding curved candidates too
+        from ..compiler.learned import monomial_index
+
+        rows = {tuple(int(a) for a in m): r for r, m in enumerate(monomial_index(len(vars_), 2))}
+        W = W.reshape(len(rows), -1)[[rows[(0, i + 1)] for i in range(len(vars_))]]
     W = W.reshape(n, -1) if W.size else np.zeros((n, j + 1))
     b = np.asarray(params.get(f"{fn}.b", params.get(f"{fn}.c", np.zeros(j + 1)))).reshape(-1)
     mean = np.asarray(params.get(f"{fn}.x_mean", np.zeros(len(vars_)))).reshape(-1)
@@ -83,8 +92,68 @@ def _var_unit(net: Network, label: str) -> tuple[str, float, float]:
     return ("", 0.0, 1.0)
 
 
+def _curved_terms(c: Candidate, params, ext: Extended) -> tuple[float, list[tuple[str, float]]]:
+    """For a quadratic or product candidate (a ``poly`` function of degree 2): (offset z0, [(factor text, coefficient
+    per unit of the factor)]) with ``z = z0 + Σ coefficient·factor``, the factors centred on the variables' means
+    (``(I − 1.5)``, ``(I − 1.5)²``, ``(u1 − 0.5)·(T(hp) − 23 °C)``)."""
+    from ..compiler.learned import monomial_index
+
+    fn = c.fn
+    vars_ = ext.fn_vars.get(fn, [])
+    j = int(c.element.get("output", 0))
+    mono = monomial_index(len(vars_), 2)
+    W = np.asarray(params.get(f"{fn}.W", np.zeros((len(mono), j + 1)))).reshape(len(mono), -1)
+    b = np.asarray(params.get(f"{fn}.b", np.zeros(j + 1))).reshape(-1)
+    mean = np.asarray(params.get(f"{fn}.x_mean", np.zeros(len(vars_)))).reshape(-1)
+    scale = np.asarray(params.get(f"{fn}.x_scale", np.ones(len(vars_)))).reshape(-1)
+
+    def centred(i: int) -> str:
+        lab = var_label(*vars_[i])
+        m = float(mean[i]) - (273.15 if lab.startswith("T(") else 0.0)
+        return f"({lab} − {_fmt(m, 3)}{' °C' if lab.startswith('T(') else ''})"
+
+    terms = []
+    for r, (a, bb) in enumerate(mono):
+        w = float(W[r, j])
+        if w == 0.0:
+            continue
+        if a == 0:
+            terms.append((centred(bb - 1), w / scale[bb - 1]))
+        elif a == bb:
+            terms.append((f"{centred(a - 1)}²", w / scale[a - 1] ** 2))
+        else:
+            terms.append((f"{centred(a - 1)}·{centred(bb - 1)}", w / (scale[a - 1] * scale[bb - 1])))
+    return (float(b[j]) if b.size > j else 0.0), terms
+
+
+def _curved_words(c: Candidate, params, ext: Extended) -> str:
+    """A dependence with a quadratic or product term read back as a law in physical units: every term of the target's
+    degree-2 function (the accepted linear ones and the curved one), coefficients per unit of their factors."""
+    net = ext.network
+    z0, terms = _curved_terms(c, params, ext)
+    y_scale = _out_scale(params, c)
+    dep = ", ".join(c.depends_on)
+    if c.kind in ("heat_load", "unused_column"):
+        node = c.target[2:-1]
+        inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(y_scale * w))}·{f}" for f, w in terms)
+        return f"unmodelled heat load at {node} depending on {dep}: Q[{node}] ≈ {_fmt(y_scale * z0)} {inner} W"
+    p = net.param(c.target)
+    unit = _unit_of(net, c.target)
+    where = _element_where(net, c.target)
+    if p.role in ("resistance", "conductance", "capacitance", "time_constant") and p.value is not None:
+        k = _pos1_slope()  # the positive transform's slope, as for a linear law
+        base_v = p.value * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
+        den = 1 + k * z0 if 1 + k * z0 else 1.0
+        inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(k * w / den))}·{f}" for f, w in terms)
+        return f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}"
+    inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(y_scale * w))}·{f}" for f, w in terms)
+    return f"{c.target}{where} depends on {dep}: Δ{c.target} ≈ {_fmt(y_scale * z0)} {inner} {unit}"
+
+
 def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
     net = ext.network
+    if c.element.get("shape") in ("quadratic", "product"):
+        return _curved_words(c, params, ext)
     if c.kind in ("param_dependence", "wrong_constant"):
         p = net.param(c.target)
         nominal = p.value
