@@ -95,6 +95,27 @@ def _param_nodes(net: Network) -> dict[str, set[str]]:
     return use
 
 
+def _heat_inputs(net: Network) -> dict[str, set[str]]:
+    """The network's *heat inputs* — inputs that only set heat sources (a heater command, a heating power): every
+    parameter reading one, directly or through another parameter, is a source's heat flow, and no ``learn`` clause
+    reads it. Maps each to the parameters that meet it in those sources' expressions (``Q1 → {Q_src_h1, a1}``)."""
+    exprs = {p.name: p.expr for p in net.params}
+    roles = {p.name: p.role for p in net.params}
+    direct = {name: refs_in(e) for name, e in exprs.items()}
+    learned_inputs = {li.name for fn in net.learned for li in fn.inputs if li.kind == "input"}
+    out: dict[str, set[str]] = {}
+    for i in net.input_names:
+        users = {n for n, r in direct.items() if i in r}
+        grew = True
+        while grew:  # parameters reading a parameter that reads the input read it too
+            more = {n for n, r in direct.items() if r & users} - users
+            grew = bool(more)
+            users |= more
+        if users and i not in learned_inputs and all(roles[u] == "heat_flow" for u in users):
+            out[i] = users | {r for u in users for r in direct[u] if r in exprs}
+    return out
+
+
 def _neighbours(net: Network) -> dict[str, set[str]]:
     g = net.graph()
     return {n: set(g.neighbors(n)) for n in g.nodes}
@@ -145,6 +166,7 @@ class _Extension:
         self.input_names = set(net.input_names)
         self.pnodes = _param_nodes(net)
         self.neigh = _neighbours(net)
+        self.heat_inputs = _heat_inputs(net)
         self.sensor_params = {s.lag for s in net.sensors} | {s.offset for s in net.sensors}
         self.params = list(net.params)
         self.pnames = {p.name for p in self.params}
@@ -159,6 +181,14 @@ class _Extension:
 
     def keep(self, kind: str, target: str, dep: str = "") -> bool:
         return self.only is None or f"{kind}:{target}:{dep}" in self.only
+
+    def inputs_for(self, p: Param) -> list[str]:
+        """The varying inputs parameter ``p`` may depend on: a heat input (:func:`_heat_inputs`) changes the heat of
+        its own source, not a conductance, a capacity or another source's gain — only a source's heat flow and the
+        parameters of its own expression may depend on it (``a1 ~ Q1``: a heater's power not proportional to its
+        command); every other input, for every parameter."""
+        return [i for i in self.varying
+                if i not in self.heat_inputs or p.role == "heat_flow" or p.name in self.heat_inputs[i]]
 
     def wanted(self, kind: str, target: str, label: str, others: list[str]) -> bool:
         """Whether variable ``label`` of ``target`` is needed: its linear, quadratic or a product candidate is kept
@@ -295,7 +325,7 @@ class _Extension:
             if "param_dependence" in self.kinds:
                 # a heat capacity (m·c_p) may change with its node's temperature, never with a command or a
                 # data column: such a "dependence" is only ever the compensation of something else
-                vars_ = [] if p.role == "capacitance" else [("input", i) for i in self.varying]
+                vars_ = [] if p.role == "capacitance" else [("input", i) for i in self.inputs_for(p)]
                 if p.role not in ("heat_flow", "capacitance"):  # a heat flow driven by an unused column is a
                     vars_ += [("input", c) for c in self.extra_inputs]  # heat load (its own family)
                 vars_ += [("node", n) for n in self.node_order(self.pnodes.get(p.name, set()) & self.node_names)]
@@ -385,7 +415,7 @@ class _Extension:
             union: list[tuple[str, str]] = [("input", i) for i in self.varying]
             for t in fn.targets:
                 nodes = self.node_order(self.pnodes.get(t.name, set()) & self.node_names)
-                tv = [("input", i) for i in self.varying] + [("node", n) for n in nodes]
+                tv = [("input", i) for i in self.inputs_for(self.net.param(t.name))] + [("node", n) for n in nodes]
                 tv = [(k, v) for k, v in tv if self.keep("param_dependence", t.name, var_label(k, v))]
                 per_target.append(tv)
                 for v in tv:

@@ -19,6 +19,12 @@ def _fmt(x: float, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
+def _base_value(p, params) -> float | None:
+    """The value a dependence law multiplies: a free parameter's fitted value (SI), else the written one."""
+    v = params.get(p.name) if p.free else None
+    return float(np.asarray(v).reshape(-1)[0]) if v is not None and np.asarray(v).size == 1 else p.value
+
+
 def _is_poly(ext: Extended, fn: str | None) -> bool:
     return any(f.name == fn and f.kind == "poly" for f in ext.network.learned)
 
@@ -142,7 +148,7 @@ def _curved_words(c: Candidate, params, ext: Extended) -> str:
     where = _element_where(net, c.target)
     if p.role in ("resistance", "conductance", "capacitance", "time_constant") and p.value is not None:
         k = _pos1_slope()  # the positive transform's slope, as for a linear law
-        base_v = p.value * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
+        base_v = _base_value(p, params) * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
         den = 1 + k * z0 if 1 + k * z0 else 1.0
         inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(k * w / den))}·{f}" for f, w in terms)
         return f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}"
@@ -156,7 +162,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         return _curved_words(c, params, ext)
     if c.kind in ("param_dependence", "wrong_constant"):
         p = net.param(c.target)
-        nominal = p.value
+        nominal = _base_value(p, params)
         z0, terms = _linear_coeffs(c, params, ext)
         positive = p.role in ("resistance", "conductance", "capacitance", "time_constant")
         where = f" ({p.owner.split(' ', 1)[1] if p.owner and ' ' in p.owner else p.owner})" if p.owner else ""
