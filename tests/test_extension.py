@@ -29,7 +29,8 @@ sensor Sa = a
 sensor Sb = b  column "Sb_degC"
 '''
 
-ACCEPTED = ["param_dependence:Ga:P", "param_dependence:Ga:T(a)", "wrong_constant:G_b_amb:", "heat_load:Q[b]:",
+# (P only heats node a: a heat input, so Ga may depend on the temperatures it causes, not on P itself)
+ACCEPTED = ["param_dependence:Ga:Tamb", "param_dependence:Ga:T(a)", "wrong_constant:G_b_amb:", "heat_load:Q[b]:",
             "unused_column:Q[a]:aux", "missing_link:a--b:", "radiation:a--amb:", "sensor_offset:Sb:"]
 FITTED = {"G_dx_a_b": 0.0123456, "rad_dx_a_amb.area": 0.00123456, "Sb.offset": -0.345678}
 
@@ -40,7 +41,7 @@ def _setup():
     # needs (``spare``)
     extra = [Input(name=n, column=n, dim={}, unit=None) for n in ("aux", "spare")]
     net_x = net.model_copy(update={"inputs": list(net.inputs) + extra}, deep=True)
-    ext = build_extended(net_x, ["P"], ["aux", "spare"])
+    ext = build_extended(net_x, ["P", "Tamb"], ["aux", "spare"])
     cands = {c.key: c for c in ext.candidates}
     return net, net_x, [cands[k] for k in ACCEPTED]
 
@@ -55,7 +56,7 @@ def test_the_written_extension_holds_every_accepted_finding_with_its_fitted_valu
     fns = {tuple(t.name for t in fn.targets): fn for fn in back.learned}
     assert set(fns) == {("Ga",), ("G_b_amb", "b"), ("a",)}
     assert fns[("Ga",)].kind == "linear" and [(i.kind, i.name) for i in fns[("Ga",)].inputs] == [
-        ("input", "P"), ("node", "a")]
+        ("input", "Tamb"), ("node", "a")]
     assert fns[("G_b_amb", "b")].kind == "const"
     assert [t.kind for t in fns[("G_b_amb", "b")].targets] == ["param", "heat_load"]
     assert fns[("a",)].kind == "linear" and [i.name for i in fns[("a",)].inputs] == ["aux"]
@@ -74,7 +75,7 @@ def test_the_written_extension_holds_every_accepted_finding_with_its_fitted_valu
     # the diff shows only the change
     removed = [ln for ln in diff.splitlines() if ln.startswith("-") and not ln.startswith("---")]
     assert removed == ['-sensor Sb = b  column "Sb_degC"']
-    assert "+learn Ga as linear(P, a)" in diff and "+learn G_b_amb, Q[b] as const" in diff
+    assert "+learn Ga as linear(Tamb, a)" in diff and "+learn G_b_amb, Q[b] as const" in diff
     assert "+G a -- b = 0.01235 W/K  free" in diff and "+radiation a -- amb  area = 0.001235 m^2  free" in diff
 
 

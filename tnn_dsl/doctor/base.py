@@ -73,9 +73,16 @@ class Candidate:
         dep = ",".join(self.depends_on)
         return f"{self.kind}:{self.target}:{dep}"
 
+    @property
+    def members(self) -> list["Candidate"]:
+        """The per-target candidates this one stands for: itself, or the parts of a whole learned function's
+        dependence (``R_hp1, R_hp2, R_hpa depend together on u1``: one candidate per target, one column each)."""
+        return list(self.element.get("members") or [self])
+
     def describe(self) -> str:
         words = {
-            "param_dependence": f"{self.target} depends on {', '.join(self.depends_on)}",
+            "param_dependence": f"{self.target} {'depend together' if self.element.get('members') else 'depends'}"
+            f" on {', '.join(self.depends_on)}",
             "wrong_constant": f"{self.target} has the wrong value",
             "heat_load": f"unmodelled heat load at {self.target[2:-1]}"
             + (f" depending on {', '.join(self.depends_on)}" if self.depends_on else " (constant)"),

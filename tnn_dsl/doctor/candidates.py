@@ -403,24 +403,34 @@ class _Extension:
         self.sensors = new_sensors
 
     def learned_constants(self) -> None:
-        """Learned constants that may depend on something (M1's ``learn R_hp1, R_hp2 as const``): the const
+        """Learned constants that may depend on something (M1's ``learn R_hp1, R_hp2, R_hpa as const``): the const
         function becomes linear over the union of its targets' variables with W = 0 and b = c (exactly the
-        same model); ``W[v, j]`` is the candidate "target j depends on v"."""
+        same model); ``W[v, j]`` is the candidate "target j depends on v".
+
+        A function of several targets also gets, for each variable that every one of its targets may depend on,
+        the candidate "the function depends on v" (k = one column per target, :attr:`Candidate.members` its
+        per-target parts): the user declared those targets one uncertain part, so the whole part may depend on the
+        variable (``learn R_hp1, R_hp2, R_hpa as linear(u1)``) rather than one target standing in for the others
+        (with one sensor on a series path, ``R_hp1`` alone absorbs ``R_hp2``'s dependence and the next rounds
+        compensate elsewhere). The held-out test and the parameter charge decide between the two."""
         for fi, fn in enumerate(self.learned_fns):
             if fn.kind != "const" or fn.frozen or fn.init_from or fn.name.startswith("dx_"):
                 continue
             if any(t.kind != "param" for t in fn.targets):
                 continue
-            per_target = []
-            union: list[tuple[str, str]] = [("input", i) for i in self.varying]
+            group = ", ".join(t.name for t in fn.targets)
+            possible = []
             for t in fn.targets:
                 nodes = self.node_order(self.pnodes.get(t.name, set()) & self.node_names)
-                tv = [("input", i) for i in self.inputs_for(self.net.param(t.name))] + [("node", n) for n in nodes]
-                tv = [(k, v) for k, v in tv if self.keep("param_dependence", t.name, var_label(k, v))]
-                per_target.append(tv)
-                for v in tv:
-                    if v not in union:
-                        union.append(v)
+                possible.append([("input", i) for i in self.inputs_for(self.net.param(t.name))]
+                                + [("node", n) for n in nodes])
+            common = [v for v in possible[0] if all(v in tv for tv in possible)] if len(fn.targets) > 1 else []
+            grouped = [v for v in common if self.keep("param_dependence", group, var_label(*v))]
+            per_target = [[v for v in tv if self.keep("param_dependence", t.name, var_label(*v)) or v in grouped]
+                          for t, tv in zip(fn.targets, possible)]
+            union: list[tuple[str, str]] = [("input", i) for i in self.varying]
+            for tv in per_target:
+                union += [v for v in tv if v not in union]
             union = [v for v in union if any(v in tv for tv in per_target)]
             if not union:
                 continue
@@ -429,12 +439,20 @@ class _Extension:
             self.replaced[fn.name] = "const"
             self.fn_vars[fn.name] = union
             n_out = len(fn.targets)
+
+            def one(j: int, t: str, k: str, v: str) -> Candidate:
+                return Candidate("param_dependence", t, [var_label(k, v)],
+                                 [Column(f"{fn.name}.W", union.index((k, v)) * n_out + j)], fn=fn.name,
+                                 vars=[(k, v)], element={"learned": fn.name, "output": j})
+
             for j, (t, tv) in enumerate(zip(fn.targets, per_target)):
-                for k, v in tv:
-                    i = union.index((k, v))
-                    self.cands.append(Candidate("param_dependence", t.name, [var_label(k, v)],
-                                                [Column(f"{fn.name}.W", i * n_out + j)], fn=fn.name, vars=[(k, v)],
-                                                element={"learned": fn.name, "output": j}))
+                self.cands += [one(j, t.name, k, v) for k, v in tv
+                               if self.keep("param_dependence", t.name, var_label(k, v))]
+            for k, v in grouped:
+                members = [one(j, t.name, k, v) for j, t in enumerate(fn.targets)]
+                self.cands.append(Candidate("param_dependence", group, [var_label(k, v)],
+                                            [m.columns[0] for m in members], fn=fn.name, vars=[(k, v)],
+                                            element={"learned": fn.name, "members": members}))
 
     def extended(self) -> Extended:
         ext = self.net.model_copy(update={"params": self.params, "links": self.links, "radiations": self.radiations,

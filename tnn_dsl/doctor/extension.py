@@ -151,7 +151,7 @@ def extend_network(base: Network, accepted: list[Candidate], params: dict,
     for c in accepted:
         if c.kind in STRUCTURAL_KINDS:
             net = _fitted_structural(net, c, params)
-    dependences = [c for c in accepted if c.kind in _DEPENDENCE_KINDS]
+    dependences = [m for c in accepted if c.kind in _DEPENDENCE_KINDS for m in c.members]
     net = net.model_copy(update={"learned": _merged_learned(net, dependences)})
     taken = set(net.param_names) | {p.split(".")[0] for p in net.param_names} | set(net.node_names)
     taken |= set(net.boundary_names) | {e.name for e in (*net.links, *net.radiations, *net.sensors)}
@@ -165,7 +165,7 @@ def extend_network(base: Network, accepted: list[Candidate], params: dict,
 def doctor_targets(accepted: list[Candidate]) -> set[str]:
     """The targets of the ``learn`` functions the extension adds (``R_hp1``, ``Q[hx2]``): the keys of
     :meth:`Network.learned_targets` the MLP comparison may turn into MLPs."""
-    return {c.target for c in accepted if c.kind in _DEPENDENCE_KINDS}
+    return {m.target for c in accepted if c.kind in _DEPENDENCE_KINDS for m in c.members}
 
 
 def changed_lines(before: Network, after: Network) -> list[str]:

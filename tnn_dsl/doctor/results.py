@@ -190,9 +190,24 @@ class Diagnosis:
                 lines.append("      to first order the same as " + r["separated"]
                              + ", but the held-out run separates them")
         lines += ["  " + ln for ln in self.verdict_lines()]
+        lines += ["  " + ln for ln in self.uncertainty_lines()]
         if self.extended_file:
             lines.append(f"  extended network written to {self.extended_file}")
         return "\n".join(lines)
+
+    def uncertainty_lines(self) -> list[str]:
+        """The extended model's values with standard errors and what the sensors cannot tell apart
+        (:mod:`tnn_dsl.doctor.uncertainty`), SI units; nothing when no finding was accepted."""
+        u = self.extended.get("uncertainty")
+        if not u or not u.get("estimates"):
+            return []
+        lines = ["values of the extended model (± one standard error, SI; " + u["method"] + "):"]
+        for e in u["estimates"]:
+            se = f" ± {e['se']:.2g}" if math.isfinite(e["se"]) else ""
+            flag = f"  ({e['status']})" if e["status"] != "ok" else ""
+            lines.append(f"  {e['name']} = {e['value']:.4g}{se} {e['unit']}".rstrip() + flag)
+        lines += [f"identifiability: {s}" for s in u.get("statements", [])]
+        return lines
 
     def verdict_lines(self) -> list[str]:
         """The verdict, the linear-or-MLP choice, the gain and what is left, one line each (summary and notebook

@@ -62,9 +62,12 @@ def _out_scale(params, c: Candidate) -> float:
     return float(ys[j] if j < ys.size else ys[0])
 
 
-def _pos1_slope() -> float:
-    sp4 = math.log1p(math.exp(4.0))
-    return 4.0 / (1.0 + math.exp(-4.0)) / sp4
+def _rel_slope(z0: float) -> float:
+    """d ln(pos1(1 + z)) / dz at ``z0``: a positive target ``nominal·pos1(1 + z)`` changes by this fraction of its
+    value at the mid point per unit of ``z`` (the law's relative slope; ``pos1`` of :mod:`tnn_dsl.compiler.learned`)."""
+    v = 4.0 * (1.0 + z0)
+    sp = math.log1p(math.exp(-abs(v))) + max(v, 0.0)  # softplus(4(1 + z0)), no overflow
+    return 4.0 / (1.0 + math.exp(-v)) / sp if sp > 0 else 0.0
 
 
 def _unit_of(net: Network, pname: str) -> str:
@@ -147,10 +150,9 @@ def _curved_words(c: Candidate, params, ext: Extended) -> str:
     unit = _unit_of(net, c.target)
     where = _element_where(net, c.target)
     if p.role in ("resistance", "conductance", "capacitance", "time_constant") and p.value is not None:
-        k = _pos1_slope()  # the positive transform's slope, as for a linear law
+        g = _rel_slope(z0)  # relative to the value at the mid point
         base_v = _base_value(p, params) * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
-        den = 1 + k * z0 if 1 + k * z0 else 1.0
-        inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(k * w / den))}·{f}" for f, w in terms)
+        inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(g * w))}·{f}" for f, w in terms)
         return f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}"
     inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(y_scale * w))}·{f}" for f, w in terms)
     return f"{c.target}{where} depends on {dep}: Δ{c.target} ≈ {_fmt(y_scale * z0)} {inner} {unit}"
@@ -158,6 +160,9 @@ def _curved_words(c: Candidate, params, ext: Extended) -> str:
 
 def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
     net = ext.network
+    if c.element.get("members"):  # a whole learned function's dependence: each target's law
+        return (f"{c.target} (one learned function) depend together on {', '.join(c.depends_on)}: "
+                + "; ".join(_words(m, params, ext, eng, model) for m in c.members))
     if c.element.get("shape") in ("quadratic", "product"):
         return _curved_words(c, params, ext)
     if c.kind in ("param_dependence", "wrong_constant"):
@@ -169,14 +174,14 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         where = _element_where(net, c.target) or where
         unit = _unit_of(net, c.target)
         if positive and nominal is not None:
-            k = _pos1_slope()
-            rel = [(lab, k * s, m) for lab, s, m, _ in terms]
+            g = _rel_slope(z0)  # relative to the value at the mid point
+            rel = [(lab, g * s, m) for lab, s, m, _ in terms]
             base_v = nominal * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
             if not rel:
                 return f"{c.target}{where} is wrong: ≈ {_fmt(base_v)} {unit} (was {_fmt(nominal)})"
             strengths = _strengths(terms, eng, c)
             dep = " and ".join(f"{lab} ({st})" for (lab, _, _), st in zip(rel, strengths))
-            inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r) / (1 + k * z0) if 1 + k * z0 else abs(r))}·"
+            inner = " ".join(f"{'+' if r >= 0 else '−'} {_fmt(abs(r))}·"
                              f"({lab} − {_fmt(m if not lab.startswith('T(') else m - 273.15, 3)}"
                              f"{' °C' if lab.startswith('T(') else ''})"
                              for lab, r, m in rel)

@@ -21,7 +21,8 @@ import numpy as np
 from ..core.htmlview import html_table, pre, safe_repr_html, view
 from ..data import unit_factor
 
-__all__ = ["Estimates", "estimation_summary", "estimate_row", "covariance_from_information", "display_factor",
+__all__ = ["Estimates", "estimation_summary", "estimate_row", "covariance_from_information", "null_directions",
+           "display_factor",
            "normal_p", "si_unit", "file_temperatures", "SINGULAR", "LOG_SE_MAX", "AT_BOUND"]
 
 SINGULAR = 1e-9
@@ -211,6 +212,19 @@ class Estimates:
                     pre("\n".join(f"note: {n}" for n in self.notes)) if self.notes else "")
 
 
+def _scaled_spectrum(H: np.ndarray, fixed: np.ndarray):
+    """``(keep, d, lam, V, bad)``: the free entries of ``H``, its diagonal scale, the eigen-decomposition of ``H``
+    scaled to unit diagonal (singularity independent of the coordinates) and which eigenvalues are singular."""
+    keep = np.flatnonzero(~fixed)
+    Hk = H[np.ix_(keep, keep)]
+    d = np.sqrt(np.abs(np.diag(Hk)))
+    d = np.where(d > 0, d, 1.0)
+    S = Hk / d[:, None] / d[None, :]
+    lam, V = np.linalg.eigh(S)
+    bad = lam <= SINGULAR * max(lam.max(), 0.0) if lam.max() > 0 else np.ones_like(lam, dtype=bool)
+    return keep, d, lam, V, bad
+
+
 def covariance_from_information(H: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The covariance ``H⁻¹`` of the fitted coordinates from the information matrix ``H (n, n)`` (the Hessian of
     ``−log L``, or ``JᵀJ`` of weighted residuals) with the entries ``fixed (n,)`` held (at a bound): returns
@@ -218,15 +232,9 @@ def covariance_from_information(H: np.ndarray, fixed: np.ndarray) -> tuple[np.nd
     n = len(H)
     cov = np.full((n, n), np.nan)
     singular = np.zeros(n, dtype=bool)
-    keep = np.flatnonzero(~fixed)
-    if keep.size == 0:
+    if not (~fixed).any():
         return cov, singular
-    Hk = H[np.ix_(keep, keep)]
-    d = np.sqrt(np.abs(np.diag(Hk)))
-    d = np.where(d > 0, d, 1.0)
-    S = Hk / d[:, None] / d[None, :]  # scaled to unit diagonal: singularity independent of the coordinates
-    lam, V = np.linalg.eigh(S)
-    bad = lam <= SINGULAR * max(lam.max(), 0.0) if lam.max() > 0 else np.ones_like(lam, dtype=bool)
+    keep, d, lam, V, bad = _scaled_spectrum(H, fixed)
     if bad.any():
         load = np.sqrt(np.sum(V[:, bad] ** 2, axis=1))
         singular[keep[load > 0.1]] = True
@@ -237,6 +245,21 @@ def covariance_from_information(H: np.ndarray, fixed: np.ndarray) -> tuple[np.nd
     cov[singular, :] = np.nan
     cov[:, singular] = np.nan
     return cov, singular
+
+
+def null_directions(H: np.ndarray, fixed: np.ndarray) -> list[np.ndarray]:
+    """The directions ``(n,)`` (unit length in coordinates scaled to unit information, 0 at the fixed entries) along
+    which the information ``H`` is singular: moving the fitted values together along one leaves the fit unchanged
+    (the entries loading more than 0.1 are those :func:`covariance_from_information` marks singular)."""
+    if not (~fixed).any():
+        return []
+    keep, _, _, V, bad = _scaled_spectrum(H, fixed)
+    out = []
+    for v in V[:, bad].T:
+        full = np.zeros(len(H))
+        full[keep] = v
+        out.append(full)
+    return out
 
 
 def normal_p(t: float) -> float:
