@@ -712,7 +712,7 @@ class _Session:
         eng.params = start
         eng.fit(self.final_act, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
         sse2 = eng.sse()
-        if not sse2 < sse1:
+        if not sse2 < (1 - 1e-3) * sse1:  # the same optimum (or a worse one): the rounds' values stay
             eng.params = first
             return
         self.notes.append(f"the extended model fitted from the values written in the file reached a lower training "

@@ -128,7 +128,7 @@ class _Labeller:
     def _input_unit(self, name: str) -> str:
         for i in self.net.inputs:
             if i.name == name:
-                return "K" if i.is_temperature else (i.unit or "")
+                return "K" if i.is_temperature else ("" if (i.unit or "1") == "1" else i.unit)
         return ""
 
 
