@@ -652,7 +652,7 @@ class _Session:
         printed; the extended model's held-out residual."""
         t0 = _time.monotonic()
         self.polish()
-        if self.accepted and self.final_act:
+        if self.accepted and self.final_act and self.ml is None:  # under ml: the likelihood's own estimates
             self.uncertainty = final_uncertainty(self.final_eng, self.final_act, self.final_ext.fn_vars)
         self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
         self.ext_net = extend_network(self.net_x, self.acc_small, self.final_eng.params, self.unused)
