@@ -25,7 +25,7 @@ import numpy as np
 
 from ..ir import Network
 
-__all__ = ["DECADES", "MARGIN_K", "HEATED_MARGIN_K", "Scales", "network_scales", "judge"]
+__all__ = ["DECADES", "MARGIN_K", "HEATED_MARGIN_K", "Scales", "network_scales", "judge", "start_up_rows"]
 
 DECADES = 3.0
 """How many decades beyond the network's own capacities and resistances a fitted one may lie."""
@@ -118,14 +118,18 @@ def _fmt(v: float, unit: str) -> str:
 
 def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: Scales,
           temperature_unit: str = "K", before: dict | None = None,
-          current: dict[str, tuple[float, float]] | None = None) -> tuple[str, str | None]:
+          current: dict[str, tuple[float, float]] | None = None,
+          start: np.ndarray | None = None) -> tuple[str, str | None]:
     """``(verdict, reason)`` of a fitted network ``net`` with numpy ``params`` whose free runs gave ``states
     (N, n_states)`` K: ``("ok", None)``, ``("diverged", why)`` or ``("non-physical", why)``.
     ``temperature_unit`` is the file's (``degC`` temperatures are written in °C in the reason). ``before``: the
     current model's numpy parameters; a value already outside its range there is not held against a candidate
     (the baseline's own drift is reported separately). ``current``: each state's (min, max) K in the current
     model's free runs; a state may go where the current model already goes (a Peltier's cold side far below the
-    one sensor's readings is the network's, not the candidate's), widened by the same margin."""
+    one sensor's readings is the network's, not the candidate's), widened by the same margin. ``start``: a mask
+    ``(N, n_states)`` of each file's start-up samples, not held to the temperature ranges (a fitted initial state of
+    a node no sensor sees is a nuisance, not a claim of the candidate: it decays within a few of its time
+    constants; :func:`start_up_rows`)."""
 
     def temp(v: float) -> str:
         return f"{v - 273.15:.4g} °C" if temperature_unit == "degC" else f"{v:.4g} K"
@@ -134,11 +138,14 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
     if not np.all(np.isfinite(X)):
         return "diverged", "its simulation is not finite (the fitted values leave the range where it is stable)"
     names = list(state_names)
-    if scales.data_range is not None and X.size:
+    if start is not None and start.shape == X.shape:
+        X = np.where(start, np.nan, X)
+    if scales.data_range is not None and X.size and np.isfinite(X).any():
         lo, hi = scales.data_range
         far = DIVERGED_FACTOR * max(hi - lo, 10.0)
-        if float(X.max()) > hi + far or float(X.min()) < lo - far:
-            return "diverged", (f"its simulation runs away ({temp(float(X.max() if X.max() > hi + far else X.min()))}"
+        xmax, xmin = float(np.nanmax(X)), float(np.nanmin(X))
+        if xmax > hi + far or xmin < lo - far:
+            return "diverged", (f"its simulation runs away ({temp(xmax if xmax > hi + far else xmin)}"
                                 f" against data within {temp(lo)} … {temp(hi)})")
     reasons = []
     caps, res = _values(net, params)
@@ -160,7 +167,9 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
         sensed = {s.node for s in net.sensors}
         heated = {src.node for src in net.sources} - sensed
         for j, n in enumerate(names):
-            x = X[:, j]
+            x = X[:, j][np.isfinite(X[:, j])]
+            if not x.size:
+                continue
             lo_j, hi_j = lo, hi
             if n in heated and scales.data_range is not None:
                 hi_j = max(hi_j, scales.data_range[1] + HEATED_MARGIN_K)
@@ -174,3 +183,18 @@ def judge(net: Network, params: dict, states: np.ndarray, state_names, scales: S
     if reasons:
         return "non-physical", "; ".join(reasons[:3]) + (f" (and {len(reasons) - 3} more)" if len(reasons) > 3 else "")
     return "ok", None
+
+
+def start_up_rows(n_steps: list[int], dts: list[float], taus: dict[str, float], state_names) -> np.ndarray:
+    """``(N, n_states)`` mask of each file's start-up samples: for state j, the first ``5·τ_j/dt`` samples of every
+    file (at most a tenth of it), ``τ_j`` its time constant (s) at the fitted values."""
+    names = list(state_names)
+    out = np.zeros((int(sum(n_steps)), len(names)), dtype=bool)
+    r0 = 0
+    for n, dt in zip(n_steps, dts):
+        for j, name in enumerate(names):
+            tau = taus.get(name, 0.0)
+            k = min(int(math.ceil(5.0 * tau / dt)) if math.isfinite(tau) and dt > 0 else n // 10, n // 10)
+            out[r0: r0 + k, j] = True
+        r0 += n
+    return out
