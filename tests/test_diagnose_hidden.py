@@ -150,12 +150,15 @@ _NOT_YET = {
     # kinds the doctor has no candidate for yet (see docs/architecture.md, "Diagnosis")
 }
 _MISSES: dict[str, str] = {
-    # kinds the doctor has candidates for but misses on the fast run (none at present); the reason is what
-    # the run showed
+    # kinds the doctor has candidates for but misses on the fast run; the reason is what the run showed
+    "tclab/quadratic_load": ("a2 taken as wrong (k = 1) within noise of Q_src_h2 depending on Q1: on the short "
+                             "seed-0 run the two commands are nearly collinear (|cos| 0.999 between a2 wrong and "
+                             "Q_src_h2 ~ Q2)"),
 }
 
 FAST = ["tclab/dependence", "tclab/heat_load", "tclab_nolink/missing_link", "tclab/radiation", "tclab/sensor_offset",
-        "tclab/wrong_constant", "tclab/unused_column", "tclab/sensor_lag", "tclab/thermal_mass", "tclab/source_mass"]
+        "tclab/wrong_constant", "tclab/unused_column", "tclab/sensor_lag", "tclab/thermal_mass", "tclab/source_mass",
+        "tclab/column_dependence", "tclab/quadratic_load"]
 
 
 # known misses that take 30 s or more each to confirm run with the slow grid, not in CI
@@ -180,6 +183,19 @@ def test_fast_planted_effect_is_found(name):
     if "dep" in r:
         assert r["dep"], msg
     assert r["above_noise"] and r["ratio"] >= 2.0, f"{msg}; MAE {r['mae_before']:.3g} → {r['mae_after']:.3g} K"
+
+
+def test_a_pump_column_changing_a_heat_exchanger_is_found_on_the_case_study():
+    """A pump column changing the heat exchanger's UA (noise-free quick run). ``f2.mdot``, ``f2.cp`` and ``f2.UA``
+    depending on it have the same linearised correction, so one of them is fitted for all (the others are fitted in
+    its place when its fit is not physical: ``fit_twins``); before the start-up transient of a fitted initial state
+    was left out of the plausibility ranges, every one was rejected (the Peltier's cold side at 661 °C in the first
+    seconds) and nothing was accepted. The answer names the heat exchanger f2 depending on the pump, and pays."""
+    r = S.run_case(CASES["casestudy/column_dependence"], noise=0.0, seed=0, quick=True)
+    first = r["first_answer"] or ""
+    named = {f"param_dependence:f2.{p}:pump" for p in ("UA", "mdot", "cp")}
+    assert r["first_accepted"] and first in named, r["verdict"]
+    assert r["ratio"] >= 2.0, r
 
 
 def test_fast_null_data_set_gives_no_finding():
