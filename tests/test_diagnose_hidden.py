@@ -185,6 +185,7 @@ def test_fast_planted_effect_is_found(name):
     assert r["above_noise"] and r["ratio"] >= 2.0, f"{msg}; MAE {r['mae_before']:.3g} → {r['mae_after']:.3g} K"
 
 
+@pytest.mark.slow  # 85 s; its rule's fast variant: test_doctor_initial.py::test_a_fitted_initial_states_start_up…
 def test_a_pump_column_changing_a_heat_exchanger_is_found_on_the_case_study():
     """A pump column changing the heat exchanger's UA (noise-free quick run). ``f2.mdot``, ``f2.cp`` and ``f2.UA``
     depending on it have the same linearised correction, so one of them is fitted for all (the others are fitted in

@@ -131,7 +131,7 @@ def test_baseline_reports_the_parameters_it_moved():
     assert moved["Ta"]["at_bound"] == "upper" and "30 °C" in moved["Ta"]["words"]
 
 
-@pytest.mark.parametrize("backend", ["jax", "torch"])
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_the_extended_models_values_come_with_standard_errors_and_what_cannot_be_told_apart(backend):
     """Two free conductances in parallel from heater 1 to the ambient: the data see only their sum, and the doctor
     says so next to the fitted sensor lag and its standard error (:mod:`tnn_dsl.doctor.uncertainty`)."""
