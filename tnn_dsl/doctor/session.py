@@ -378,16 +378,16 @@ class _Session:
         self.lap(f"fit_round{rnd}", t0)
         if not fits:
             return False
-        e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
-        for f in fits:
-            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
-                                                        f["cand"].k, len(scored))
         _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
         current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
                    for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
         for f in fits:
             self.judge(f, current)
-        fits += self.fit_twins(fits, current, len(scored))
+        fits += self.fit_twins(fits, current)
+        e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
+        for f in fits:
+            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
+                                                        f["cand"].k, len(scored))
         chosen = (self.ml_choose(fits, current) if self.ml is not None
                   else _choose(fits, self.current_val, self.e_base_val))
         if chosen is not None and self.ml is not None:
@@ -498,7 +498,7 @@ class _Session:
         f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
         return f
 
-    def fit_twins(self, fits: list[dict], current: dict[str, tuple[float, float]], n_scored: int) -> list[dict]:
+    def fit_twins(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> list[dict]:
         """A shortlisted candidate stands for its exact twins (the same linearised correction, ``same`` of
         :func:`_shortlist`); when its own fit is not physical or diverged, up to two of its twins are fitted in its
         place, to convergence. Twins agree only at the null point: a pump column changing a heat exchanger's
@@ -511,15 +511,12 @@ class _Session:
         acc_keys = self.acc_keys()
         small = self.small(acc_keys + [t["cand"].key for t in twins])
         start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
-        e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
         out = []
         for t in twins:
             if self.spent():
                 break
             self.say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), the twin of a fit that is not physical ...")
             f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
-            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
-                                                        t["cand"].k, n_scored)
             self.judge(f, current)
             out.append(f)
         return out

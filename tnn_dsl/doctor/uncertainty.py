@@ -31,7 +31,7 @@ from ..analysis.residuals import effective_n
 from ..estimation.estimates import covariance_from_information, null_directions
 from ..ir import POSITIVE_ROLES
 from .engine import X0_PREFIX, _Engine
-from .words import _unit_of
+from .words import _d_pos1, _pos1, _unit_of
 
 __all__ = ["CORR_MAX", "final_uncertainty"]
 
@@ -40,20 +40,6 @@ CORR_MAX = 0.95
 
 def _fmt(x: float) -> str:
     return f"{x:.3g}" if math.isfinite(x) else "n/a"
-
-
-def _softplus(v: float) -> float:
-    return math.log1p(math.exp(-abs(v))) + max(v, 0.0)
-
-
-def _pos1(v: float) -> float:
-    """``pos1`` of :mod:`tnn_dsl.compiler.learned` for one float: ``softplus(4v)/softplus(4)``."""
-    return _softplus(4.0 * v) / _softplus(4.0)
-
-
-def _d_pos1(v: float) -> float:
-    """d pos1(v) / dv."""
-    return 4.0 / (1.0 + math.exp(-4.0 * v)) / _softplus(4.0)
 
 
 class _Labeller:

@@ -62,12 +62,26 @@ def _out_scale(params, c: Candidate) -> float:
     return float(ys[j] if j < ys.size else ys[0])
 
 
+def _softplus(v: float) -> float:
+    return math.log1p(math.exp(-abs(v))) + max(v, 0.0)  # no overflow
+
+
+def _pos1(v: float) -> float:
+    """``pos1`` of :mod:`tnn_dsl.compiler.learned` for one float: ``softplus(4v)/softplus(4)`` (a positive target is
+    ``nominal·pos1(1 + z)``)."""
+    return _softplus(4.0 * v) / _softplus(4.0)
+
+
+def _d_pos1(v: float) -> float:
+    """d pos1(v) / dv."""
+    return 4.0 / (1.0 + math.exp(-4.0 * v)) / _softplus(4.0)
+
+
 def _rel_slope(z0: float) -> float:
-    """d ln(pos1(1 + z)) / dz at ``z0``: a positive target ``nominal·pos1(1 + z)`` changes by this fraction of its
-    value at the mid point per unit of ``z`` (the law's relative slope; ``pos1`` of :mod:`tnn_dsl.compiler.learned`)."""
-    v = 4.0 * (1.0 + z0)
-    sp = math.log1p(math.exp(-abs(v))) + max(v, 0.0)  # softplus(4(1 + z0)), no overflow
-    return 4.0 / (1.0 + math.exp(-v)) / sp if sp > 0 else 0.0
+    """d ln(pos1(1 + z)) / dz at ``z0``: a positive target changes by this fraction of its value at the mid point per
+    unit of ``z`` (the law's relative slope)."""
+    level = _pos1(1.0 + z0)
+    return _d_pos1(1.0 + z0) / level if level > 0 else 0.0
 
 
 def _unit_of(net: Network, pname: str) -> str:
@@ -151,7 +165,7 @@ def _curved_words(c: Candidate, params, ext: Extended) -> str:
     where = _element_where(net, c.target)
     if p.role in ("resistance", "conductance", "capacitance", "time_constant") and p.value is not None:
         g = _rel_slope(z0)  # relative to the value at the mid point
-        base_v = _base_value(p, params) * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
+        base_v = _base_value(p, params) * _pos1(1 + z0)
         inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(g * w))}·{f}" for f, w in terms)
         return f"{c.target}{where} depends on {dep}: {c.target} ≈ {_fmt(base_v)}·(1 {inner}) {unit}"
     inner = " ".join(f"{'+' if w >= 0 else '−'} {_fmt(abs(y_scale * w))}·{f}" for f, w in terms)
@@ -176,7 +190,7 @@ def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
         if positive and nominal is not None:
             g = _rel_slope(z0)  # relative to the value at the mid point
             rel = [(lab, g * s, m) for lab, s, m, _ in terms]
-            base_v = nominal * (math.log1p(math.exp(4 * (1 + z0))) / math.log1p(math.exp(4.0)))
+            base_v = nominal * _pos1(1 + z0)
             if not rel:
                 return f"{c.target}{where} is wrong: ≈ {_fmt(base_v)} {unit} (was {_fmt(nominal)})"
             strengths = _strengths(terms, eng, c)
