@@ -59,7 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "func", None) is None:
             parser.print_help()
             return 1
-        return int(args.func(args) or 0)
+        from ..lang import include_path_scope
+
+        with include_path_scope(getattr(args, "include_path", None)):
+            return int(args.func(args) or 0)
     except TnnError as err:
         print(err.format(), file=sys.stderr)
         return 1

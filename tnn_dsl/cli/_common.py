@@ -25,8 +25,12 @@ def add_command(subparsers, name: str, help: str, doc: str | None = None,
     if description is None and doc:
         parts = doc.split("\n\n", 1)
         description = parts[1].replace("``", "") if len(parts) > 1 else None
-    return subparsers.add_parser(name, help=help, description=description,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(name, help=help, description=description,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--include-path", action="append", metavar="DIR", default=[],
+                   help="a directory network files may include from besides the main file's directory tree "
+                        "(repeatable; also TNN_INCLUDE_PATH)")
+    return p
 
 
 def add_network_and_data(p, data: str = "data", val_help: str = "validation data files") -> None:

@@ -50,12 +50,23 @@ class Diagnostic:
                 else:
                     width = max(1, len(text) - start + 1) if text[start - 1 :].strip() else 1
                 width = max(1, min(width, max(1, len(text) - start + 1)))
+                if len(text) > MAX_SHOWN_CHARS:  # a window of a long line around the caret
+                    lo = max(0, start - 1 - MAX_SHOWN_CHARS // 4)
+                    hi = min(len(text), lo + MAX_SHOWN_CHARS)
+                    text = ("…" if lo else "") + text[lo:hi] + ("…" if hi < len(text) else "")
+                    start = start - lo + (1 if lo else 0)
+                    width = max(1, min(width, hi - lo - (start - 1 - (1 if lo else 0))))
+                    parts[-1] = f" {num} | {text}"
                 parts.append(f" {' ' * len(num)} | {' ' * (start - 1)}{'^' * width}")
         for msg, span in self.related:
             parts.append(f"{span.file}:{span.line}:{span.col}: note: {msg}")
         if self.hint:
             parts.append(f"hint: {self.hint}")
         return "\n".join(parts)
+
+
+MAX_SHOWN_CHARS = 160
+"""The longest source line shown under a message; a longer one is shown as a window around the caret."""
 
 
 def _read_lines(path: str) -> list[str] | None:

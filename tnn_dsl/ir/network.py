@@ -19,6 +19,7 @@ Conventions
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Callable, Iterator, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -340,6 +341,22 @@ class LearnFunction(_Node):
     init_from: str | None = None
     replace: bool = False
     """For ``flow`` targets: the function replaces the physics flow instead of correcting it."""
+
+    def weight_count(self) -> int:
+        """How many trained numbers the function has (inputs = ``len(inputs)``, outputs = ``len(targets)``),
+        counted without building anything: the compiler's ``array_shapes`` gives the same total (a test checks)."""
+        n_in, n_out = len(self.inputs), len(self.targets)
+        if self.kind == "const":
+            return n_out
+        if self.kind == "linear":
+            return (n_in + 1) * n_out
+        if self.kind == "poly":
+            d = max(int(self.degree or 2), 1)
+            return (math.comb(n_in + d, d) - 1 + 1) * n_out  # monomials of degree 1..d, and the bias
+        if self.kind == "mlp":
+            sizes = [n_in, *[int(h) for h in self.hidden], n_out]
+            return sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
+        return len(self.knots) * n_out  # table
 
 
 # ---------------------------------------------------------------------------------------------

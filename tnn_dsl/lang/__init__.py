@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from .parser import load, loads, parse
 from .printer import print_thn
+from .sources import include_path_scope
 from .units import UnitError, format_dim, parse_quantity, unit_scale
 from .validation import validate
 
 __all__ = [
-    "load", "loads", "parse", "print_thn", "UnitError", "format_dim", "parse_quantity", "unit_scale", "validate"
+    "include_path_scope", "load", "loads", "parse", "print_thn", "UnitError", "format_dim", "parse_quantity",
+    "unit_scale", "validate",
 ]

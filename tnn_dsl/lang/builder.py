@@ -29,7 +29,16 @@ from ..ir import (
     ThermalNode,
     map_children,
 )
-from .sources import _decode, _statements
+from .sources import (
+    MAX_FILE_BYTES,
+    MAX_FILES,
+    MAX_TOTAL_BYTES,
+    SourceReadError,
+    _decode,
+    _statements,
+    inside_roots,
+    read_source_bytes,
+)
 from .statements import _Q, _Clause, _Free, _Per, _St
 from .units import TEMPERATURE_UNITS, UnitError, dim_eq, format_dim, parse_quantity, unit_scale
 
@@ -150,8 +159,11 @@ DEFAULT_DEGREE = 2
 
 
 class _Builder:
-    def __init__(self, sources: dict[str, str]):
+    def __init__(self, sources: dict[str, str], roots: tuple[str, ...] = ()):
         self.sources = sources
+        self.roots = roots  # the directories includes may come from (real paths)
+        self.included: set[str] = set()  # real paths of the files already read (each is read once)
+        self.bytes_read = sum(len(t) for t in sources.values())
         self.diags: list[Diagnostic] = []
         self.name: str | None = None
         self.label: str | None = None
@@ -280,24 +292,43 @@ class _Builder:
             self.statement(st, scope, include_chain)
 
     def include(self, st: _St, scope: _Scope, chain: tuple[str, ...]):
+        """Read and run an included file once: confined to the include roots, a regular file, size-capped.
+        A file already included (a diamond: two files include the same parts) is not read again; its
+        declarations are already in the network."""
         rel = st.data["path"]
-        shown = os.path.normpath(os.path.join(os.path.dirname(st.file), rel)) if os.path.exists(st.file) else rel
-        path = os.path.abspath(shown)
-        key = os.path.realpath(path)
+        base = os.path.dirname(st.file) if os.path.exists(st.file) else ""
+        shown = os.path.normpath(os.path.join(base, rel))
+        key = os.path.realpath(shown)
         if key in chain:
             names = " -> ".join(os.path.basename(c) for c in (*chain, key))
             self.err(f"include cycle: {names}", st.span, hint="a file cannot include itself, even indirectly")
             return
+        if key in self.included:
+            return
         if len(chain) > MAX_INCLUDE_DEPTH:
             self.err("includes nested too deeply", st.span)
             return
-        try:
-            with open(path, "rb") as f:
-                data = f.read()
-        except OSError as e:
-            self.err(f"cannot read the included file `{rel}`: {e.strerror or e}", st.span,
-                     hint="include paths are relative to the including file")
+        if self.roots and not inside_roots(key, self.roots):
+            where = self.roots[0] if len(self.roots) == 1 else ", ".join(self.roots)
+            self.err(f"the included file `{rel}` is outside the network's directory ({where})", st.span,
+                     hint="includes are confined to the main file's directory tree; to allow another directory "
+                          "pass `--include-path DIR` (or load(..., include_path=[DIR]))")
             return
+        if len(self.included) + 1 >= MAX_FILES:
+            self.err(f"the network reads more than {MAX_FILES} files", st.span, hint="join parts into fewer files")
+            return
+        limit = min(MAX_FILE_BYTES, MAX_TOTAL_BYTES - self.bytes_read)
+        try:
+            data = read_source_bytes(key, limit=max(limit, 0))
+        except SourceReadError as e:
+            reason = e.reason
+            if limit < MAX_FILE_BYTES and "more than" in reason:
+                reason = f"the network's files together are more than {MAX_TOTAL_BYTES:,} bytes"
+            self.err(f"cannot read the included file `{rel}`: {reason}", st.span,
+                     hint=e.hint or "include paths are relative to the including file")
+            return
+        self.included.add(key)
+        self.bytes_read += len(data)
         try:
             text = _decode(data, shown)
             stmts = _statements(text, shown, self.sources)
@@ -585,6 +616,10 @@ class _Builder:
             else:
                 base = os.path.dirname(os.path.abspath(st.file)) if os.path.exists(st.file) else os.getcwd()
                 fn["init_from"] = os.path.normpath(os.path.join(base, val[1]))
+                if self.roots and not inside_roots(os.path.realpath(fn["init_from"]), self.roots):
+                    self.err(f"`init_from` names `{val[1]}`, outside the network's directory ({self.roots[0]})",
+                             ospan, hint="model directories a network loads are confined like includes; pass "
+                                         "`--include-path DIR` to allow another directory")
         if kind == "mlp":
             hidden = list(DEFAULT_HIDDEN)
             if "hidden" in opts:

@@ -18,6 +18,7 @@ reference of the syntax). Stages:
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 
 from ..core import Diagnostic, TnnError
 from ..ir import (
@@ -25,25 +26,32 @@ from ..ir import (
     Span,
 )
 from .builder import _Builder, _Scope
-from .sources import _decode, _statements
+from .sources import MAX_FILE_BYTES, SourceReadError, _decode, _statements, include_roots, read_source_bytes
 
 # ---------------------------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------------------------
 
 
-def parse(text: str, filename: str = "<string>", *, validate: bool = True) -> Network:
+def parse(text: str, filename: str = "<string>", *, validate: bool = True,
+          include_path: Iterable[str | os.PathLike] | None = None) -> Network:
     """Parse ``text`` (and its includes) into a Network; with ``validate`` run the validation pass.
-    Raises :class:`TnnError` with every problem found."""
+    Includes are confined to ``filename``'s directory tree (the working directory when ``filename`` is not a
+    file) and the directories of ``include_path``. Raises :class:`TnnError` with every problem found."""
+    if len(text) > MAX_FILE_BYTES:
+        raise TnnError(Diagnostic(f"the network text is {len(text):,} characters, more than the {MAX_FILE_BYTES:,} "
+                                  "a network file may have",
+                                  Span(file=filename, line=1, col=1, end_line=1, end_col=1),
+                                  hint="split the network into files joined by `include`"))
     try:
-        return _parse(text, filename, validate)
+        return _parse(text, filename, validate, include_roots(filename, include_path))
     except RecursionError:
         raise TnnError(Diagnostic("the file is nested too deeply to be read (an expression or subnets too long)",
                                   Span(file=filename, line=1, col=1, end_line=1, end_col=1),
                                   hint="split long expressions with `param` definitions")) from None
 
 
-def _parse(text: str, filename: str, validate: bool) -> Network:
+def _parse(text: str, filename: str, validate: bool, roots: tuple[str, ...]) -> Network:
     sources: dict[str, str] = {}
     text = text.replace("\r\n", "\n").replace("\r", "\n")
     if text.startswith("\ufeff"):
@@ -51,7 +59,7 @@ def _parse(text: str, filename: str, validate: bool) -> Network:
     if "\x00" in text:
         _decode(text.encode("utf-8", errors="surrogatepass"), filename)
     stmts = _statements(text, filename, sources)
-    b = _Builder(sources)
+    b = _Builder(sources, roots)
     real = os.path.realpath(filename) if os.path.exists(filename) else filename
     b.run_file(stmts, filename, _Scope(), main=True, include_chain=(real,))
     net = b.network()
@@ -68,27 +76,27 @@ def _parse(text: str, filename: str, validate: bool) -> Network:
     return net
 
 
-def loads(text: str, filename: str = "<string>") -> Network:
+def loads(text: str, filename: str = "<string>", *,
+          include_path: Iterable[str | os.PathLike] | None = None) -> Network:
     """Parse and validate ``.thn`` source text. ``filename`` is used in messages and to resolve
-    ``include`` paths (relative to its directory). Returns the validated :class:`Network`."""
-    return parse(text, filename)
+    ``include`` paths (relative to its directory, confined to that directory's tree and ``include_path``).
+    Returns the validated :class:`Network`."""
+    return parse(text, filename, include_path=include_path)
 
 
-def load(path: str | os.PathLike) -> Network:
+def load(path: str | os.PathLike, *, include_path: Iterable[str | os.PathLike] | None = None) -> Network:
     """Read, parse and validate a ``.thn`` file (with its includes); returns the :class:`Network`.
-    Raises :class:`TnnError` (``file:line:col: error: ...``) for anything the user can fix."""
+
+    The file must be a regular file of at most 4 MiB. Its includes must lie in its directory tree or in a
+    directory of ``include_path`` (also ``tnnc --include-path`` and ``TNN_INCLUDE_PATH``); each included file
+    is read once. Raises :class:`TnnError` (``file:line:col: error: ...``) for anything the user can fix."""
     path = os.fspath(path)
     try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except FileNotFoundError:
-        raise TnnError(Diagnostic(f"cannot read `{path}`: no such file")) from None
-    except IsADirectoryError:
-        raise TnnError(Diagnostic(f"cannot read `{path}`: it is a directory")) from None
-    except OSError as e:
-        raise TnnError(Diagnostic(f"cannot read `{path}`: {e.strerror or e}")) from None
+        data = read_source_bytes(path)
+    except SourceReadError as e:
+        raise TnnError(Diagnostic(f"cannot read `{path}`: {e.reason}", hint=e.hint)) from None
     text = _decode(data, path)
-    return parse(text, path)
+    return parse(text, path, include_path=include_path)
 
 
 __all__ = ["load", "loads", "parse"]

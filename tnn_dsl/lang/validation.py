@@ -512,8 +512,28 @@ class _V:
             if fn.frozen and fn.init_from is None:
                 self.err(f"learned function `{fn.name}` is `frozen` but has no `init_from`", fn.span,
                          hint='a frozen function keeps its weights: load them with `init_from = "model_dir"`')
+            self._size_check(fn)
             out.append(fn.model_copy(update={"inputs": inputs}))
         return out
+
+    def _size_check(self, fn: LearnFunction) -> None:
+        """A learned function larger than ``MAX_LEARNED_WEIGHTS`` is an error before anything is allocated."""
+        if fn.kind == "poly" and int(fn.degree or 2) > MAX_POLY_DEGREE:
+            self.err(f"learned function `{fn.name}`: degree {fn.degree} is above {MAX_POLY_DEGREE}", fn.span,
+                     hint="a correction of high degree oscillates between the data; use degree 2 or 3, or `mlp`")
+            return
+        if fn.kind == "mlp" and len(fn.hidden) > MAX_HIDDEN_LAYERS:
+            self.err(f"learned function `{fn.name}` has {len(fn.hidden)} hidden layers, more than "
+                     f"{MAX_HIDDEN_LAYERS}", fn.span, hint="one or two hidden layers are enough for a gray-box "
+                                                           "correction: `hidden = [8, 8]`")
+            return
+        n = fn.weight_count()
+        if n <= MAX_LEARNED_WEIGHTS:
+            return
+        what = {"mlp": "reduce `hidden` (the thesis's functions have a few dozen weights; `hidden = [8, 8]` is the "
+                       "default)", "poly": "lower `degree` or use fewer arguments"}.get(fn.kind, "use fewer knots")
+        self.err(f"learned function `{fn.name}` would have {n:,} weights (about {_bytes(n * BYTES_PER_WEIGHT)} "
+                 f"while training); at most {MAX_LEARNED_WEIGHTS:,} are allowed", fn.span, hint=what)
 
     def _learn_input(self, li: LearnInput) -> LearnInput:
         if li.kind == "node":
@@ -557,6 +577,22 @@ class _V:
                 upd["dim"] = d
             params.append(p.model_copy(update=upd))
         return self.net.model_copy(update={"params": params, "learned": learned})
+
+
+MAX_LEARNED_WEIGHTS = 1_000_000
+"""The most weights one learned function may have (gray-box corrections are small; 1e6 float64 weights with
+their gradient and Adam's two moments take 32 MB, before the rollout's per-step activations)."""
+MAX_POLY_DEGREE = 8
+MAX_HIDDEN_LAYERS = 16
+BYTES_PER_WEIGHT = 32  # float64 value, gradient and two Adam moments
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if n < 1000:
+            return f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n:.3g} EB"
 
 
 def _fmt(p: Param) -> str:
