@@ -10,22 +10,14 @@ import pytest
 
 from tnn_dsl.core.errors import ModelFileError
 from tnn_dsl.fit.model_files import load_model, save_model
-from tnn_dsl.ir.network import Boundary, Link, Network, Num, Param, Sensor, ThermalNode
+from tnn_dsl.ir.network import Network
+from tnn_dsl.lang import loads
 
 
 def _net() -> Network:
-    return Network(
-        name="tiny",
-        params=[
-            Param(name="C_a", expr=Num(value=4.0), role="capacitance", free=True),
-            Param(name="G_a_amb", expr=Num(value=0.05), role="conductance", free=True),
-            Param(name="T_amb", expr=Num(value=296.15), role="temperature"),
-        ],
-        nodes=[ThermalNode(name="a", capacitance="C_a")],
-        boundaries=[Boundary(name="amb", temperature="T_amb")],
-        links=[Link(name="G_a_amb", a="a", b="amb", form="G", value="G_a_amb")],
-        sensors=[Sensor(name="T1", node="a", column="T1")],
-    )
+    """One node, free capacity and conductance (as the parser builds it: stored models are validated on load)."""
+    return loads('network tiny\nunits temperature = K\nnode a C = 4 J/K free\nboundary amb = 296.15 K\n'
+                 'G a -- amb = 0.05 W/K free\nsensor T1 = a column "T1"\n')
 
 
 def _params():

@@ -264,12 +264,14 @@ def test_trained_model_view_shows_fitted_and_nominal(trained: TrainedModel) -> N
 
 
 def test_trained_model_table_matches_inspect(trained: TrainedModel) -> None:
-    from tnn_dsl.cli._inspect import _fmt, parameter_table
+    from tnn_dsl.cli._inspect import parameter_table
+    from tnn_dsl.fit.model_files import format_row, format_value
 
     rows = parameter_table(trained)
     assert [r["name"] for r in rows] == ["R_b", "R_c"]
     assert rows[0]["unit"] == "K/W" and rows[0]["change_pct"] == pytest.approx(12.5)
-    assert _fmt(296.15, "temperature", "K") == "296.15 K (23 °C)"
+    assert format_value(23.0, "degC") == "23 degC"
+    assert all(format_row(r) in trained.summary() for r in rows)
     assert {r["name"] for r in parameter_table(trained, all_params=True)} >= {"R_a", "C_h", "R_b"}
 
 

@@ -35,8 +35,8 @@ def register(subparsers) -> None:
 
 
 def parameter_table(tm, all_params: bool = False) -> list[dict]:
-    """Rows ``{name, role, unit, nominal, fitted, change_pct, free}`` (SI; temperatures in K): see
-    :meth:`tnn_dsl.fit.TrainedModel.parameter_table`."""
+    """Rows ``{name, role, nominal, fitted, change_pct, free}`` (SI; temperatures in K) and ``unit``,
+    ``nominal_shown``, ``fitted_shown`` (the file's units): see :meth:`tnn_dsl.fit.TrainedModel.parameter_table`."""
     return tm.parameter_table(all_params)
 
 
@@ -80,12 +80,6 @@ def learned_values(tm, fn, X: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _fmt(v: float, role: str, unit: str) -> str:
-    from ..fit.model_files import format_value
-
-    return format_value(v, role, unit)
-
-
 def run(args) -> int:
     from .. import plots
     from ..core import JSON, PLOT_DIR, save_figure, to_jsonable
@@ -106,10 +100,10 @@ def run(args) -> int:
                   file=out)
     if rows:
         print(f"\n{'parameter':<22} {'nominal':>26} {'fitted':>26} {'change':>9}", file=out)
+        from ..fit.model_files import format_row
+
         for r in rows:
-            ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
-            print(f"{r['name'][:22]:<22} {_fmt(r['nominal'], r['role'], r['unit']):>26} "
-                  f"{_fmt(r['fitted'], r['role'], r['unit']):>26} {ch:>9}", file=out)
+            print(format_row(r), file=out)
     if meta.get("estimation"):
         from ..estimation import estimation_summary
 

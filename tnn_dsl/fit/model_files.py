@@ -383,7 +383,58 @@ def _load_model_once(path: Path, final: bool = False) -> "TrainedModel":
     if bad:
         raise _err(f"{p_path}: params.safetensors holds non-finite values in {', '.join(bad[:5])}", None,
                    hint="the model directory is corrupted; re-train")
+    network = _validated_network(network, net_path)
+    problems = stored_param_problems(network, params)
+    if problems:
+        raise ModelFileError([Diagnostic(f"{p_path}: {msg}", hint="the model directory was edited by hand or is "
+                                         "corrupted; re-train, or restore the file") for msg in problems[:8]])
     return TrainedModel(network, params, meta, path=path)
+
+
+def _validated_network(network: Network, net_path: Path) -> Network:
+    """The stored network through the validation pass (the one a ``.thn`` file goes through): a hand-edited
+    ``network.json`` (a negative capacity, a dangling node) is a ``file: error:`` message, not a model."""
+    from ..lang import validate
+
+    try:
+        return validate(network)
+    except TnnError as err:
+        raise ModelFileError([Diagnostic(f"{net_path}: the stored network is not valid: {d.message}",
+                                         hint="the model directory was edited by hand or is corrupted; re-train")
+                              for d in err.diagnostics[:8]]) from None
+
+
+def stored_param_problems(network: Network, params: dict[str, np.ndarray]) -> list[str]:
+    """What is wrong with ``params`` (SI arrays by name) as the values of ``network``: missing arrays, shapes
+    other than the compiled model's, and constants that are not physical (a negative capacity, a temperature
+    below absolute zero; :func:`tnn_dsl.lang.value_problem`), normalisation scales that are not positive."""
+    from ..compiler.learned import array_shapes
+    from ..lang import value_problem
+
+    out: list[str] = []
+    for p in network.params:
+        if not p.is_constant:
+            continue
+        if p.name not in params:
+            out.append(f"`{p.name}` is missing")
+            continue
+        a = np.asarray(params[p.name])
+        if a.size != 1:
+            out.append(f"`{p.name}` has shape {a.shape}, expected one number")
+            continue
+        why = value_problem(p, float(a.reshape(-1)[0]))
+        if why:
+            out.append(f"`{p.name}`: {why}")
+    for fn in network.learned:
+        for k, (shape, _kind) in array_shapes(fn, len(fn.inputs), len(fn.targets)).items():
+            name = f"{fn.name}.{k}"
+            if name not in params:
+                out.append(f"`{name}` is missing")
+            elif tuple(np.shape(params[name])) != tuple(shape):
+                out.append(f"`{name}` has shape {tuple(np.shape(params[name]))}, expected {tuple(shape)}")
+            elif k in ("x_scale", "y_scale") and not np.all(np.asarray(params[name]) > 0):
+                out.append(f"`{name}` must be positive (it divides the function's input or scales its output)")
+    return out
 
 
 class TrainedModel:
@@ -518,7 +569,9 @@ class TrainedModel:
 
     def parameter_table(self, all_params: bool = False) -> list[dict[str, Any]]:
         """Fitted against nominal, one row per free constant (every constant with ``all_params``):
-        ``{name, role, unit, nominal, fitted, change_pct, free, bounds}`` (SI; temperatures in K)."""
+        ``{name, role, nominal, fitted, change_pct, free, bounds}`` in SI (temperatures in K) and the same values
+        in the unit the file wrote them in: ``unit``, ``nominal_shown``, ``fitted_shown`` (``tnnc inspect``
+        prints these: ``Ta 23 degC → 25.2 degC``, ``a1 0.01 W/%``)."""
         rows = []
         for p in self.network.params:
             if not p.is_constant or p.name not in self.params:
@@ -528,9 +581,11 @@ class TrainedModel:
             fitted = float(np.asarray(self.params[p.name]).reshape(-1)[0])
             nominal = float(p.value)
             change = (fitted - nominal) / abs(nominal) * 100.0 if nominal != 0 else math.nan
-            rows.append({"name": p.name, "role": p.role, "unit": ROLE_UNIT.get(p.role, p.unit or "SI"),
-                         "nominal": nominal, "fitted": fitted, "change_pct": change, "free": bool(p.free),
-                         "bounds": [p.lower, p.upper]})
+            unit, scale, offset = display_unit(p, self.network.temperature_unit)
+            rows.append({"name": p.name, "role": p.role, "unit": unit, "nominal": nominal, "fitted": fitted,
+                         "nominal_shown": (nominal - offset) / scale, "fitted_shown": (fitted - offset) / scale,
+                         "change_pct": change, "free": bool(p.free), "bounds": [p.lower, p.upper],
+                         "absolute_temperature": bool(offset)})
         return rows
 
     def metric_rows(self) -> list[dict[str, Any]]:
@@ -552,10 +607,7 @@ class TrainedModel:
         rows = self.parameter_table()
         if rows:
             lines.append(f"\n{'parameter':<22} {'nominal':>26} {'fitted':>26} {'change':>9}")
-            for r in rows:
-                ch = "" if not math.isfinite(r["change_pct"]) else f"{r['change_pct']:+.1f} %"
-                lines.append(f"{r['name'][:22]:<22} {format_value(r['nominal'], r['role'], r['unit']):>26} "
-                             f"{format_value(r['fitted'], r['role'], r['unit']):>26} {ch:>9}")
+            lines += [format_row(r) for r in rows]
         if self.meta.get("estimation"):
             from ..estimation import estimation_summary
 
@@ -578,9 +630,8 @@ class TrainedModel:
         if rows:
             parts.append(html_table(
                 ["parameter", "nominal", "fitted", "change"],
-                [[r["name"], format_value(r["nominal"], r["role"], r["unit"]),
-                  format_value(r["fitted"], r["role"], r["unit"]),
-                  f"{r['change_pct']:+.1f} %" if math.isfinite(r["change_pct"]) else ""] for r in rows],
+                [[r["name"], format_value(r["nominal_shown"], r["unit"]), format_value(r["fitted_shown"], r["unit"]),
+                  change_text(r)] for r in rows],
                 numeric=[False, True, True, True]))
         if self.meta.get("estimation"):
             from ..estimation import Estimates
@@ -590,11 +641,44 @@ class TrainedModel:
         return view(f"TrainedModel: {self.network.name} ({self.backend})", *parts)
 
 
-def format_value(v: float, role: str, unit: str) -> str:
-    """A fitted or nominal value with its unit as ``tnnc inspect`` shows it (temperatures in K and °C)."""
-    if role == "temperature" and unit == "K":
-        return f"{v:.6g} K ({v - 273.15:.4g} °C)"
-    return f"{v:.6g} {unit}"
+def display_unit(p, temperature_unit: str = "K") -> tuple[str, float, float]:
+    """``(unit, scale, offset)`` to show constant ``p`` in the unit its file wrote (SI = scale·x + offset):
+    an absolute temperature in the file's temperature unit, other values in their written unit (``W/%``,
+    ``kJ/K``), values written without a unit in their role's SI unit."""
+    from ..lang import UnitError, unit_scale
+    from ..lang.units import is_temperature_unit
+
+    unit = p.unit
+    absolute = p.role == "temperature" or (is_temperature_unit(unit) and p.role not in ("offset",))
+    if absolute and p.dim.get("K") == 1.0 and len(p.dim) == 1:
+        unit = temperature_unit if unit is None or is_temperature_unit(unit) else unit
+    if not unit:
+        return ROLE_UNIT.get(p.role, "SI"), 1.0, 0.0
+    try:
+        scale, offset = unit_scale(unit)
+    except UnitError:
+        return ROLE_UNIT.get(p.role, "SI"), 1.0, 0.0
+    if not absolute:
+        offset = 0.0  # a temperature difference written in degC is kelvin-sized
+    return unit, scale, offset
+
+
+def format_value(v: float, unit: str) -> str:
+    """A value in ``unit`` as ``tnnc inspect`` shows it (``23 degC``, ``0.01 W/%``)."""
+    return f"{v:.6g} {unit}" if unit not in ("SI", "1", "") else f"{v:.6g}"
+
+
+def change_text(r: dict[str, Any]) -> str:
+    """The change column of a parameter row: kelvin for an absolute temperature, percent otherwise."""
+    if r.get("absolute_temperature"):
+        return f"{r['fitted'] - r['nominal']:+.3g} K"
+    return f"{r['change_pct']:+.1f} %" if math.isfinite(r["change_pct"]) else ""
+
+
+def format_row(r: dict[str, Any]) -> str:
+    """One line of the parameter table: name, nominal and fitted in the file's unit, change."""
+    return (f"{r['name'][:22]:<22} {format_value(r['nominal_shown'], r['unit']):>26} "
+            f"{format_value(r['fitted_shown'], r['unit']):>26} {change_text(r):>9}")
 
 
 def data_records(paths: Iterable[str | os.PathLike | None]) -> list[dict[str, Any]]:

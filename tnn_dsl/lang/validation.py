@@ -20,6 +20,7 @@ undefined)."""
 from __future__ import annotations
 
 import difflib
+import math
 import re
 
 from ..core import Diagnostic, TnnError
@@ -593,6 +594,25 @@ def _bytes(n: float) -> str:
             return f"{n:.3g} {unit}"
         n /= 1000
     return f"{n:.3g} EB"
+
+
+def value_problem(p: Param, v: float) -> str | None:
+    """What is physically wrong with ``v`` (SI) as the value of constant ``p``, or ``None``: the checks of a
+    written number (positive capacities, resistances, conductances, time constants and component values,
+    emissivity at most 1, temperatures above absolute zero) for values that were not written (a stored model's,
+    a fit's)."""
+    if not math.isfinite(v):
+        return f"{v} is not a finite number"
+    key = p.name.rsplit(".", 1)[-1] if "." in p.name and p.owner and not p.owner.startswith(("link", "source")) \
+        else None
+    if (p.role in POSITIVE_ROLES or key in _POSITIVE_KEYS) and v <= 0:
+        what = (p.role if p.role in POSITIVE_ROLES else key or "value").replace("_", " ")
+        return f"a {what} must be positive, got {v:g} (SI)"
+    if key == "emissivity" and v > 1:
+        return f"an emissivity must be at most 1, got {v:g}"
+    if p.role == "temperature" and v <= 0 and p.dim.get("K") == 1.0:
+        return f"a temperature must be above absolute zero, got {v:g} K"
+    return None
 
 
 def _fmt(p: Param) -> str:
