@@ -94,15 +94,10 @@ def run(args) -> int:
     for w in warning_lines([exp]):
         print(w, file=sys.stderr)
     run = free_run(model, params, exp, args.init, integrator=args.integrator, substeps=args.substeps,
-                   burn_in_s=args.burn_in, **known)
+                   burn_in_s=args.burn_in, check=True, **known)
     states, y = run.states, run.y
     for n in run.init.notes:
         print(n, file=sys.stderr)
-    if not np.all(np.isfinite(y)):
-        k = int(np.argmax(~np.all(np.isfinite(y), axis=1)))
-        raise TnnError(Diagnostic(
-            f"the simulation diverged at t = {exp.t[k]:g} s (non-finite temperatures)",
-            hint="try --integrator expeuler or more --substeps; check the parameters for a tiny capacity"))
 
     cols: dict[str, np.ndarray] = {s.name: y[:, k] for k, s in enumerate(net.sensors)}
     if args.states:

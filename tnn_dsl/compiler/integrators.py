@@ -70,6 +70,11 @@ def stable_substeps(integrator: str, dt: float, tau_min: float) -> int:
     return max(1, math.ceil(dt / limit - 1e-12))
 
 
+MAX_AUTO_SUBSTEPS = 1000
+"""The most sub-steps per sample chosen automatically; a network that needs more is an error (a value far
+too small), not a run of hours."""
+
+
 def check_step(integrator: str, dt: float, tau_min: float, substeps: int | None, where: str = "") -> int:
     """The number of sub-steps to use. With ``substeps=None`` choose it from :func:`stable_substeps`
     and warn (``StepSizeWarning``) if more than one is needed; an explicit ``substeps`` that is too few
@@ -79,6 +84,15 @@ def check_step(integrator: str, dt: float, tau_min: float, substeps: int | None,
     need = stable_substeps(integrator, float(dt), tau_min)
     node = f" (node {where})" if where else ""
     if substeps is None:
+        if need > MAX_AUTO_SUBSTEPS:
+            from ..core import Diagnostic, TnnError
+
+            raise TnnError(Diagnostic(
+                f"the fastest time constant of the network is {tau_min:.4g} s{node}: a stable {integrator} step "
+                f"over the sample period of {dt:g} s would need {need:,} sub-steps (more than "
+                f"{MAX_AUTO_SUBSTEPS:,})",
+                hint="check the values that set it (a capacity or resistance many orders of magnitude too small), "
+                     "or use --integrator expeuler (integrator='expeuler'), which is stable at any step"))
         if need > 1:
             warnings.warn(
                 f"dt = {dt:g} s is too long for {integrator} on this network: the fastest time constant is "

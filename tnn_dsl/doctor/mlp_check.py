@@ -46,7 +46,7 @@ def mlp_variant(net: Network, targets: set[str]) -> tuple[Network, int]:
 def _held_out_errors(trained, vals) -> np.ndarray:
     """Measured − predicted on the held-out experiments, flattened (NaN where not measured), K."""
     out = []
-    for r in trained.predict(vals):
+    for r in trained.predict(vals, check=False):
         out.append((np.asarray(r["measured"], float) - np.asarray(r["y"], float)).ravel())
     return np.concatenate(out) if out else np.zeros(0)
 

@@ -499,7 +499,8 @@ class TrainedModel:
         return model.from_numpy(base)
 
     def predict(self, data: Any, backend: str | None = None, init: str = "estimate",
-                integrator: str | None = None, burn_in_s: float | None = None) -> list[dict[str, Any]]:
+                integrator: str | None = None, burn_in_s: float | None = None,
+                check: bool = True) -> list[dict[str, Any]]:
         """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
 
         ``init``: the initial-state rule (:mod:`tnn_dsl.fit.initial`): ``"estimate"`` (fitted to a burn-in at
@@ -507,7 +508,9 @@ class TrainedModel:
         stored fitted state), ``"filter"``, ``"steady"`` or ``"measured"``. Returns one dict per experiment:
         ``name``, ``t`` (N,) s, ``y`` (N, n_sensors) K predicted, ``measured`` (N, n_sensors) K (NaN where
         missing), ``states`` (N, n_states) K, ``burn_in`` (samples not scored), ``init`` (the rule applied),
-        ``notes``, ``sensors``, ``state_names``."""
+        ``notes``, ``sensors``, ``state_names``. A run that leaves the physical range (non-finite, below 0 K,
+        or far outside the data's temperatures) raises :class:`TnnError` naming the node and the time, unless
+        ``check`` is false (:func:`~tnn_dsl.fit.simulation.check_rollout`)."""
 
         backend = backend or self.backend
         model = self.compiled(backend)
@@ -518,7 +521,7 @@ class TrainedModel:
         out = []
         for exp in as_experiments(self.network, data):
             run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
-                           **known)
+                           check=check, **known)
             out.append({
                 "name": exp.name, "t": np.asarray(exp.t), "y": run.y, "measured": np.asarray(exp.outputs, dtype=float),
                 "states": run.states, "sensors": list(model.output_names), "state_names": list(model.state_names),

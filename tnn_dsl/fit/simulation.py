@@ -14,7 +14,11 @@ from ..compiler import backend_of
 from ..data import Experiment, as_experiments
 from .initial import InitialState, initial_state, with_values
 
-__all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments"]
+__all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments", "check_rollout", "plausible_range"]
+
+IMPLAUSIBLE_SPANS = 100.0
+"""A simulated temperature more than this many times the data's temperature span (at least 10 K) beyond the
+data's range is implausible: the model, not the plant, is doing that."""
 
 
 @dataclass
@@ -58,12 +62,14 @@ def _sim_fn(model, integrator: str, dt: float, substeps):
 def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str = "estimate", *,
              integrator: str = "rk4", substeps: int | None = None, burn_in_s: float | None = None,
              stored: Mapping[str, Any] | None = None, per_experiment: Mapping[str, float] | None = None,
-             stored_params: Mapping[str, Mapping[str, float]] | None = None) -> FreeRun:
+             stored_params: Mapping[str, Mapping[str, float]] | None = None, check: bool = False) -> FreeRun:
     """Free run of ``model`` (backend ``params``) over experiment ``exp``, started by the initial-state rule
     ``init`` (``estimate``, ``filter``, ``steady``, ``measured``: :mod:`tnn_dsl.fit.initial`); ``burn_in_s``
     overrides the default burn-in; ``stored`` holds a trained model's fitted initial states of its training
     files, ``per_experiment`` the mean values of its per-experiment parameters and ``stored_params`` their
-    values per training file (see :func:`~tnn_dsl.fit.initial.initial_state`)."""
+    values per training file (see :func:`~tnn_dsl.fit.initial.initial_state`). With ``check`` a run that
+    leaves the physical range raises :class:`~tnn_dsl.core.TnnError` naming the node and the time
+    (:func:`check_rollout`); the trainer's own runs are unchecked (it has its divergence guard)."""
     ops = backend_of(model)
     ini = initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s, integrator=integrator,
                         substeps=substeps, stored=stored, per_experiment=per_experiment, stored_params=stored_params)
@@ -76,15 +82,68 @@ def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str =
     if ini.at:
         states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
         y = np.concatenate([ini.prefix_outputs, y])
+    if check:
+        check_rollout(model, exp, states, y, start=ini.at)
     return FreeRun(states, y, ini)
+
+
+def plausible_range(model: Any, exp: Experiment) -> tuple[float, float]:
+    """``(low, high)`` K a simulated temperature may reach on ``exp``: above absolute zero, and within
+    ``IMPLAUSIBLE_SPANS`` times the span of every temperature the data holds (sensors, temperature inputs;
+    at least 10 K) of that data's range. Without temperatures in the data, 200 … 400 K."""
+    parts = [np.asarray(exp.outputs, dtype=float).ravel()]
+    net = model.network
+    temp_inputs = [k for k, inp in enumerate(net.inputs) if inp.is_temperature]
+    if temp_inputs and np.size(exp.inputs):
+        parts.append(np.asarray(exp.inputs, dtype=float)[:, temp_inputs].ravel())
+    vals = np.concatenate(parts) if parts else np.zeros(0)
+    vals = vals[np.isfinite(vals)]
+    lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (200.0, 400.0)
+    span = max(hi - lo, 10.0) * IMPLAUSIBLE_SPANS
+    return max(lo - span, 0.0), hi + span
+
+
+def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray, start: int = 0) -> None:
+    """Raise :class:`~tnn_dsl.core.TnnError` if a free run over ``exp`` (simulated from row ``start`` on) produced
+    a non-finite temperature or one outside :func:`plausible_range`: the message names the first node (or
+    sensor) and the time it happened."""
+    from ..core import Diagnostic, TnnError
+
+    lo, hi = plausible_range(model, exp)
+    t = np.asarray(exp.t, dtype=float)
+    names = [(f"node `{n}`" if n in model.network.node_names else f"state `{n}`") for n in model.state_names]
+    names += [f"sensor `{n}`" for n in model.output_names]
+    X = np.concatenate([np.asarray(states, dtype=float), np.asarray(y, dtype=float)], axis=1)[start:]
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(X) | (X < lo) | (X > hi)
+    if not bad.any():
+        return
+    k, j = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+    k = int(k) + start
+    X = np.concatenate([np.asarray(states, dtype=float), np.asarray(y, dtype=float)], axis=1)
+    v = X[k, j]
+    when = f"t = {t[k]:g} s (sample {k + 1} of {len(t)}, file {exp.path or exp.name})"
+    if not np.isfinite(v):
+        what = f"{names[j]} became {'NaN' if np.isnan(v) else 'infinite'} at {when}"
+    elif v <= 0:
+        what = f"{names[j]} fell below absolute zero ({v:.4g} K) at {when}"
+    else:
+        what = (f"{names[j]} reached {v:.4g} K at {when}, far outside the data's temperatures "
+                f"(plausible: {lo:.4g} … {hi:.4g} K)")
+    raise TnnError(Diagnostic(
+        f"the simulation left the physical range: {what}",
+        hint="a value is far from physical (a tiny capacity beside a large conductance, a huge heat source, a "
+             "learned function far outside its training range) or the step is too long for the integrator: check "
+             "the parameters (tnnc inspect / tnnc check), try --integrator expeuler or more --substeps"))
 
 
 def simulate(model: Any, params: Mapping[str, Any], exp: Experiment, init: str = "estimate",
              integrator: str = "rk4", substeps: int | None = None, *, burn_in_s: float | None = None,
-             stored: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`free_run` as ``(states (N, n_states) K, y (N, n_out) K)``."""
+             stored: Mapping[str, Any] | None = None, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`free_run` as ``(states (N, n_states) K, y (N, n_out) K)``; a run that leaves the physical range
+    raises unless ``check`` is false (:func:`check_rollout`)."""
     run = free_run(model, params, exp, init, integrator=integrator, substeps=substeps, burn_in_s=burn_in_s,
-                   stored=stored)
+                   stored=stored, check=check)
     return run.states, run.y
 
 

@@ -202,7 +202,7 @@ class _Trainer(_Rollouts):
             if init in ("estimate", "filter") and not self.plan_rollout()[2]:
                 init = "measured"
             states, y = simulate(nom, bp, e, init=init, integrator=self.cfg.integrator, substeps=self.cfg.substeps,
-                                 burn_in_s=self.cfg.burn_in)
+                                 burn_in_s=self.cfg.burn_in, check=False)
             if not np.all(np.isfinite(states)):
                 raise TnnError(Diagnostic(
                     f"the nominal model does not simulate on {e.name}: its temperatures become non-finite",

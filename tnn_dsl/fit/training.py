@@ -207,7 +207,7 @@ def _input_paths(network, data, val) -> list:
 def _metrics_or_nan(trained, exps, cfg):
     try:
         return trained.evaluate(exps, backend=cfg.backend, init=cfg.init, burn_in_s=cfg.burn_in)
-    except FloatingPointError:
+    except (FloatingPointError, TnnError):  # a model that leaves the physical range is still saved
         return {"mae": math.nan}
 
 

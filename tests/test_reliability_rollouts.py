@@ -1,0 +1,105 @@
+"""A free run that leaves the physical range stops with a message naming the node and the time (issue 13):
+non-finite temperatures, temperatures below absolute zero, temperatures orders of magnitude outside the data's
+range. Both backends; the CLI (simulate, evaluate) and the API (``TrainedModel.predict``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tnn_dsl.cli import main
+from tnn_dsl.core.errors import TnnError
+from tnn_dsl.data import read_data
+from tnn_dsl.fit.model_files import TrainedModel
+from tnn_dsl.fit.simulation import plausible_range
+from tnn_dsl.lang import loads
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_cli_simulate import RC, rc_data  # noqa: E402
+
+BACKENDS = ["jax", "torch"]
+# Valid values (`tnnc check` passes) and a heat source growing with the node's temperature (10/s): the
+# temperature overflows within the file.
+RUNAWAY = RC.replace("source n = P", "source n = P + 1000 W/K * T(n)")
+# Stable but absurd: a 10 MW heat source into a 1 kJ/K node (1e4 K/s).
+HOT = RC.replace("source n = P", "source n = P + 10 MW").replace("node n  C = 100 J/K", "node n  C = 1 kJ/K")
+
+
+def _files(tmp_path: Path, text: str) -> tuple[str, str]:
+    net = tmp_path / "net.thn"
+    net.write_text(text)
+    return str(net), rc_data(tmp_path)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("text, message", [
+    (RUNAWAY, "node `n` reached 1.879e+05 K at t = 1 s (sample 2 of 400"),
+    (HOT, "node `n` reached"),
+])
+def test_simulate_stops_naming_the_node_and_time(tmp_path, capsys, backend, text, message):
+    net, data = _files(tmp_path, text)
+    assert main(["check", "-q", net]) == 0
+    out = tmp_path / "sim.csv"
+    assert main(["simulate", net, "--data", data, "-o", str(out), "--backend", backend, "--init", "measured"]) == 1
+    err = capsys.readouterr().err
+    assert "error: the simulation left the physical range: " + message in err
+    assert " at t = " in err and "sample " in err and "hint:" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_predict_raises_and_can_be_asked_not_to(tmp_path, backend):
+    net_path, data = _files(tmp_path, HOT)
+    net = loads(Path(net_path).read_text(), net_path)
+    tm = TrainedModel(net, {p.name: np.asarray(float(p.value)) for p in net.params if p.is_constant},
+                      {"backend": backend})
+    with pytest.raises(TnnError, match=r"node `n` reached .* K at t = \d+ s .*far outside the data's temperatures"):
+        tm.predict([data], init="measured")
+    with pytest.raises(TnnError, match="left the physical range"):
+        tm.evaluate([data], init="measured")
+    (r,) = tm.predict([data], init="measured", check=False)
+    assert np.nanmax(r["y"]) > 1e5
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_plausible_run_is_not_stopped(tmp_path, capsys, backend):
+    net, data = _files(tmp_path, RC)
+    assert main(["simulate", net, "--data", data, "-o", str(tmp_path / "s.csv"), "--backend", backend]) == 0
+    capsys.readouterr()
+
+
+def test_plausible_range_is_orders_of_magnitude_around_the_data(tmp_path):
+    net_path, data = _files(tmp_path, RC)
+    net = loads(Path(net_path).read_text(), net_path)
+    (exp,) = read_data(net, [data])
+    from tnn_dsl.compiler import compile as compile_network
+
+    lo, hi = plausible_range(compile_network(net, backend="jax"), exp)
+    assert lo == 0.0  # 20 … 25 °C, span 10 K: a thousand kelvin either side, never below absolute zero
+    assert hi == pytest.approx(exp.outputs.max() + 1000.0) and hi == pytest.approx(1298.15, abs=0.01)
+
+
+def test_non_finite_and_below_absolute_zero_are_named(tmp_path):
+    from tnn_dsl.compiler import compile as compile_network
+    from tnn_dsl.fit.simulation import check_rollout
+
+    net_path, data = _files(tmp_path, RC)
+    net = loads(Path(net_path).read_text(), net_path)
+    (exp,) = read_data(net, [data])
+    model = compile_network(net, backend="jax")
+    states = np.full((exp.n_steps, 1), 300.0)
+    y = states.copy()
+    check_rollout(model, exp, states, y)
+    states[7, 0] = np.nan
+    with pytest.raises(TnnError, match=r"node `n` became NaN at t = 7 s \(sample 8 of 400"):
+        check_rollout(model, exp, states, y)
+    with pytest.raises(TnnError, match=r"node `n` became infinite"):
+        check_rollout(model, exp, np.where(np.isnan(states), np.inf, states), y)
+    states[7, 0] = 300.0
+    y[9, 0] = -1.0
+    with pytest.raises(TnnError, match=r"sensor `Tn` fell below absolute zero \(-1 K\) at t = 9 s"):
+        check_rollout(model, exp, states, y)
+    check_rollout(model, exp, states, y, start=10)  # rows before the run's start are not its own
