@@ -104,3 +104,18 @@ def test_inspect_of_a_real_network_model(tmp_path, capsys):
     assert main(["inspect", str(tmp_path / "m")]) == 0
     out = capsys.readouterr().out
     assert "23 degC" in out and "0.01 W/%" in out and "296.15" not in out
+
+
+def test_an_edited_ir_file_is_validated(tmp_path, capsys):
+    ir = tmp_path / "t.json"
+    assert main(["compile", str(ROOT / "networks" / "tclab" / "tclab.thn"), "--emit", "ir-json", "-o", str(ir)]) == 0
+    j = json.loads(ir.read_text())
+    for p in j["params"]:
+        if p["name"] == "C_h1":
+            p["expr"]["value"] = -4.0
+    ir.write_text(json.dumps(j))
+    capsys.readouterr()
+    assert main(["compile", str(ir)]) == 1
+    err = capsys.readouterr().err
+    assert f"{ir}: the IR is not a valid network" in err
+    assert "the capacity of node `h1` must be positive, got -4" in err and "Traceback" not in err

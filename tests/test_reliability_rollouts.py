@@ -103,3 +103,51 @@ def test_non_finite_and_below_absolute_zero_are_named(tmp_path):
     with pytest.raises(TnnError, match=r"sensor `Tn` fell below absolute zero \(-1 K\) at t = 9 s"):
         check_rollout(model, exp, states, y)
     check_rollout(model, exp, states, y, start=10)  # rows before the run's start are not its own
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_network_needing_thousands_of_sub_steps_is_an_error_not_a_run_of_hours(tmp_path, capsys, backend):
+    """R = 2e-7 K/W where 0.2 K/W was meant: tau = 2e-5 s at a 1 s sample period."""
+    net, data = _files(tmp_path, RC.replace("G n -- amb = 2 W/K", "R n -- amb = 2e-7 K/W"))
+    assert main(["check", "-q", net]) == 0
+    assert main(["simulate", net, "--data", data, "-o", str(tmp_path / "s.csv"), "--backend", backend]) == 1
+    err = capsys.readouterr().err
+    assert "the fastest time constant of the network is 2e-05 s (node n): a stable rk4 step" in err
+    assert "more than 1,000" in err and "expeuler" in err
+    assert main(["simulate", net, "--data", data, "-o", str(tmp_path / "s.csv"), "--backend", backend,
+                 "--integrator", "expeuler"]) == 0
+    capsys.readouterr()
+
+
+def test_mutation_run_small(tmp_path):
+    """The fast variant of benchmarks/mutation_fuzz.py (10 000 valid mutants, BENCHMARKS.md): 40 valid edited
+    networks through check and simulate without an internal error or a silent non-finite output."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import mutation_fuzz
+
+    s = mutation_fuzz.run(40, seed=7, jobs=1, work=tmp_path)
+    assert s["valid"] == 40 and s["mutants"] > 40
+    assert s["outcomes"].get("rejected by check", 0) > 0 and s["outcomes"].get("simulated", 0) > 20
+    assert s["internal_errors"] == 0 and s["silent_non_finite"] == 0 and s["timed_out"] == 0, s["failures"]
+
+
+def test_mutation_run_detectors_can_fail(tmp_path, monkeypatch):
+    """The benchmark's two counters see what they count: an exception escaping main, a NaN written."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import mutation_fuzz
+
+    import tnn_dsl.cli
+
+    def broken(argv):
+        raise ZeroDivisionError("planted")
+
+    monkeypatch.setattr(tnn_dsl.cli, "main", broken)
+    rc, err = mutation_fuzz._cli(["check", "x.thn"])
+    assert rc == 3 and "ZeroDivisionError: planted" in err
+    out = tmp_path / "o.csv"
+    out.write_text("time_s,T1\n0,20\n1,nan\n")
+    assert mutation_fuzz._silent_bad(out, "degC") == "non-finite value written"
+    out.write_text("time_s,T1\n0,20\n1,40000\n")
+    assert "implausible temperature written" in mutation_fuzz._silent_bad(out, "degC")
+    out.write_text("time_s,T1\n0,20\n1,30\n")
+    assert mutation_fuzz._silent_bad(out, "degC") is None

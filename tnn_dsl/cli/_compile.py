@@ -58,7 +58,14 @@ def load_network(path: str):
                                       "`tnnc compile FILE.thn --emit ir-json -o OUT.json`")) from None
         except OSError as err:
             raise TnnError(Diagnostic(f"{path}: cannot read: {err.strerror}")) from None
-        return network_from_json(text, path)
+        from ..lang import validate
+
+        try:  # an edited IR file is held to the checks of a .thn
+            return validate(network_from_json(text, path))
+        except TnnError as err:
+            head = Diagnostic(f"{path}: the IR is not a valid network (the positions below are in the .thn file "
+                              "it was written from; the values are the IR's)")
+            raise TnnError([head, *err.diagnostics]) from None
     import tnn_dsl
 
     return tnn_dsl.load(path)
