@@ -78,7 +78,7 @@ def test_plausible_range_is_orders_of_magnitude_around_the_data(tmp_path):
     from tnn_dsl.compiler import compile as compile_network
 
     lo, hi = plausible_range(compile_network(net, backend="jax"), exp)
-    assert lo == 0.0  # 20 … 25 °C, span 10 K: a thousand kelvin either side, never below absolute zero
+    assert lo == pytest.approx(293.15 - 100.0)  # 20 … 25 °C, span 10 K: 100 K below, 1000 K above
     assert hi == pytest.approx(exp.outputs.max() + 1000.0) and hi == pytest.approx(1298.15, abs=0.01)
 
 
@@ -100,9 +100,15 @@ def test_non_finite_and_below_absolute_zero_are_named(tmp_path):
         check_rollout(model, exp, np.where(np.isnan(states), np.inf, states), y)
     states[7, 0] = 300.0
     y[9, 0] = -1.0
-    with pytest.raises(TnnError, match=r"sensor `Tn` fell below absolute zero \(-1 K\) at t = 9 s"):
+    with pytest.raises(TnnError, match=r"sensor `Tn` fell to or below absolute zero \(-1 K\) at t = 9 s"):
         check_rollout(model, exp, states, y)
     check_rollout(model, exp, states, y, start=10)  # rows before the run's start are not its own
+    y[9, 0] = 0.0
+    with pytest.raises(TnnError, match=r"fell to or below absolute zero \(0 K\)"):
+        check_rollout(model, exp, states, y)
+    y[9, 0] = 150.0  # 143 K below the data's 20 … 25 °C: more than ten spans
+    with pytest.raises(TnnError, match=r"sensor `Tn` reached 150 K .*plausible: 193.2"):
+        check_rollout(model, exp, states, y)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -151,3 +157,48 @@ def test_mutation_run_detectors_can_fail(tmp_path, monkeypatch):
     assert "implausible temperature written" in mutation_fuzz._silent_bad(out, "degC")
     out.write_text("time_s,T1\n0,20\n1,30\n")
     assert mutation_fuzz._silent_bad(out, "degC") is None
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("source, old, new, argv, message", [
+    # found by the mutation run: a singular steady-state solve (torch raised), an overflowing burn-in fit
+    # (numpy's least squares raised), a temperature of exactly 0 K written as a result
+    ("tclab/tclab.thn", "G h1 -- h2  = 0.02 W/K", "G h1 -- h2  = 1e308 W/K", ["--integrator", "expeuler"],
+     "the steady state of the first inputs could not be computed (not finite)"),
+    ("peltier_heatpipe/nominal.thn", "seebeck = 0.05 V/K", "seebeck = 99999999999 V/K", [],
+     "the simulation left the physical range: node `ph` fell to or below absolute zero"),
+    ("peltier_heatpipe/m4.thn", "C = 300 J/K", "C = 1e308 J/K", ["--integrator", "euler", "--init", "measured"],
+     None),  # a message or a plausible file, depending on the inputs: never 0 K written
+])
+def test_mutants_that_were_internal_errors(tmp_path, capsys, backend, source, old, new, argv, message):
+    import random
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import mutation_fuzz
+
+    src = ROOT / "networks" / source
+    text = src.read_text()
+    assert old in text
+    net = tmp_path / src.name
+    net.write_text(text.replace(old, new, 1))
+    if "m4" in source:
+        net.write_text(net.read_text().replace("R hp  -- hx2  = 0.2 K/W", "R hp -- hx2 = 0.2 K/W * 1e300"))
+    data = tmp_path / "d.csv"
+    mutation_fuzz.synthetic_csv(loads(net.read_text(), str(net)), data, 30, random.Random(0))
+    assert main(["check", "-q", str(net)]) == 0
+    rc = main(["simulate", str(net), "--data", str(data), "-o", str(tmp_path / "o.csv"), "--backend", backend, *argv])
+    err = capsys.readouterr().err
+    assert "internal error" not in err, err
+    if message is None:
+        assert rc == 1 or mutation_fuzz._silent_bad(tmp_path / "o.csv", "degC") is None
+    else:
+        assert rc == 1 and message in err, err
+
+
+def test_the_same_problem_found_twice_is_reported_once():
+    with pytest.raises(TnnError) as e:
+        loads('network b\nparam Ta = 23 degC\nboundary amb = Ta * -1\nnode a C = 1 kJ/K\nR a -- amb = 8 K/W\n')
+    assert len(e.value.diagnostics) == 1 and "at or below absolute zero" in e.value.format()

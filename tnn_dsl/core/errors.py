@@ -88,7 +88,13 @@ class TnnError(Exception):
             diagnostics = [Diagnostic(diagnostics)]
         elif isinstance(diagnostics, Diagnostic):
             diagnostics = [diagnostics]
-        self.diagnostics: list[Diagnostic] = list(diagnostics)
+        seen: set[tuple] = set()
+        self.diagnostics: list[Diagnostic] = []
+        for d in diagnostics:  # the same problem found by two passes is reported once
+            key = (d.severity, d.message, d.span, d.hint)
+            if key not in seen:
+                seen.add(key)
+                self.diagnostics.append(d)
         self.sources: dict[str, str] = dict(sources or {})
         super().__init__(self.format())
 

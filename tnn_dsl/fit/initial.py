@@ -248,7 +248,12 @@ class _BurnInFit:
                 rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
             A = np.vstack([J[mask] * W[:, None], np.diag(P)])
             b = np.concatenate([-r * W, -P * (x - prior)])
-            dx = np.linalg.lstsq(A, b, rcond=None)[0]
+            if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+                break  # the model's sensitivities overflow here: keep the last state (the run is checked later)
+            try:
+                dx = np.linalg.lstsq(A, b, rcond=None)[0]
+            except np.linalg.LinAlgError:
+                break
             step = float(np.max(np.abs(dx))) if dx.size else 0.0
             if step > 50.0:  # a trust region for strongly nonlinear networks (K)
                 dx *= 50.0 / step

@@ -19,6 +19,9 @@ __all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments",
 IMPLAUSIBLE_SPANS = 100.0
 """A simulated temperature more than this many times the data's temperature span (at least 10 K) beyond the
 data's range is implausible: the model, not the plant, is doing that."""
+IMPLAUSIBLE_SPANS_BELOW = 10.0
+"""Below the data's range the limit is tighter: nothing passive cools below its coldest boundary, and a Peltier
+element's cold side stays within tens of kelvin of it."""
 
 
 @dataclass
@@ -90,7 +93,8 @@ def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str =
 def plausible_range(model: Any, exp: Experiment) -> tuple[float, float]:
     """``(low, high)`` K a simulated temperature may reach on ``exp``: above absolute zero, and within
     ``IMPLAUSIBLE_SPANS`` times the span of every temperature the data holds (sensors, temperature inputs;
-    at least 10 K) of that data's range. Without temperatures in the data, 200 … 400 K."""
+    at least 10 K) above that data's range and ``IMPLAUSIBLE_SPANS_BELOW`` times below it. Without temperatures in
+    the data, 200 … 400 K."""
     parts = [np.asarray(exp.outputs, dtype=float).ravel()]
     net = model.network
     temp_inputs = [k for k, inp in enumerate(net.inputs) if inp.is_temperature]
@@ -99,8 +103,8 @@ def plausible_range(model: Any, exp: Experiment) -> tuple[float, float]:
     vals = np.concatenate(parts) if parts else np.zeros(0)
     vals = vals[np.isfinite(vals)]
     lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (200.0, 400.0)
-    span = max(hi - lo, 10.0) * IMPLAUSIBLE_SPANS
-    return max(lo - span, 0.0), hi + span
+    span = max(hi - lo, 10.0)
+    return max(lo - span * IMPLAUSIBLE_SPANS_BELOW, 0.0), hi + span * IMPLAUSIBLE_SPANS
 
 
 def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray, start: int = 0) -> None:
@@ -115,7 +119,7 @@ def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray
     names += [f"sensor `{n}`" for n in model.output_names]
     X = np.concatenate([np.asarray(states, dtype=float), np.asarray(y, dtype=float)], axis=1)[start:]
     with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(X) | (X < lo) | (X > hi)
+        bad = ~np.isfinite(X) | (X <= 0.0) | (X < lo) | (X > hi)
     if not bad.any():
         return
     k, j = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
@@ -126,7 +130,7 @@ def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray
     if not np.isfinite(v):
         what = f"{names[j]} became {'NaN' if np.isnan(v) else 'infinite'} at {when}"
     elif v <= 0:
-        what = f"{names[j]} fell below absolute zero ({v:.4g} K) at {when}"
+        what = f"{names[j]} fell to or below absolute zero ({v:.4g} K) at {when}"
     else:
         what = (f"{names[j]} reached {v:.4g} K at {when}, far outside the data's temperatures "
                 f"(plausible: {lo:.4g} … {hi:.4g} K)")

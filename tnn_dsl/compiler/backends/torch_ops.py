@@ -82,7 +82,10 @@ class TorchXP(ArrayNamespace):
 
     @staticmethod
     def solve(a, b):
-        return torch.linalg.solve(a, b.unsqueeze(-1)).squeeze(-1)
+        """``a⁻¹ b``; NaN where ``a`` is singular (as JAX's solve gives), never an exception."""
+        x, info = torch.linalg.solve_ex(a, b.unsqueeze(-1))
+        x = x.squeeze(-1)
+        return torch.where((info != 0).unsqueeze(-1), torch.full_like(x, float("nan")), x)
 
     @staticmethod
     def stop_gradient(x):
