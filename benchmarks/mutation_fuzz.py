@@ -217,6 +217,17 @@ def _silent_bad(out_csv: Path, unit: str) -> str | None:
     return None
 
 
+def _outcome(rc: int, err: str, stage: str, refused: str) -> dict:
+    """The record of a non-zero exit: ``refused`` (exit 1, with the message's first line), a timeout (4) or an
+    internal error of ``stage`` (anything else, with the end of its report)."""
+    if rc == 4:
+        return {"outcome": "timed out"}
+    if rc != 1:
+        return {"outcome": f"internal error ({stage})", "message": err[-2000:]}
+    first = next((line for line in err.splitlines() if "error:" in line), err[-300:])
+    return {"outcome": refused, "message": first}
+
+
 def run_one(args: tuple[int, int, str]) -> dict:
     """One mutant: seed, index into the corpus, work directory. Returns its record."""
     seed, work = args[0], Path(args[2])
@@ -233,14 +244,8 @@ def run_one(args: tuple[int, int, str]) -> dict:
     t0 = time.perf_counter()
     rc, err = _cli(["check", "-q", str(net_path)])
     rec["check"] = rc
-    if rc == 4:
-        rec["outcome"] = "timed out"
-    elif rc not in (0, 1):
-        rec["outcome"] = "internal error (check)"
-        rec["message"] = err[-2000:]
-    elif rc == 1:
-        rec["outcome"] = "rejected by check"
-        rec["message"] = err.splitlines()[0] if err else ""
+    if rc != 0:
+        rec.update(_outcome(rc, err, "check", "rejected by check"))
     else:
         from tnn_dsl.lang import load
 
@@ -254,14 +259,8 @@ def run_one(args: tuple[int, int, str]) -> dict:
         rc2, err2 = _cli(["simulate", str(net_path), "--data", str(data), "-o", str(out), "--backend", backend,
                           "--integrator", integ, "--init", init])
         rec.update({"simulate": rc2, "backend": backend, "integrator": integ, "init": init})
-        if rc2 == 4:
-            rec["outcome"] = "timed out"
-        elif rc2 not in (0, 1):
-            rec["outcome"] = "internal error (simulate)"
-            rec["message"] = err2[-2000:]
-        elif rc2 == 1:
-            rec["outcome"] = "stopped with a message"
-            rec["message"] = (err2.strip().splitlines() or [""])[0] if "error:" in err2 else err2[-300:]
+        if rc2 != 0:
+            rec.update(_outcome(rc2, err2, "simulate", "stopped with a message"))
         else:
             why = _silent_bad(out, net.temperature_unit) if out.exists() else "exit 0 but no output written"
             rec["outcome"] = "silent non-finite output" if why else "simulated"
