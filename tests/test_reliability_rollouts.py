@@ -119,6 +119,7 @@ def test_a_network_needing_thousands_of_sub_steps_is_an_error_not_a_run_of_hours
     assert main(["simulate", net, "--data", data, "-o", str(tmp_path / "s.csv"), "--backend", backend]) == 1
     err = capsys.readouterr().err
     assert "the fastest time constant of the network is 2e-05 s (node n): a stable rk4 step" in err
+    assert "warning: `R_n_amb` is a resistance of 2e-07 K/W, below" in err  # said before the run
     assert "more than 1,000" in err and "expeuler" in err
     assert main(["simulate", net, "--data", data, "-o", str(tmp_path / "s.csv"), "--backend", backend,
                  "--integrator", "expeuler"]) == 0

@@ -254,3 +254,31 @@ def test_no_include_path_reads_outside_the_tree(tmp_path, segments, absolute):
     except TnnError as e:
         text = e.format()
     assert SECRET not in text
+
+
+@pytest.mark.parametrize("line, message", [
+    ("G a -- b = 1e308 W/K", "`G_a_b` is a conductance of 1e+308 W/K, above the 1e-09 … 1e+06 W/K"),
+    ("R a -- b = 2e-7 K/W", "`R_a_b` is a resistance of 2e-07 K/W, below the 1e-06 … 1e+09 K/W"),
+])
+def test_absurd_magnitudes_are_warned_about_and_still_valid(tmp_path, capsys, line, message):
+    """Legal values orders of magnitude off (found by the mutation run): a warning with a caret from `check`
+    (also with -q) and from `simulate`; exit 0."""
+    p = tmp_path / "n.thn"
+    p.write_text(f'network m "t"\n{BODY}node b C = 1 J/K\n{line}\n')
+    assert main(["check", "-q", str(p)]) == 0
+    err = capsys.readouterr().err
+    assert f"{p}:6:12: warning: " + message in err and "^" in err
+    from tnn_dsl.lang import magnitude_warnings
+
+    assert magnitude_warnings(load(ROOT_NETS / "tclab" / "tclab.thn")) == []
+
+
+ROOT_NETS = Path(__file__).resolve().parents[1] / "networks"
+
+
+def test_no_shipped_network_is_warned_about():
+    from tnn_dsl.lang import magnitude_warnings
+
+    for p in sorted(ROOT_NETS.rglob("*.thn")):
+        if "parts" not in p.parts:
+            assert magnitude_warnings(load(p)) == [], p

@@ -8,31 +8,10 @@ many of them are per experiment) and learned functions with their number of trai
 from __future__ import annotations
 
 import sys
-from math import comb
 
 from ..core import TnnError
-from ..ir import LearnFunction, Network
+from ..ir import Network
 from ._common import add_command
-
-
-def learned_weight_count(fn: LearnFunction) -> int:
-    """Trainable weights of a learned function (architecture.md): const ``n_out``; linear
-    ``(n_in + 1)·n_out``; poly ``(n_monomials + 1)·n_out`` with the monomials of degree 1..d;
-    mlp ``Σ (fan_in + 1)·fan_out`` over its layers; table ``n_knots·n_out``."""
-    n_in, n_out = len(fn.inputs), len(fn.targets)
-    if fn.kind == "const":
-        return n_out
-    if fn.kind == "linear":
-        return (n_in + 1) * n_out
-    if fn.kind == "poly":
-        d = fn.degree or 2
-        return (comb(n_in + d, d) - 1 + 1) * n_out
-    if fn.kind == "mlp":
-        sizes = [n_in, *fn.hidden, n_out]
-        return sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
-    if fn.kind == "table":
-        return len(fn.knots) * n_out
-    return 0  # pragma: no cover - LearnKind is closed
 
 
 def _names(items, limit=12) -> str:
@@ -64,7 +43,7 @@ def summary(net: Network, path: str) -> str:
         lines.append(f"    of which {len(per)} per experiment (one value per data file)")
     total = 0
     for fn in net.learned:
-        n = learned_weight_count(fn)
+        n = fn.weight_count()
         total += n
         arch = fn.kind
         if fn.kind == "mlp":
@@ -89,7 +68,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..lang import load
+    from ..lang import load, magnitude_warnings
 
     status = 0
     for path in args.files:
@@ -99,6 +78,8 @@ def run(args) -> int:
             print(err.format(), file=sys.stderr)
             status = 1
             continue
+        for w in magnitude_warnings(net):  # printed with -q too
+            print(w.format(), file=sys.stderr)
         if not args.quiet:
             print(summary(net, path))
     return status

@@ -70,6 +70,10 @@ def _load(net_arg: str, backend: str, seed: int):
     from ..lang import load
 
     net = load(net_arg)
+    from ..lang import magnitude_warnings
+
+    for w in magnitude_warnings(net):
+        print(w.format(), file=sys.stderr)
     model = compile_network(net, backend=backend, dtype="float64")
     return net, model, model.init_params(seed=seed), net_arg, {}
 

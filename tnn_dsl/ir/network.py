@@ -343,8 +343,11 @@ class LearnFunction(_Node):
     """For ``flow`` targets: the function replaces the physics flow instead of correcting it."""
 
     def weight_count(self) -> int:
-        """How many trained numbers the function has (inputs = ``len(inputs)``, outputs = ``len(targets)``),
-        counted without building anything: the compiler's ``array_shapes`` gives the same total (a test checks)."""
+        """How many trained numbers the function has, counted without building anything (``tnnc check``'s
+        summary, the size cap): const ``n_out``; linear ``(n_in + 1)·n_out``; poly ``(n_monomials + 1)·n_out``
+        with the monomials of degree 1..d; mlp ``Σ (fan_in + 1)·fan_out`` over its layers; table
+        ``n_knots·n_out`` (``n_in = len(inputs)``, ``n_out = len(targets)``). The compiler's ``array_shapes``
+        gives the same total (a test checks)."""
         n_in, n_out = len(self.inputs), len(self.targets)
         if self.kind == "const":
             return n_out

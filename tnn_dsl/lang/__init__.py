@@ -12,9 +12,9 @@ from .parser import load, loads, parse
 from .printer import print_thn
 from .sources import include_path_scope
 from .units import UnitError, format_dim, parse_quantity, unit_scale
-from .validation import validate, value_problem
+from .validation import magnitude_warnings, validate, value_problem
 
 __all__ = [
     "include_path_scope", "load", "loads", "parse", "print_thn", "UnitError", "format_dim", "parse_quantity",
-    "unit_scale", "validate", "value_problem",
+    "unit_scale", "validate", "value_problem", "magnitude_warnings",
 ]

@@ -596,6 +596,37 @@ def _bytes(n: float) -> str:
     return f"{n:.3g} EB"
 
 
+PLAUSIBLE_MAGNITUDE = {
+    "capacitance": (1e-6, 1e12, "J/K"),     # a milligram of silicon … a large building
+    "resistance": (1e-6, 1e9, "K/W"),
+    "conductance": (1e-9, 1e6, "W/K"),
+    "time_constant": (1e-6, 1e9, "s"),
+}
+"""Values outside these SI ranges are legal but almost always a typo or a wrong unit: ``magnitude_warnings``."""
+
+
+def magnitude_warnings(net: Network) -> list[Diagnostic]:
+    """Warnings (not errors) for written capacities, resistances, conductances and time constants outside
+    :data:`PLAUSIBLE_MAGNITUDE`: ``G = 1e308 W/K`` or ``R = 2e-7 K/W`` pass the checks but make the network stiff
+    beyond any explicit step or its steady state overflow. ``tnnc check`` and ``tnnc simulate`` print them."""
+    out = []
+    for p in net.params:
+        rng = PLAUSIBLE_MAGNITUDE.get(p.role)
+        v = p.value
+        if rng is None or v is None or not math.isfinite(v) or v <= 0:
+            continue
+        lo, hi, unit = rng
+        if lo <= v <= hi:
+            continue
+        what = p.role.replace("_", " ")
+        out.append(Diagnostic(
+            f"`{p.name}` is a {what} of {v:g} {unit}, {'below' if v < lo else 'above'} the {lo:g} … {hi:g} {unit} "
+            "a lumped thermal network usually has", p.expr.span or p.span, severity="warning",
+            hint="check the number and its unit: a value orders of magnitude off makes every explicit step "
+                 "unstable or the steady state overflow"))
+    return out
+
+
 def value_problem(p: Param, v: float) -> str | None:
     """What is physically wrong with ``v`` (SI) as the value of constant ``p``, or ``None``: the checks of a
     written number (positive capacities, resistances, conductances, time constants and component values,
