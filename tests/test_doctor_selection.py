@@ -1,0 +1,44 @@
+"""The compensation guard of the held-out decision (doctor/selection.py ``_choose``): among the candidates that
+pay, a rival within noise of the best — within ``MIN_GAIN`` of its held-out MAE, or not significantly worse —
+wins when it is smaller or more physical; a rival clearly worse never does."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tnn_dsl.analysis import held_out_test
+from tnn_dsl.doctor.base import Candidate, Column
+from tnn_dsl.doctor.selection import MIN_GAIN, _choose
+
+
+def _fit(kind: str, target: str, e_val: np.ndarray) -> dict:
+    return {"cand": Candidate(kind, target, [], [Column(f"{target}.x", 0)]), "e_val": e_val,
+            "val_mae": float(np.mean(np.abs(e_val))), "val_sse": float(np.sum(e_val ** 2)), "p": 0.001,
+            "physical": "ok"}
+
+
+def _pair(scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two smooth held-out residuals: the heat load's, and the offset's ``scale`` times it plus a trace of
+    noise (near-identical fits differ by a smooth, strongly autocorrelated term)."""
+    t = np.linspace(0, 20, 2000)
+    heat = 0.0128 * np.sign(np.sin(t)) * (1 + 0.2 * np.sin(7 * t))
+    rng = np.random.default_rng(0)
+    return heat, heat * scale + 1e-5 * rng.standard_normal(t.size)
+
+
+def test_a_rival_within_min_gain_on_a_more_physical_element_wins_even_if_significantly_worse():
+    heat, offset = _pair(1.047)  # 4.7 % worse: casestudy/sensor_offset, 0.01339 against 0.01279 K
+    assert held_out_test(offset, heat, 0)[1] < 0.05  # the test calls the 4.7 % significant
+    fits = [_fit("heat_load", "Q[hs]", heat), _fit("sensor_offset", "T_out", offset)]
+    base = np.full_like(heat, 0.15)
+    pick = _choose(fits, (0.15, 0.3), base)
+    assert pick["cand"].kind == "sensor_offset"
+    assert fits[0]["reason"] == "within noise of the chosen one, which is more physical or smaller"
+
+
+def test_a_rival_clearly_worse_does_not_win():
+    heat, offset = _pair(1 + 2 * MIN_GAIN)  # 20 % worse and significantly so
+    fits = [_fit("heat_load", "Q[hs]", heat), _fit("sensor_offset", "T_out", offset)]
+    pick = _choose(fits, (0.15, 0.3), np.full_like(heat, 0.15))
+    assert pick["cand"].kind == "heat_load"
+    assert fits[1]["reason"] == "explains less than the chosen one"
