@@ -396,3 +396,24 @@ def test_model_files_are_flushed(tmp_path, monkeypatch):
     names = {Path(s).name for s in synced}
     assert {"meta.json", "params.safetensors", "network.json"} <= names
     assert str(tmp_path) in synced  # the rename into place is flushed too
+
+
+def test_a_directory_of_someones_sources_is_not_a_model(tmp_path):
+    """network.thn and include/ are names a user's own sources have too: a directory holding only those is not
+    a model, so it is never swapped away or deleted; with force the user's files stay byte for byte."""
+    d = tmp_path / "proj"
+    (d / "include").mkdir(parents=True)
+    (d / "network.thn").write_text("network mine\n# my own file\n")
+    (d / "include" / "parts.thn").write_text("param p = 1 W\n")
+    before = _digest(d)
+    assert not is_model_dir(d)
+    with pytest.raises(ModelFileError):
+        save_model(d, _net(), _params(), {})
+    assert _digest(d) == before
+    save_model(d, _net(), _params(), {}, force=True)
+    after = _digest(d)
+    assert {k: after[k] for k in before} == before
+    assert load_model(d).params["C_a"] == 4.5
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert is_model_dir(save_model(empty, _net(), _params(), {}))

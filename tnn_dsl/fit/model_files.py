@@ -99,7 +99,8 @@ MODEL_FILES = frozenset({"network.thn", "network.json", "params.safetensors", "m
 
 def is_model_dir(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a directory this tool wrote as a model: its ``meta.json`` says
-    ``"format": "tnn_dsl-model"``, or it holds nothing but a model's file names (a damaged model)."""
+    ``"format": "tnn_dsl-model"``, or it holds nothing but a model's files (a damaged model:
+    :func:`holds_only_model_files`)."""
     p = Path(path)
     if not p.is_dir():
         return False
@@ -107,7 +108,7 @@ def is_model_dir(path: str | os.PathLike) -> bool:
         names = {c.name for c in p.iterdir()}
     except OSError:
         return False
-    if names and names <= MODEL_FILES:
+    if names and holds_only_model_files(p):
         return True
     try:
         meta = json.loads((p / "meta.json").read_text(encoding="utf-8"))
@@ -194,7 +195,9 @@ def save_model(
         raise _err(f"cannot write the model to {path}: {err.strerror or err}", None,
                    hint="check the free disk space and that the place is writable") from None
     finally:
-        if tmp.exists() and holds_only_model_files(tmp):  # ours, or the model it replaced: never a user's file
+        # tmp is ours (an exclusive mkdir of a fresh name) or holds the model it replaced (held to
+        # holds_only_model_files before the swap): never a user's file
+        if tmp.exists() and _names_only_model_files(tmp):
             shutil.rmtree(tmp, ignore_errors=True)
     fsync_dir(parent)
     return path
@@ -244,6 +247,8 @@ def _write_into(tmp: Path, path: Path) -> None:
         dest = path / src.relative_to(tmp)
         if src.is_dir():
             dest.mkdir(exist_ok=True)
+        elif src.name not in OWN_FILES and src.name != "meta.json" and (dest.exists() or dest.is_symlink()):
+            continue  # a source copy (network.thn, include/…) where a file of that name is the user's: keep theirs
         else:
             os.replace(src, dest)
     fsync_dir(path)
@@ -263,18 +268,48 @@ def _remove_stale_temps(path: Path) -> None:
         m = pattern.match(e.name)
         if not m or not e.is_dir() or e.is_symlink() or _process_alive(int(m.group(2))):
             continue
-        if holds_only_model_files(e):
+        if _names_only_model_files(e):  # the name (ours, its writer dead) proves whose it is
             shutil.rmtree(e, ignore_errors=True)
 
 
-def holds_only_model_files(d: Path) -> bool:
-    """Whether directory ``d`` holds nothing but a model's files (and the temporary ``.tmp*`` file safetensors
-    writes next to ``params.safetensors``): the only directories this program ever deletes. An empty directory
-    does; one it cannot read does not."""
+def _names_only_model_files(d: Path) -> bool:
+    """Whether every entry of ``d`` has a model file's name (or is the ``.tmp*`` file safetensors writes): enough
+    for a directory whose *name* proves it is ours (a ``.NAME.tmp-PID-…`` sibling this program created with an
+    exclusive ``mkdir``), not for one at a user's path."""
     try:
         return all(c.name in MODEL_FILES or c.name.startswith(".tmp") for c in d.iterdir())
     except OSError:
         return False
+
+
+OWN_FILES = ("network.json", "params.safetensors")
+"""File names only this program writes into a model directory (``network.thn`` and ``include/`` are names a
+user's own sources may have too)."""
+
+
+def holds_only_model_files(d: Path) -> bool:
+    """Whether directory ``d`` is a model this program wrote, damaged or not, and nothing else: empty, or only model
+    file names including one only this program writes (``network.json``, ``params.safetensors``, or a ``meta.json``
+    of format ``tnn_dsl-model``), with an ``include/`` of plain files only. The only directories at a user's path
+    this program ever replaces or deletes; a directory holding just ``network.thn`` and ``include/`` (someone's
+    sources) is not one. One it cannot read is not either."""
+    if not _names_only_model_files(d):
+        return False
+    try:
+        names = {c.name for c in d.iterdir()}
+        inc = d / "include"
+        if "include" in names and (inc.is_symlink() or not inc.is_dir()
+                                   or any(f.is_symlink() or not f.is_file() for f in inc.iterdir())):
+            return False
+    except OSError:
+        return False
+    if not names or any(n in names for n in OWN_FILES):
+        return True
+    try:
+        meta = json.loads((d / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("format") == FORMAT
 
 
 def _process_alive(pid: int) -> bool:
