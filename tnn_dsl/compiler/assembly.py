@@ -10,10 +10,12 @@ import numpy as np
 from ..ir import POSITIVE_ROLES
 from . import learned as _learned
 from . import physics as _physics
+from . import sparse as _sparse
 from .expressions import compile_expr
 from .plan import _Plan
+from .sparse import Coo
 
-__all__ = ["_Assembly", "_Prep", "_Env"]
+__all__ = ["_Assembly", "_Prep", "_Env", "SPARSE_MIN_STATES", "PACKED_KEY"]
 
 
 class _Prep:
@@ -32,6 +34,42 @@ class _Env:
         self.u = u
         self.cx = cx  # {fn: input-only part of the normalised input} when precomputed
         self.pre = pre  # {fn: first-layer pre-activation} for functions folded into the T-linear product
+
+
+PACKED_KEY = "const:packed"
+"""Parameter-table key of the constants packed into one vector (``Model`` does this at the boundary of a jitted
+call on large networks: one array instead of one argument per constant, whose count makes XLA's compile time
+grow faster than linearly)."""
+
+
+class _PackedVals(dict):
+    """Parameter values by name where the constants live in one packed vector: a constant is sliced out only
+    when something reads it by name (``vals[name]``); vectorised code gathers from :attr:`packed` instead.
+    Derived values are stored as in a plain dict. ``copy()`` keeps the packing."""
+
+    __slots__ = ("packed", "index")
+
+    def __init__(self, packed, index: dict[str, int], items=()):
+        super().__init__(items)
+        self.packed = packed
+        self.index = index
+
+    def __missing__(self, name):
+        i = self.index.get(name)
+        if i is None:
+            raise KeyError(name)
+        v = self.packed[i]
+        self[name] = v
+        return v
+
+    def __contains__(self, name) -> bool:
+        return dict.__contains__(self, name) or name in self.index
+
+    def get(self, name, default=None):
+        return self[name] if name in self else default
+
+    def copy(self) -> _PackedVals:
+        return _PackedVals(self.packed, self.index, dict.items(self))
 
 
 def _noop_item(prep, env):
@@ -57,41 +95,89 @@ def _apply_from_first(xp, fn, arrays, pre):
 
 
 def _diag(xp, M, n):
+    if isinstance(M, _sparse.SparseMatrix):
+        return M.diagonal(n)
     idx = np.arange(n)
     return M[idx, idx] if xp.name != "torch" else M.diagonal()
 
 
-def _incidence(group, n: int, nb: int):
-    """Scatter ``D (n + nb, k)`` and gather ``Inc (k, n)`` matrices of a group of two-ended elements (numpy)."""
-    D = np.zeros((n + nb, len(group)))
-    Inc = np.zeros((len(group), n))
+def _incidence(group, n: int, nb: int) -> tuple[Coo, Coo]:
+    """Scatter ``D (n + nb, k)`` and gather ``Inc (k, n)`` matrices of a group of two-ended elements."""
+    D = Coo((n + nb, len(group)))
+    Inc = Coo((len(group), n))
     for k, (_, a, b, *_r) in enumerate(group):
         ia = a[1] if a[0] == "n" else n + a[1]
         ib = b[1] if b[0] == "n" else n + b[1]
-        D[ib, k] += 1.0
-        D[ia, k] -= 1.0
+        D.add(ib, k, 1.0)
+        D.add(ia, k, -1.0)
         if a[0] == "n":
-            Inc[k, a[1]] += 1.0
+            Inc.add(k, a[1], 1.0)
         if b[0] == "n":
-            Inc[k, b[1]] -= 1.0
+            Inc.add(k, b[1], -1.0)
     return D, Inc
 
 
-def _rows_matrix(rows, n: int, asn):
+def _neg_abs(coo: Coo, factor: float) -> Coo:
+    """``−factor·|M|`` entry by entry (the diagonal maps of links and radiation)."""
+    out = Coo(coo.shape)
+    for r, c, v in zip(coo.rows, coo.cols, coo.vals):
+        out.add(r, c, -factor * abs(v))
+    return out
+
+
+def _conductance_structure(group, n: int) -> tuple[np.ndarray, ...]:
+    """The non-zeros of ``D·diag(g)·Inc`` (see :func:`~tnn_dsl.compiler.physics.conductance_matrix`) for a
+    group of two-ended elements, as ``(rows, cols, coef, which)``: entry ``e`` is ``coef_e · g[which_e]`` at
+    vertex row ``rows_e`` (boundaries after the nodes) and node column ``cols_e``; at most 4 per element."""
+    rows, cols, coef, which = [], [], [], []
+    for k, (_, a, b, *_r) in enumerate(group):
+        va = a[1] if a[0] == "n" else n + a[1]
+        vb = b[1] if b[0] == "n" else n + b[1]
+        for v, sd in ((vb, 1.0), (va, -1.0)):
+            for end, si in ((a, 1.0), (b, -1.0)):
+                if end[0] == "n":
+                    rows.append(v)
+                    cols.append(end[1])
+                    coef.append(sd * si)
+                    which.append(k)
+    return (np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64), np.asarray(coef, dtype=float),
+            np.asarray(which, dtype=np.int64))
+
+
+def _split_rows(coo: Coo, n: int) -> tuple[Coo, Coo]:
+    """Rows ``:n`` (nodes) and ``n:`` (boundaries) of a vertex matrix."""
+    top, bottom = Coo((n, coo.shape[1])), Coo((coo.shape[0] - n, coo.shape[1]))
+    for r, c, v in zip(coo.rows, coo.cols, coo.vals):
+        (top.add(r, c, v) if r < n else bottom.add(r - n, c, v))
+    return top, bottom
+
+
+def _rows_matrix(rows, n: int) -> Coo:
     """The matrix ``(len(rows), n)`` scattering point flows onto their nodes (boundary rows stay 0)."""
-    M = np.zeros((len(rows), n))
+    M = Coo((len(rows), n))
     for k, v in enumerate(rows):
         if v[0] == "n":
-            M[k, v[1]] = 1.0
-    return asn(M)
+            M.add(k, v[1], 1.0)
+    return M
+
+
+SPARSE_MIN_STATES = 64
+"""Networks with at least this many states are compiled with sparse matrices (:mod:`.sparse`) unless told
+otherwise: below it one dense product per matrix is the faster form, above it the O(n²) products dominate
+(benchmarks/bench_scaling.py)."""
 
 
 class _Assembly:
     """The plan bound to an array namespace ``xp``: built once per compiled model, in named steps."""
 
-    def __init__(self, plan: _Plan, xp):
+    def __init__(self, plan: _Plan, xp, sparse: bool = False):
         self.plan = plan
         self.xp = xp
+        self.sparse = bool(sparse)
+        """Whether the constant matrices are :class:`~.sparse.SparseMatrix` (gather/scatter) or dense."""
+        self.const_names = [p.name for p in plan.net.params if p.is_constant]
+        """The constant parameters in the order of the packed vector (:data:`PACKED_KEY`)."""
+        self.const_index = {nm: i for i, nm in enumerate(self.const_names)}
         self._vectorised_functions()
         self._item_closures()
         self._static_elements()
@@ -169,18 +255,35 @@ class _Assembly:
         self.tau_static = all(P.is_static(s.lag) for s in P.lagged)
         self.off_static = all(s.offset is None or P.is_static(s.offset) for s in P.net.sensors)
 
+    def _mat(self, coo: Coo):
+        """A constant matrix as the model keeps it: dense backend array, or sparse for large networks."""
+        return _sparse.as_matrix(self.xp, coo, self.sparse)
+
+    def _mm(self, x, M):
+        """``x @ M`` for a dense or sparse constant matrix ``M``."""
+        return _sparse.matmul(self.xp, x, M)
+
     def _incidence_matrices(self) -> None:
-        """Scatter/gather matrices of the static and dynamic links and radiation."""
-        P, asn = self.plan, self.xp.asarray
+        """Scatter/gather matrices of the static and dynamic links and radiation; for static links and
+        radiation the structure of their conductance matrices (values come in ``prepare``)."""
+        P = self.plan
         n, nb = P.n, P.nb
-        self.D_ls, self.I_ls = _incidence(self.links_s, n, nb)  # numpy (used in prepare)
+        if self.sparse:
+            self.C_ls = _conductance_structure(self.links_s, n)
+            self.C_rs = _conductance_structure(self.rads_s, n)
+        else:
+            D, Inc = _incidence(self.links_s, n, nb)
+            self.D_ls, self.I_ls = D.dense(), Inc.dense()  # numpy (used in prepare)
+            D, Inc = _incidence(self.rads_s, n, nb)
+            self.D_rs, self.I_rs = D.dense(), Inc.dense()
         D, Inc = _incidence(self.links_d, n, nb)
-        self.Dd_n, self.Dd_b, self.Id = asn(D[:n]), asn(D[n:]), asn(Inc)
-        self.Ad_neg = asn(-np.abs(Inc))
-        self.D_rs, self.I_rs = _incidence(self.rads_s, n, nb)
+        Dn, Db = _split_rows(D, n)
+        self.Dd_n, self.Dd_b, self.Id = self._mat(Dn), self._mat(Db), self._mat(Inc)
+        self.Ad_neg = self._mat(_neg_abs(Inc, 1.0))
         D, Inc = _incidence(self.rads_d, n, nb)
-        self.Dr_n, self.Dr_b, self.Ir = asn(D[:n]), asn(D[n:]), asn(Inc)
-        self.Ar_neg4 = asn(-4.0 * np.abs(Inc))
+        Dn, Db = _split_rows(D, n)
+        self.Dr_n, self.Dr_b, self.Ir = self._mat(Dn), self._mat(Db), self._mat(Inc)
+        self.Ar_neg4 = self._mat(_neg_abs(Inc, 4.0))
         self.has_links_s = bool(self.links_s) or bool(self.fluids_lin)
 
     def _input_only_split(self) -> None:
@@ -217,7 +320,7 @@ class _Assembly:
 
     def _affine_terms(self) -> None:
         """Rows of the input-only affine terms ``q`` (W) and ``d`` (W/K) and their nodes."""
-        P, asn = self.plan, self.xp.asarray
+        P = self.plan
         n, nb = P.n, P.nb
         qrows, drows = [], []
         for pe, h, c in self.pe_aff:
@@ -229,14 +332,14 @@ class _Assembly:
         qrows += [("n", P.node_idx[f.node]) for f in self.flin_u]
         qrows += [("n", P.node_idx[s.node]) for s in self.src_u]
         qrows += [("n", P.node_idx[node]) for node, _, _ in self.hl_u]
-        self.Eq = _rows_matrix(qrows, n, asn) if qrows else None
-        self.Ed = _rows_matrix(drows, n, asn) if drows else None
+        self.Eq = self._mat(_rows_matrix(qrows, n)) if qrows else None
+        self.Ed = self._mat(_rows_matrix(drows, n)) if drows else None
         self.has_ctx_q = bool(qrows) or (not self.bnd_static and self.tb_u and nb > 0
                                          and (bool(self.links_s) or bool(self.rads_s)))
 
     def _point_flows(self) -> None:
         """Point flows evaluated per right-hand side (state-dependent), their nodes and diagonal terms."""
-        P, asn = self.plan, self.xp.asarray
+        P = self.plan
         n = P.n
         rows = []
         for pe, h, c in self.pe_gen:
@@ -247,13 +350,13 @@ class _Assembly:
         rows += [("n", P.node_idx[s.node]) for s in self.src_t]
         rows += [("n", P.node_idx[node]) for node, _, _ in self.hl_t]
         self.n_point = len(rows)
-        self.Pm = _rows_matrix(rows, n, asn)
+        self.Pm = self._mat(_rows_matrix(rows, n))
         # diagonal terms (expeuler) of the state-dependent Peltier sides and non-linear fluids
         drows = []
         for pe, h, c in self.pe_gen:
             drows += [h, c]
         drows += [("n", P.node_idx[f.node]) for f in self.fnl_gen]
-        self.Pd = _rows_matrix(drows, n, asn)
+        self.Pd = self._mat(_rows_matrix(drows, n))
 
     def _context_needs(self) -> None:
         """The input-only parameters that the state-dependent work reads from the per-sample context."""
@@ -296,29 +399,29 @@ class _Assembly:
 
     def _lag_and_sensor_maps(self) -> None:
         """Lag states (sources from nodes or boundaries) and the sensor map; items the outputs need."""
-        P, asn = self.plan, self.xp.asarray
+        P = self.plan
         n, nb = P.n, P.nb
         nl = len(P.lagged)
-        Sl_n = np.zeros((n, nl))
-        Sl_b = np.zeros((nb, nl))
+        Sl_n = Coo((n, nl))
+        Sl_b = Coo((nb, nl))
         for k, s in enumerate(P.lagged):
             if s.node in P.node_idx:
-                Sl_n[P.node_idx[s.node], k] = 1.0
+                Sl_n.add(P.node_idx[s.node], k, 1.0)
             else:
-                Sl_b[P.bnd_idx[s.node], k] = 1.0
+                Sl_b.add(P.bnd_idx[s.node], k, 1.0)
         self.nl = nl
-        self.Sl_n, self.Sl_b, self.lag_from_bnd = asn(Sl_n), asn(Sl_b), bool(Sl_b.any())
-        Sy = np.zeros((P.ns, len(P.net.sensors)))
-        Sy_b = np.zeros((nb, len(P.net.sensors)))
+        self.Sl_n, self.Sl_b, self.lag_from_bnd = self._mat(Sl_n), self._mat(Sl_b), Sl_b.any()
+        Sy = Coo((P.ns, len(P.net.sensors)))
+        Sy_b = Coo((nb, len(P.net.sensors)))
         lag_k = {s.name: k for k, s in enumerate(P.lagged)}
         for j, s in enumerate(P.net.sensors):
             if s.name in lag_k:
-                Sy[n + lag_k[s.name], j] = 1.0
+                Sy.add(n + lag_k[s.name], j, 1.0)
             elif s.node in P.node_idx:
-                Sy[P.node_idx[s.node], j] = 1.0
+                Sy.add(P.node_idx[s.node], j, 1.0)
             else:
-                Sy_b[P.bnd_idx[s.node], j] = 1.0
-        self.Sy, self.Sy_b, self.y_from_bnd = asn(Sy), asn(Sy_b), bool(Sy_b.any())
+                Sy_b.add(P.bnd_idx[s.node], j, 1.0)
+        self.Sy, self.Sy_b, self.y_from_bnd = self._mat(Sy), self._mat(Sy_b), Sy_b.any()
         need = set()
         if not self.off_static:
             need |= {("p", s.offset) for s in P.net.sensors if s.offset}
@@ -369,6 +472,12 @@ class _Assembly:
         positive = p.role in POSITIVE_ROLES
         if name in self._vec_targets:  # set by its function's item (vectorised)
             return _noop_item
+        if target is None and p.is_constant:
+            def item_c(prep, env):  # the value is in env.vals already: only a scale changes it (packed
+                s = prep.scales.get(name)  # constants stay unread, see _PackedVals)
+                if s is not None:
+                    env.vals[name] = env.vals[name] * s
+            return item_c
         if target is None:
             def item(prep, env):
                 v = expr_fn(env)
@@ -461,7 +570,7 @@ class _Assembly:
         return Tn[..., v[1]] if v[0] == "n" else Tb[..., v[1]]
 
     def values(self, prep, T, u, items=None) -> _Env:
-        env = _Env(dict(prep.vals), dict(prep.z), T, u)
+        env = _Env(prep.vals.copy(), dict(prep.z), T, u)
         for item in (self._dyn_items if items is None else items):
             item(prep, env)
         return env

@@ -11,9 +11,17 @@ import numpy as np
 
 from . import learned as _learned
 from . import physics as _physics
-from .assembly import _Assembly, _diag, _Env, _first_layer, _Prep
+from . import sparse as _sparse
+from .assembly import PACKED_KEY, _Assembly, _diag, _Env, _first_layer, _PackedVals, _Prep
 
 __all__ = ["_Core"]
+
+
+def _unit(n: int, i: int) -> np.ndarray:
+    """The unit vector ``e_i`` of length ``n`` (a point heat flow onto node ``i``)."""
+    e = np.zeros(n)
+    e[i] = 1.0
+    return e
 
 
 class _Core(_Assembly):
@@ -46,7 +54,11 @@ class _Core(_Assembly):
                 fn, len(fn.inputs), len(fn.targets))}
             prep.arrays[fn.name] = arrs
             prep.yscale[fn.name] = [arrs["y_scale"][i] for i in range(len(fn.targets))]
-        vals = {p.name: xp.asarray(params[p.name]) for p in P.net.params if p.is_constant}
+        packed = params.get(PACKED_KEY)
+        if packed is not None:  # constants packed into one vector (large networks, see Model._packed)
+            vals = _PackedVals(xp.asarray(packed), self.const_index)
+        else:
+            vals = {p.name: xp.asarray(params[p.name]) for p in P.net.params if p.is_constant}
         prep.tnom, prep.tscale = {}, {}
         for fname, (names, _) in self._vec_fns.items():
             prep.tnom[fname] = xp.stack([vals[nm] for nm in names], axis=-1)
@@ -83,32 +95,75 @@ class _Core(_Assembly):
         if self.has_links_s:
             M = None
             if self.links_s:
-                g = xp.stack([fscale(k, self._g(vals, p, form)) for k, _, _, p, form in self.links_s], axis=-1)
-                M = _physics.conductance_matrix(xp, xp.asarray(self.D_ls), g, xp.asarray(self.I_ls))
+                g = self._gathered_conductances(prep, self.links_s)
+                if g is None:
+                    g = xp.stack([fscale(k, self._g(vals, p, form)) for k, _, _, p, form in self.links_s], axis=-1)
+                if self.sparse:
+                    M = _sparse.weighted(xp, *self.C_ls, g, (n + nb, n))
+                else:
+                    M = _physics.conductance_matrix(xp, xp.asarray(self.D_ls), g, xp.asarray(self.I_ls))
             lin = []
             for f in self.fluids_lin:
                 G = fscale(f"{f.name}.Q", _physics.fluid_conductance(xp, vals[f.mdot], vals[f.cp], vals[f.ua]))
                 lin.append((f, G))
-                E = np.zeros((n + nb, n))
                 i = P.node_idx[f.node]
-                E[i, i] = -1.0
-                term = xp.asarray(E) * G
-                M = term if M is None else M + term
+                if self.sparse:
+                    term = _sparse.SparseMatrix(xp, np.asarray([i]), np.asarray([i]),
+                                                -xp.stack([xp.asarray(G) * 1.0], axis=-1), (n + nb, n))
+                    M = term if M is None else _sparse.add(xp, M, term)
+                else:
+                    E = np.zeros((n + nb, n))
+                    E[i, i] = -1.0
+                    term = xp.asarray(E) * G
+                    M = term if M is None else M + term
                 if P.is_static(f.inlet):
-                    q = xp.asarray(np.eye(n)[i]) * (G * vals[f.inlet])
+                    q = xp.asarray(_unit(n, i)) * (G * vals[f.inlet])
                     cQ = q if cQ is None else cQ + q
             prep.lin_fluid = lin
-            prep.M_nn = M[:n]
-            prep.M_bn = M[n:] if nb else None
+            prep.M_nn, prep.M_bn = self._split_vertex_rows(M)
             prep.diag_static = _diag(xp, prep.M_nn, n)
             if nb and self.bnd_static:
-                q = xp.matmul(prep.Tb, prep.M_bn)
+                q = self._mm(prep.Tb, prep.M_bn)
                 cQ = q if cQ is None else cQ + q
                 prep.M_bn = None
         else:
             prep.lin_fluid = []
             prep.diag_static = None
         return cQ
+
+    def _gathered(self, prep, names):
+        """``stack([vals[q] for q in names])`` as one gather from the packed constants, when the values are
+        packed (:data:`PACKED_KEY`) and every name is a plain constant without a ``scale:``; else None."""
+        vals = prep.vals
+        if not isinstance(vals, _PackedVals) or any(q not in self.const_index or q in prep.scales for q in names):
+            return None
+        return _sparse._take(self.xp, vals.packed, np.asarray([self.const_index[q] for q in names], dtype=np.int64))
+
+    def _gathered_conductances(self, prep, links):
+        """The conductances ``(k,)`` W/K of a group of links by gathers from the packed constants (``1/R`` for
+        the links written as resistances), or None (see :meth:`_gathered`)."""
+        if any(k in prep.scales for k, *_ in links):
+            return None
+        raw = self._gathered(prep, [lk[3] for lk in links])
+        if raw is None:
+            return None
+        is_r = np.asarray([lk[4] == "R" for lk in links])
+        if not is_r.any():
+            return raw
+        xp = self.xp
+        r_idx, g_idx = np.nonzero(is_r)[0], np.nonzero(~is_r)[0]
+        parts = [1.0 / _sparse._take(xp, raw, r_idx)]
+        if g_idx.size:
+            parts.append(_sparse._take(xp, raw, g_idx))
+        order = np.argsort(np.concatenate([r_idx, g_idx]), kind="stable")
+        return _sparse._take(xp, xp.concat(parts, axis=-1), order)
+
+    def _split_vertex_rows(self, M):
+        """``(M[:n], M[n:] or None)`` of a vertex-by-node matrix (dense or sparse)."""
+        n, nb = self.plan.n, self.plan.nb
+        if self.sparse:
+            return M.select_rows(0, n), (M.select_rows(n, n + nb) if nb else None)
+        return M[:n], (M[n:] if nb else None)
 
     def _static_radiation(self, prep, cQ):
         """The static radiation matrix (and its constant heat from constant boundaries)."""
@@ -121,13 +176,15 @@ class _Core(_Assembly):
         if self.rads_s:
             c = xp.stack([fscale(k, _physics.radiation_coefficient(vals[a], vals[e], vals[f]))
                           for k, _, _, (a, e, f) in self.rads_s], axis=-1)
-            M = _physics.conductance_matrix(xp, xp.asarray(self.D_rs), c, xp.asarray(self.I_rs))
-            prep.Mr_nn = M[:n]
+            if self.sparse:
+                M = _sparse.weighted(xp, *self.C_rs, c, (n + nb, n))
+            else:
+                M = _physics.conductance_matrix(xp, xp.asarray(self.D_rs), c, xp.asarray(self.I_rs))
+            prep.Mr_nn, prep.Mr_bn = self._split_vertex_rows(M)
             prep.diag_rad = 4.0 * _diag(xp, prep.Mr_nn, n)
             if nb:
-                prep.Mr_bn = M[n:]
                 if self.bnd_static:
-                    q = xp.matmul(prep.Tb**4, prep.Mr_bn)
+                    q = self._mm(prep.Tb**4, prep.Mr_bn)
                     cQ = q if cQ is None else cQ + q
                     prep.Mr_bn = None
         return cQ
@@ -140,12 +197,12 @@ class _Core(_Assembly):
         fscale = functools.partial(self._flow_scaled, prep)
         # static sources and static learned heat loads
         for s in self.sources_s:
-            q = xp.asarray(np.eye(n)[P.node_idx[s.node]]) * fscale(f"{s.name}.Q", vals[s.value])
+            q = xp.asarray(_unit(n, P.node_idx[s.node])) * fscale(f"{s.name}.Q", vals[s.value])
             cQ = q if cQ is None else cQ + q
         for node, (fn, i) in P.heat_loads.items():
             if P.static[("f", fn.name)]:
                 v = fscale(f"Q[{node}]", self._heat_load(prep, prep.z, fn, i))
-                q = xp.asarray(np.eye(n)[P.node_idx[node]]) * v
+                q = xp.asarray(_unit(n, P.node_idx[node])) * v
                 cQ = q if cQ is None else cQ + q
         return cQ
 
@@ -154,7 +211,10 @@ class _Core(_Assembly):
         xp, P = self.xp, self.plan
         vals = prep.vals
         if self.C_static:
-            prep.invC = 1.0 / xp.stack([vals[nd.capacitance] for nd in P.net.nodes], axis=-1)
+            C = self._gathered(prep, [nd.capacitance for nd in P.net.nodes])
+            if C is None:
+                C = xp.stack([vals[nd.capacitance] for nd in P.net.nodes], axis=-1)
+            prep.invC = 1.0 / C
         else:
             prep.invC = None
         if self.nl and self.tau_static:
@@ -169,7 +229,6 @@ class _Core(_Assembly):
     def _T_linear_matrix(self, prep) -> None:
         """``L``: the blocks of the one T-linear product of each right-hand side (see ``_first_layer_blocks``)."""
         xp, P = self.xp, self.plan
-        n = P.n
         prep.g_static_d = None
         prep.L, prep.Lsl = None, {}
         if self._L_blocks:
@@ -184,10 +243,28 @@ class _Core(_Assembly):
                 else:
                     fname = key[2:]
                     W, _ = _first_layer(P.fns[fname], prep.arrays[fname])
-                    parts.append(xp.matmul(prep.fnlin[fname][0][:n], W))
+                    parts.append(self._first_layer_block(prep.fnlin[fname][0], W, fname))
                 prep.Lsl[key] = (start, start + width)
                 start += width
-            prep.L = parts[0] if len(parts) == 1 else xp.concat(parts, axis=-1)
+            if len(parts) == 1:
+                prep.L = parts[0]
+            elif self.sparse:
+                prep.L = _sparse.concat_columns(xp, parts)
+            else:
+                prep.L = xp.concat(parts, axis=-1)
+
+    def _first_layer_block(self, A_T, W, fname):
+        """The block ``A_T[:n] @ W0`` of a learned function folded into the T-linear product: dense, or (sparse
+        models) only the rows of the nodes the function reads."""
+        xp, P = self.xp, self.plan
+        n = P.n
+        if not self.sparse:
+            return xp.matmul(A_T[:n], W)
+        rows = np.asarray(sorted({P.node_idx[nm] for kd, nm in P.fn_inputs[fname] if kd == "node"}), dtype=np.int64)
+        B = xp.matmul(A_T[_sparse._index(xp, rows)], W)  # (len(rows), width)
+        width = int(xp.shape(B)[-1])
+        return _sparse.SparseMatrix(xp, np.repeat(rows, width), np.tile(np.arange(width), len(rows)),
+                                    xp.concat([B[i] for i in range(len(rows))], axis=-1), (n, width))
 
     def _fnlin(self, fn, prep):
         """Matrices that gather and normalise a dynamic function's inputs: ``xn = T @ A_T + u @ A_u +
@@ -242,7 +319,7 @@ class _Core(_Assembly):
         gather matrices, ``"cx:<fn>"`` input-only part of a learned function's normalised input,
         ``"z:<fn>"`` outputs of input-only learned functions) and ``"u"``. ``rhs_T`` reads one sample of it."""
         xp, P = self.xp, self.plan
-        env = _Env(dict(prep.vals), dict(prep.z), None, u)
+        env = _Env(prep.vals.copy(), dict(prep.z), None, u)
         for item in self._u_items:
             item(prep, env)
         vals = env.vals
@@ -269,11 +346,11 @@ class _Core(_Assembly):
                 if self._Tb_in_ctx:
                     vec["Tb"] = Tb
                 if self.links_d:
-                    vec["tbD"] = xp.matmul(Tb, self.Dd_b)
+                    vec["tbD"] = self._mm(Tb, self.Dd_b)
                 if self.rads_d:
-                    vec["tbR"] = xp.matmul(Tb**4, self.Dr_b)
+                    vec["tbR"] = self._mm(Tb**4, self.Dr_b)
                 if self.nl and self.lag_from_bnd:
-                    vec["tbL"] = xp.matmul(Tb, self.Sl_b)
+                    vec["tbL"] = self._mm(Tb, self.Sl_b)
         q = None
 
         def add(a, b):
@@ -281,14 +358,14 @@ class _Core(_Assembly):
 
         if Tb is not None and prep.Tb is None:
             if prep.M_bn is not None:
-                q = add(q, xp.matmul(Tb, prep.M_bn))
+                q = add(q, self._mm(Tb, prep.M_bn))
             if prep.Mr_bn is not None:
-                q = add(q, xp.matmul(Tb**4, prep.Mr_bn))
+                q = add(q, self._mm(Tb**4, prep.Mr_bn))
         if self.Eq is not None:
             qs, ds = self._affine_flows(prep, env, Tb)
-            q = add(q, xp.matmul(xp.broadcast_to(xp.stack(qs, axis=-1), (*bshape, len(qs))), self.Eq))
+            q = add(q, self._mm(xp.broadcast_to(xp.stack(qs, axis=-1), (*bshape, len(qs))), self.Eq))
             if ds:
-                vec["d"] = xp.matmul(xp.broadcast_to(xp.stack(ds, axis=-1), (*bshape, len(ds))), self.Ed)
+                vec["d"] = self._mm(xp.broadcast_to(xp.stack(ds, axis=-1), (*bshape, len(ds))), self.Ed)
         if q is not None:
             vec["q"] = per_sample(q if prep.cQ is None else q + prep.cQ)
         scal = {k: xp.broadcast_to(vals[k], bshape) for k in self._ctx_s}
@@ -337,7 +414,7 @@ class _Core(_Assembly):
         n = P.n
         vec = ctx["v"]
         u = ctx["u"]
-        vals = dict(prep.vals)
+        vals = prep.vals.copy()
         vals.update(ctx["s"])
         z = dict(prep.z)
         cx = None
@@ -346,7 +423,7 @@ class _Core(_Assembly):
                 z[fname] = vec[f"z:{fname}"]
             cx = {fname: vec[f"cx:{fname}"] for fname in self._t_fnames if fname not in self._fold}
         Tn = T[..., :n] if self.nl else T
-        TL = xp.matmul(Tn, prep.L) if prep.L is not None else None
+        TL = self._mm(Tn, prep.L) if prep.L is not None else None
 
         def block(key):
             a, b = prep.Lsl[key]
@@ -369,7 +446,7 @@ class _Core(_Assembly):
         if prep.M_nn is not None:
             dQ = add(dQ, block("M"))
             if dyn_b and prep.M_bn is not None:
-                dQ = add(dQ, xp.matmul(Tb, prep.M_bn))
+                dQ = add(dQ, self._mm(Tb, prep.M_bn))
         d = vec.get("d")
         if d is not None:
             dQ = add(dQ, Tn * d)
@@ -377,9 +454,9 @@ class _Core(_Assembly):
                 diag = add(diag, d)
         if prep.Mr_nn is not None:
             Tn3 = Tn * Tn * Tn
-            dQ = add(dQ, xp.matmul(Tn3 * Tn, prep.Mr_nn))
+            dQ = add(dQ, self._mm(Tn3 * Tn, prep.Mr_nn))
             if dyn_b and prep.Mr_bn is not None:
-                dQ = add(dQ, xp.matmul(Tb**4, prep.Mr_bn))
+                dQ = add(dQ, self._mm(Tb**4, prep.Mr_bn))
             if with_diag:
                 diag = add(diag, Tn3 * prep.diag_rad)
         if self.links_d:
@@ -424,10 +501,10 @@ class _Core(_Assembly):
         dX = TL_D
         if P.nb:
             tbD = vec.get("tbD")
-            dX = dX + (tbD if tbD is not None else xp.matmul(Tb, self.Dd_b))
-        dQ = xp.matmul(g * dX, self.Id)
+            dX = dX + (tbD if tbD is not None else self._mm(Tb, self.Dd_b))
+        dQ = self._mm(g * dX, self.Id)
         if with_diag:
-            diag = xp.matmul(g, self.Ad_neg)
+            diag = self._mm(g, self.Ad_neg)
         return dQ, diag
 
     def _dynamic_radiation(self, prep, vals, vec, Tn, Tb, with_diag):
@@ -436,13 +513,13 @@ class _Core(_Assembly):
         diag = None
         c = xp.stack([self._flow_scaled(prep, k, _physics.radiation_coefficient(vals[a], vals[e], vals[f]))
                       for k, _, _, (a, e, f) in self.rads_d], axis=-1)
-        dX = xp.matmul(Tn**4, self.Dr_n)
+        dX = self._mm(Tn**4, self.Dr_n)
         if P.nb:
             tbR = vec.get("tbR")
-            dX = dX + (tbR if tbR is not None else xp.matmul(Tb**4, self.Dr_b))
-        dQ = xp.matmul(c * dX, self.Ir)
+            dX = dX + (tbR if tbR is not None else self._mm(Tb**4, self.Dr_b))
+        dQ = self._mm(c * dX, self.Ir)
         if with_diag:
-            diag = Tn**3 * xp.matmul(c, self.Ar_neg4)
+            diag = Tn**3 * self._mm(c, self.Ar_neg4)
         return dQ, diag
 
     def _point_flows_T(self, prep, env, Tn, Tb, with_diag):
@@ -466,9 +543,9 @@ class _Core(_Assembly):
             if with_diag:
                 dterms.append(self._diag_term(prep, f"{f.name}.Q", -G))
         pts += self._driven_flows(prep, vals, env.z, self.flin_t, self.src_t, self.hl_t)
-        dQ = xp.matmul(xp.stack(pts, axis=-1), self.Pm)
+        dQ = self._mm(xp.stack(pts, axis=-1), self.Pm)
         if with_diag and dterms:
-            diag = xp.matmul(xp.stack(dterms, axis=-1), self.Pd)
+            diag = self._mm(xp.stack(dterms, axis=-1), self.Pd)
         return dQ, diag
 
     def _with_lags(self, prep, vals, vec, T, dT, diag, TL_S, Tb, with_diag):
@@ -480,7 +557,7 @@ class _Core(_Assembly):
         src = TL_S
         if self.lag_from_bnd:
             tbL = vec.get("tbL")
-            src = src + (tbL if tbL is not None else xp.matmul(Tb, self.Sl_b))
+            src = src + (tbL if tbL is not None else self._mm(Tb, self.Sl_b))
         dTl = (src - T[..., n:]) * inv_tau
         dT = xp.concat([xp.broadcast_to(dT, (*xp.shape(dTl)[:-1], n)), dTl], axis=-1)
         if with_diag:
@@ -495,12 +572,12 @@ class _Core(_Assembly):
         xp, P = self.xp, self.plan
         if not P.net.sensors:
             return T[..., :0]
-        y = xp.matmul(T, self.Sy)
+        y = self._mm(T, self.Sy)
         vals = None
         if self._out_items or self.y_from_bnd:
             vals = self.values(prep, T, u, self._out_items).vals
         if self.y_from_bnd:
-            y = y + xp.matmul(self._Tb(prep, vals), self.Sy_b)
+            y = y + self._mm(self._Tb(prep, vals), self.Sy_b)
         off = prep.offsets if prep.offsets is not None else xp.stack(
             [vals[s.offset] if s.offset else 0.0 for s in P.net.sensors], axis=-1)
         return y + off

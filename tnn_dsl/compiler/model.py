@@ -40,9 +40,11 @@ import numpy as np
 from ..core import Diagnostic, TnnError
 from ..ir import POSITIVE_ROLES, Network
 from . import learned as _learned
+from .assembly import PACKED_KEY, SPARSE_MIN_STATES
 from .backends import get_xp
 from .core import _Core
 from .integrators import INTEGRATORS, check_step, euler, expeuler, rk4
+from .krylov import KRYLOV_MAXITER, KRYLOV_TOL, torch_solve
 from .plan import NOMINAL_T, T_SCALE, _Plan
 
 
@@ -81,7 +83,8 @@ class Model:
     Shapes: ``T (..., n_states)`` K, ``u (..., n_inputs)`` SI (temperature inputs in K), outputs
     ``(..., n_outputs)`` K. Leading axes broadcast (batches of windows)."""
 
-    def __init__(self, net: Network, backend: str = "jax", dtype: str = "float64", torch_compile: bool = False) -> None:
+    def __init__(self, net: Network, backend: str = "jax", dtype: str = "float64", torch_compile: bool = False,
+                 sparse: bool | None = None) -> None:
         if not isinstance(net, Network):
             raise TypeError(f"compile() needs a tnn_dsl.Network, got {type(net).__name__}")
         self.network = net
@@ -91,7 +94,10 @@ class Model:
         """Whether torch rollouts run each integration step through ``torch.compile`` (see :func:`compile`)."""
         self.xp = get_xp(backend, dtype)
         self._plan = _Plan(net)
-        self._core = _Core(self._plan, self.xp)
+        self.sparse = self._plan.ns >= SPARSE_MIN_STATES if sparse is None else bool(sparse)
+        """Whether the constant matrices are kept sparse (gather/scatter, O(nodes + links) per step; see
+        :mod:`tnn_dsl.compiler.sparse`) rather than dense (one product each, O(n²))."""
+        self._core = _Core(self._plan, self.xp, self.sparse)
         P = self._plan
         self.state_names = P.state_names
         self.input_names = tuple(P.inputs)
@@ -156,7 +162,7 @@ class Model:
 
     def _nominal_values(self, params_np) -> dict[str, Any]:
         """Parameter values at the nominal point (T = 298.15 K, inputs 0 or 298.15 K) with numpy."""
-        core = _Core(self._plan, get_xp("numpy")) if self.backend != "numpy" else self._core
+        core = _Core(self._plan, get_xp("numpy"), self.sparse) if self.backend != "numpy" else self._core
         prep = core.prepare(params_np)
         T = np.full(self._plan.ns, NOMINAL_T)
         env = core.values(prep, T, self._nominal_u())
@@ -184,8 +190,37 @@ class Model:
             out[k] = self.xp.asarray(a)
         return out
 
+    def _packed(self, params):
+        """JAX on a sparse model: the parameter table with its constants packed into one vector
+        (:data:`~tnn_dsl.compiler.assembly.PACKED_KEY`), so that a jitted call takes one array instead of one
+        argument per constant (with tens of thousands of them XLA's compile time grows faster than linearly:
+        4 min for 40 000). Other models, and tables already packed, are returned as they are."""
+        names = self._core.const_names
+        if self.backend != "jax" or not self.sparse or not names or PACKED_KEY in params:
+            return params
+        import jax
+        import jax.numpy as jnp
+
+        vs = [params[k] for k in names]
+        last = self._jit_cache.get("packed")  # the last table's values (kept alive, so `is` is safe) and vector
+        if last is not None and all(a is b for a, b in zip(last[0], vs)):
+            packed = last[1]
+        elif any(isinstance(v, jax.core.Tracer) for v in vs):
+            packed = jnp.stack([jnp.asarray(v, dtype=self.xp.dtype) for v in vs])
+        else:
+            packed = jnp.asarray(np.asarray(jax.device_get(vs), dtype=np.float64), dtype=self.xp.dtype)
+            self._jit_cache["packed"] = (vs, packed)
+        index = self._core.const_index
+        out = {k: v for k, v in params.items() if k not in index}
+        out[PACKED_KEY] = packed
+        return out
+
     def _check(self, params):
-        missing = [k for k in self.param_specs if k not in params]
+        if PACKED_KEY in params:
+            index = self._core.const_index
+            missing = [k for k in self.param_specs if k not in params and k not in index]
+        else:
+            missing = [k for k in self.param_specs if k not in params]
         if missing:
             raise TnnError(
                 [Diagnostic(f"the parameter table lacks {', '.join(repr(m) for m in missing[:8])}"
@@ -214,7 +249,7 @@ class Model:
         """``{state: τ}`` (s) = ``−1/d`` from the diagonal of the linear part at the nominal point
         (default parameters unless given as numpy-convertible ``params``); ``inf`` where d ≥ 0."""
         p_np = self._init_numpy(0) if params is None else self.to_numpy(params)
-        core = _Core(self._plan, get_xp("numpy"))
+        core = _Core(self._plan, get_xp("numpy"), self.sparse)
         prep = core.prepare(p_np)
         T = np.full(self._plan.ns, NOMINAL_T)
         _, d = core.rhs(prep, T, self._nominal_u(), with_diag=True)
@@ -237,19 +272,22 @@ class Model:
     def rhs(self, params: Mapping[str, Any], T: Any, u: Any) -> Any:
         """``dT/dt (..., n_states)`` K/s for ``T (..., n_states)`` K and ``u (..., n_inputs)`` SI."""
         if self.backend == "jax":
-            return self._jitted("rhs")(params, self._arr(T), self._arr(u))
+            self._check(params)
+            return self._jitted("rhs")(self._packed(params), self._arr(T), self._arr(u))
         return self._core.rhs(self._prepare(params), self._arr(T), self._arr(u))
 
     def outputs(self, params: Mapping[str, Any], T: Any, u: Any) -> Any:
         """Sensor readings ``(..., n_outputs)`` K (node or lag state + offset)."""
         if self.backend == "jax":
-            return self._jitted("outputs")(params, self._arr(T), self._arr(u))
+            self._check(params)
+            return self._jitted("outputs")(self._packed(params), self._arr(T), self._arr(u))
         return self._core.outputs(self._prepare(params), self._arr(T), self._arr(u))
 
     def heat_flows(self, params: Mapping[str, Any], T: Any, u: Any) -> dict:
         """Every link/component flow (W) by name (see :attr:`flow_names`), shape ``T.shape[:-1]``."""
         if self.backend == "jax":
-            return self._jitted("heat_flows")(params, self._arr(T), self._arr(u))
+            self._check(params)
+            return self._jitted("heat_flows")(self._packed(params), self._arr(T), self._arr(u))
         return self._core.heat_flows(self._prepare(params), self._arr(T), self._arr(u))
 
     def rhs_and_diag(self, params: Mapping[str, Any], T: Any, u: Any) -> tuple[Any, Any]:
@@ -304,7 +342,7 @@ class Model:
                            f"got {self.xp.shape(inputs)}")
         if self.backend == "jax":
             self._check(params)
-            return self._jitted("rollout", dt, integrator, sub)(params, T0, inputs)
+            return self._jitted("rollout", dt, integrator, sub)(self._packed(params), T0, inputs)
         return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
 
     def _stepper(self, prep, dt, integrator, sub):
@@ -448,7 +486,7 @@ class Model:
             self._check(params)
             if T_init is None:
                 T_init = self.xp.asarray(np.full(P.ns, NOMINAL_T))
-            return self._jitted("steady", max_iter, tol)(params, u, T_init)
+            return self._jitted("steady", max_iter, tol)(self._packed(params), u, T_init)
         return self._steady_impl(params, u, T_init, max_iter, tol)
 
     def _jac(self, prep, T, u):
@@ -496,16 +534,27 @@ class Model:
                 k, _, delta = c
                 return (k < max_iter) & (delta > tol)
 
+            if self.sparse:  # Newton–Krylov: no (n, n) Jacobian (see compiler/krylov.py)
+                from jax.scipy.sparse.linalg import bicgstab
+
+                def newton_step(x, b):
+                    _, d = core.rhs(prep0, x, u0, with_diag=True)
+                    inv_d = jnp.where(d != 0, 1.0 / jnp.where(d != 0, d, 1.0), 1.0)
+                    dx, _ = bicgstab(lambda v: jax.jvp(lambda y: core.rhs(prep0, y, u0), (x,), (v,))[1], b,
+                                     M=lambda v: v * inv_d, tol=KRYLOV_TOL, maxiter=KRYLOV_MAXITER)
+                    return dx
+            else:
+                def newton_step(x, b):
+                    return xp.solve(self._jac(prep0, x, u0), b)
+
             def body(c):
                 k, x, _ = c
-                J = self._jac(prep0, x, u0)
-                dx = jnp.linalg.solve(J, core.rhs(prep0, x, u0)[..., None])[..., 0]
+                dx = newton_step(x, core.rhs(prep0, x, u0))
                 return k + 1, x - dx, jnp.max(jnp.abs(dx))
 
             _, Ts, _ = jax.lax.while_loop(cond, body, (0, jax.lax.stop_gradient(T), jnp.asarray(jnp.inf, T.dtype)))
             Ts = jax.lax.stop_gradient(Ts)
-            J = jax.lax.stop_gradient(self._jac(prep0, Ts, u0))
-            return Ts - xp.solve(J, core.rhs(prep, Ts, u))
+            return Ts - newton_step(Ts, core.rhs(prep, Ts, u))
         if self.backend == "torch":
             import torch
 
@@ -513,13 +562,21 @@ class Model:
                 prep0 = self._core.prepare({k: v.detach() if hasattr(v, "detach") else v for k, v in params.items()})
                 x = T.detach().clone()
                 u0 = u.detach()
+
+                def f0(y):
+                    return core.rhs(prep0, y, u0)
+
+                def newton_step(x, b):
+                    if self.sparse:  # Newton–Krylov: no (n, n) Jacobian (see compiler/krylov.py)
+                        return torch_solve(f0, x, core.rhs(prep0, x, u0, with_diag=True)[1], b)
+                    return xp.solve(self._jac(prep0, x, u0), b)
+
                 for _ in range(max_iter):
-                    J = self._jac(prep0, x, u0)
-                    dx = xp.solve(J, core.rhs(prep0, x, u0))
+                    dx = newton_step(x, core.rhs(prep0, x, u0))
                     x = x - dx
                     if float(dx.abs().max()) <= tol:
                         break
-            return x - xp.solve(J.detach(), core.rhs(prep, x, u))
+            return x - newton_step(x, core.rhs(prep, x, u))
         x = np.array(T, dtype=float)
         for _ in range(max_iter):
             J = self._jac(prep, x, u)
@@ -531,7 +588,7 @@ class Model:
 
 
 def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa: A001
-            torch_threads: int | None = 1, torch_compile: bool | None = None) -> Model:
+            torch_threads: int | None = 1, torch_compile: bool | None = None, sparse: bool | None = None) -> Model:
     """Compile a validated network for ``backend`` (``"jax"`` or ``"torch"``; ``"numpy"`` is a reference
     backend without autodiff) in ``dtype`` (``"float64"`` default, or ``"float32"``).
 
@@ -547,7 +604,13 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     (forward+gradient), after 13–33 s of compilation; M2's training 2.5× faster in all
     (benchmarks/bench_train.py). Worth it for training runs of minutes, not for one short simulation.
     ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off). Ignored by
-    the other backends (JAX is always compiled)."""
+    the other backends (JAX is always compiled).
+
+    ``sparse``: keep the network's constant matrices as their non-zeros and apply them by gather and
+    scatter-add, so that one step costs O(nodes + links) instead of O(n²) (:mod:`tnn_dsl.compiler.sparse`).
+    ``None`` (default) chooses sparse for networks with at least
+    :data:`~tnn_dsl.compiler.assembly.SPARSE_MIN_STATES` states. Both forms give the same numbers to
+    round-off."""
     if backend not in ("jax", "torch", "numpy"):
         raise TnnError([Diagnostic(f"unknown backend {backend!r}", hint="use backend='jax' or backend='torch'")])
     if dtype not in ("float64", "float32"):
@@ -568,7 +631,7 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
         if env not in ("", "0", "1"):
             raise TnnError([Diagnostic(f"TNN_TORCH_COMPILE must be 0 or 1, got {env!r}")])
         torch_compile = env == "1"
-    return Model(net, backend, dtype, torch_compile=bool(torch_compile))
+    return Model(net, backend, dtype, torch_compile=bool(torch_compile), sparse=sparse)
 
 
 __all__ = ["compile", "Model", "ParamSpec", "TorchCompileWarning"]
