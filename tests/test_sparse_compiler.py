@@ -165,9 +165,9 @@ def test_a_sparse_model_holds_no_dense_n_by_n_array():
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_generated_plate_backends_agree_with_gradients(backend):
-    net = tnn_dsl.loads(plate_thn(12, 10), "plate.thn")
-    assert len(net.nodes) == 120
+def test_generated_plate_is_sparse_by_default_and_matches_the_dense_reference(backend):
+    net = tnn_dsl.loads(plate_thn(16, 14), "plate.thn")
+    assert len(net.nodes) == 224 >= SPARSE_MIN_STATES
     m = tnn_dsl.compile(net, backend)
     ref = tnn_dsl.compile(net, "numpy", sparse=False)
     assert m.sparse

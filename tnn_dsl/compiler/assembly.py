@@ -126,9 +126,10 @@ def _neg_abs(coo: Coo, factor: float) -> Coo:
 
 
 def _conductance_structure(group, n: int) -> tuple[np.ndarray, ...]:
-    """The non-zeros of ``D·diag(g)·Inc`` (see :func:`~tnn_dsl.compiler.physics.conductance_matrix`) for a
-    group of two-ended elements, as ``(rows, cols, coef, which)``: entry ``e`` is ``coef_e · g[which_e]`` at
-    vertex row ``rows_e`` (boundaries after the nodes) and node column ``cols_e``; at most 4 per element."""
+    """The non-zeros, sorted by column, of ``D·diag(g)·Inc`` (see
+    :func:`~tnn_dsl.compiler.physics.conductance_matrix`) for a group of two-ended elements, as
+    ``(rows, cols, coef, which)``: entry ``e`` is ``coef_e · g[which_e]`` at vertex row ``rows_e``
+    (boundaries after the nodes) and node column ``cols_e``; at most 4 per element."""
     rows, cols, coef, which = [], [], [], []
     for k, (_, a, b, *_r) in enumerate(group):
         va = a[1] if a[0] == "n" else n + a[1]
@@ -140,8 +141,10 @@ def _conductance_structure(group, n: int) -> tuple[np.ndarray, ...]:
                     cols.append(end[1])
                     coef.append(sd * si)
                     which.append(k)
-    return (np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64), np.asarray(coef, dtype=float),
-            np.asarray(which, dtype=np.int64))
+    cols_a = np.asarray(cols, dtype=np.int64)
+    order = np.argsort(cols_a, kind="stable")  # sorted by column once here, not in every prepare
+    return (np.asarray(rows, dtype=np.int64)[order], cols_a[order], np.asarray(coef, dtype=float)[order],
+            np.asarray(which, dtype=np.int64)[order])
 
 
 def _split_rows(coo: Coo, n: int) -> tuple[Coo, Coo]:
@@ -161,10 +164,12 @@ def _rows_matrix(rows, n: int) -> Coo:
     return M
 
 
-SPARSE_MIN_STATES = 64
+SPARSE_MIN_STATES = 200
 """Networks with at least this many states are compiled with sparse matrices (:mod:`.sparse`) unless told
-otherwise: below it one dense product per matrix is the faster form, above it the O(n²) products dominate
-(benchmarks/bench_scaling.py)."""
+otherwise. Below it one dense product per matrix is the faster form, above it the O(n²) products dominate: on
+plate meshes (benchmarks/bench_scaling.py, BENCHMARKS.md "Network size") dense is faster at 100 nodes on both
+backends (JAX 4.6 against 7.6 µs per RK4 step, torch 69 against 94) and slower at 306 (33 against 23, 161
+against 133)."""
 
 
 class _Assembly:

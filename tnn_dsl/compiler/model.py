@@ -191,25 +191,41 @@ class Model:
         return out
 
     def _packed(self, params):
-        """JAX on a sparse model: the parameter table with its constants packed into one vector
-        (:data:`~tnn_dsl.compiler.assembly.PACKED_KEY`), so that a jitted call takes one array instead of one
+        """On a sparse model: the parameter table with its constants packed into one vector
+        (:data:`~tnn_dsl.compiler.assembly.PACKED_KEY`). JAX: a jitted call takes one array instead of one
         argument per constant (with tens of thousands of them XLA's compile time grows faster than linearly:
-        4 min for 40 000). Other models, and tables already packed, are returned as they are."""
+        4 min for 40 000). torch: one stack per call instead of one per group of links. The last vector is
+        reused while the same arrays come back (JAX arrays are immutable; a torch tensor also by its version
+        counter, and never when autograd records). Dense models, and tables already packed, are returned as
+        they are."""
         names = self._core.const_names
-        if self.backend != "jax" or not self.sparse or not names or PACKED_KEY in params:
+        if self.backend == "numpy" or not self.sparse or not names or PACKED_KEY in params:
             return params
-        import jax
-        import jax.numpy as jnp
-
         vs = [params[k] for k in names]
         last = self._jit_cache.get("packed")  # the last table's values (kept alive, so `is` is safe) and vector
-        if last is not None and all(a is b for a, b in zip(last[0], vs)):
-            packed = last[1]
-        elif any(isinstance(v, jax.core.Tracer) for v in vs):
-            packed = jnp.stack([jnp.asarray(v, dtype=self.xp.dtype) for v in vs])
+        if self.backend == "jax":
+            import jax
+            import jax.numpy as jnp
+
+            if last is not None and all(a is b for a, b in zip(last[0], vs)):
+                packed = last[1]
+            elif any(isinstance(v, jax.core.Tracer) for v in vs):
+                packed = jnp.stack([jnp.asarray(v, dtype=self.xp.dtype) for v in vs])
+            else:
+                packed = jnp.asarray(np.asarray(jax.device_get(vs), dtype=np.float64), dtype=self.xp.dtype)
+                self._jit_cache["packed"] = (vs, packed)
         else:
-            packed = jnp.asarray(np.asarray(jax.device_get(vs), dtype=np.float64), dtype=self.xp.dtype)
-            self._jit_cache["packed"] = (vs, packed)
+            import torch
+
+            recording = torch.is_grad_enabled() and any(getattr(v, "requires_grad", False) for v in vs)
+            versions = [getattr(v, "_version", None) for v in vs]
+            if (not recording and last is not None and all(a is b for a, b in zip(last[0], vs))
+                    and last[2] == versions):
+                packed = last[1]
+            else:
+                packed = torch.stack([self.xp.asarray(v).reshape(()) for v in vs])
+                if not recording:
+                    self._jit_cache["packed"] = (vs, packed, versions)
         index = self._core.const_index
         out = {k: v for k, v in params.items() if k not in index}
         out[PACKED_KEY] = packed
@@ -241,7 +257,7 @@ class Model:
 
     def _prepare(self, params):
         self._check(params)
-        return self._core.prepare(params)
+        return self._core.prepare(self._packed(params))
 
     # -- time constants --------------------------------------------------------------------------
 
@@ -559,7 +575,7 @@ class Model:
             import torch
 
             with torch.no_grad():
-                prep0 = self._core.prepare({k: v.detach() if hasattr(v, "detach") else v for k, v in params.items()})
+                prep0 = self._prepare({k: v.detach() if hasattr(v, "detach") else v for k, v in params.items()})
                 x = T.detach().clone()
                 u0 = u.detach()
 

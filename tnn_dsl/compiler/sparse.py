@@ -138,10 +138,10 @@ def add(xp, a: SparseMatrix, b: SparseMatrix) -> SparseMatrix:
 
 def weighted(xp, rows: np.ndarray, cols: np.ndarray, coef: np.ndarray, which: np.ndarray, w: Any,
              shape: tuple[int, int]) -> SparseMatrix:
-    """A matrix with entries ``coef_e · w[..., which_e]`` at ``(rows_e, cols_e)``: the structure is static,
-    ``w (..., k)`` a backend vector (e.g. the conductances of a group of links)."""
+    """A matrix with entries ``coef_e · w[..., which_e]`` at ``(rows_e, cols_e)``: the structure is static
+    (``cols`` sorted), ``w (..., k)`` a backend vector (e.g. the conductances of a group of links)."""
     vals = _take(xp, w, which) * xp.asarray(coef)
-    return SparseMatrix(xp, rows, cols, vals, shape)
+    return SparseMatrix(xp, rows, cols, vals, shape, _sorted=True)
 
 
 def as_matrix(xp, coo: Coo, sparse: bool) -> Any:
