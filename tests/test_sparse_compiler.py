@@ -243,3 +243,23 @@ def test_plate_size():
     assert abs(nx * ny - 20_000) < 150
     with pytest.raises(ValueError):
         plate_thn(0, 3)
+
+
+def test_tnnc_generate_plate_and_building(tmp_path, capsys):
+    from tnn_dsl.cli import main
+
+    out = tmp_path / "plate.thn"
+    assert main(["generate", "plate", "--size", "50", "-o", str(out)]) == 0
+    net = tnn_dsl.load(str(out))
+    assert len(net.nodes) == 49
+    assert main(["check", str(out)]) == 0
+    b = tmp_path / "b.thn"
+    assert main(["generate", "building", "--size", "12", "-o", str(b)]) == 0
+    assert len(tnn_dsl.load(str(b)).nodes) == 24
+    # an existing file of another kind is not overwritten without --force
+    other = tmp_path / "data.csv"
+    other.write_text("t,T\n0,1\n")
+    assert main(["generate", "plate", "--size", "4", "-o", str(other)]) == 1
+    assert other.read_text() == "t,T\n0,1\n"
+    assert main(["generate", "plate", "--size", "0", "-o", str(tmp_path / "z.thn")]) == 1
+    assert "--size must be" in capsys.readouterr().err

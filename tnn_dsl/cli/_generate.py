@@ -1,10 +1,16 @@
-"""``tnnc generate case-study -o DIR``: write the case-study data sets (``shared/spec/case-study.md``).
+"""``tnnc generate case-study -o DIR``: write the case-study data sets (``shared/spec/case-study.md``);
+``tnnc generate plate|building --size N -o FILE.thn``: write a large network.
 
 ``train.csv`` (4 h, seed 1), ``val.csv`` (2 h, seed 2) and ``ood_<P>_<k>.csv`` (2 h each, inputs widened by
 P percent, ``--n-ood`` sets per level, seeds ``--seed-ood`` + k), from the true network
 ``networks/peltier_heatpipe/truth.thn`` integrated with RK4 at 0.1 s. Deterministic from the seeds; a
 directory already holding the same settings (``manifest.json``) is left as it is unless ``--force``. A
 directory holding anything else is refused unless ``--force`` (its other files are kept).
+
+``plate``: a square aluminium plate mesh of about N cells (20 mm, 10 mm thick; heaters Q1, Q2 in W, ambient Ta,
+sensors T1–T3). ``building``: N rooms, each an interior and an envelope node, neighbours and floors joined
+(``tnn_dsl.studies.large_networks``). The files are ordinary ``.thn`` networks for trying the sparse compiler
+(``benchmarks/bench_scaling.py``).
 """
 
 from __future__ import annotations
@@ -15,9 +21,13 @@ from ._common import add_backend, add_command
 
 
 def register(subparsers) -> None:
-    p = add_command(subparsers, "generate", "generate synthetic data sets (the thesis case study)", __doc__)
-    p.add_argument("what", choices=("case-study",), help="which data to generate")
-    p.add_argument("-o", "--output", required=True, metavar="DIR", help="output directory")
+    p = add_command(subparsers, "generate", "generate synthetic data sets (the thesis case study) or large networks",
+                    __doc__)
+    p.add_argument("what", choices=("case-study", "plate", "building"), help="what to generate")
+    p.add_argument("-o", "--output", required=True, metavar="PATH",
+                   help="output directory (case-study) or .thn file (plate, building)")
+    p.add_argument("--size", type=int, default=None, metavar="N",
+                   help="plate: about N cells (default 10000); building: N rooms (default 100)")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian noise on T_out, standard deviation in K (default 0)")
     p.add_argument("--widen", type=float, nargs="*", default=[10, 20, 30, 40], metavar="P",
@@ -35,9 +45,36 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _network(args) -> int:
+    from ..core import THN, Diagnostic, TnnError, write_text_atomic
+    from ..studies.large_networks import building_thn, plate_size, plate_thn
+    from ._common import check_outputs
+
+    size = args.size if args.size is not None else (10000 if args.what == "plate" else 100)
+    if not 1 <= size <= 1_000_000:
+        raise TnnError(Diagnostic(f"--size must be in 1 … 1000000, got {size}", hint="e.g. --size 10000"))
+    check_outputs(args, [(args.output, THN, "-o")], inputs=[])
+    if args.what == "plate":
+        nx, ny = plate_size(size)
+        text = plate_thn(nx, ny)
+        what = f"a {nx} x {ny} plate ({nx * ny} nodes)"
+    else:
+        text = building_thn(size)
+        what = f"a {size}-room building ({2 * size} nodes)"
+    if args.output == "-":
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(args.output, text)
+        print(f"{what} written to {args.output}")
+    return 0
+
+
 def run(args) -> int:
     from ..core import Diagnostic, TnnError
     from ..studies import generate_case_study
+
+    if args.what != "case-study":
+        return _network(args)
 
     bad = [w for w in args.widen if not (0 <= w <= 1000)]
     if bad:
