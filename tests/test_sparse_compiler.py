@@ -263,3 +263,53 @@ def test_tnnc_generate_plate_and_building(tmp_path, capsys):
     assert other.read_text() == "t,T\n0,1\n"
     assert main(["generate", "plate", "--size", "0", "-o", str(tmp_path / "z.thn")]) == 1
     assert "--size must be" in capsys.readouterr().err
+
+
+def test_gauss_newton_step_in_readings_space_equals_the_stacked_least_squares():
+    from tnn_dsl.fit.initial import gauss_newton_step
+
+    rng = np.random.default_rng(3)
+    for m, n in ((30, 200), (5, 6), (40, 41)):
+        J = rng.normal(size=(m, n))
+        r = rng.normal(size=m)
+        W = rng.uniform(0.5, 2, m)
+        P = rng.uniform(0.1, 1, n)
+        d = rng.normal(size=n)
+        A = np.vstack([J * W[:, None], np.diag(P)])
+        b = np.concatenate([-r * W, -P * d])
+        ref = np.linalg.lstsq(A, b, rcond=None)[0]
+        np.testing.assert_allclose(gauss_newton_step(J, r, W, P, d), ref, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_initial_state_of_a_large_network_by_reverse_mode(backend):
+    # a 225-node plate seen by three sensors: more unknowns (225) than burn-in readings (3 × 30), so the
+    # readings' sensitivities come from reverse mode; they equal forward mode, and the estimate fits the burn-in
+    from tnn_dsl.data import Experiment
+    from tnn_dsl.fit.initial import _BurnInFit, initial_state
+
+    net = tnn_dsl.loads(plate_thn(15, 15), "plate.thn")
+    m = tnn_dsl.compile(net, backend)
+    p = m.init_params()
+    N = 120
+    U = np.zeros((N, 3))
+    U[:, 0] = 293.15
+    U[:, 1] = np.where((np.arange(N) // 40) % 2, 30.0, 0.0)
+    U[:, 2] = 10.0
+    T0 = 293.15 + 4.0 * np.sin(np.linspace(0, 3, len(m.state_names)))
+    _, y = m.rollout(p, T0, U, 1.0)
+    y = np.asarray(m.xp.to_numpy(y))
+    fit = _BurnInFit(m, 1.0, 30, "rk4", None)
+    J_rev = np.asarray(m.xp.to_numpy(fit.fJ(p, m.xp.asarray(U[:30]), m.xp.asarray(T0))))
+    from tnn_dsl.compiler.backends.adapter import backend_of
+
+    B = backend_of(m)
+    J_fwd = B.jacobian(lambda T: m.rollout(p, T, B.asarray(U[:30]), 1.0)[1], T0)
+    assert J_rev.shape == (30, 3, 225)
+    np.testing.assert_allclose(J_rev, J_fwd, rtol=0, atol=1e-12)
+    exp = Experiment(name="plate", path="", t=np.arange(N, dtype=float), dt=1.0, inputs=U, outputs=y,
+                     input_names=tuple(m.input_names), output_names=tuple(m.output_names))
+    ini = initial_state(net, m, p, exp, "estimate", burn_in_s=30.0)
+    _, y_hat = m.rollout(p, ini.T, U, 1.0)
+    err = np.abs(np.asarray(m.xp.to_numpy(y_hat))[:30] - y[:30])
+    assert ini.rule == "estimate" and float(err.max()) < 0.05

@@ -206,6 +206,8 @@ class _BurnInFit:
         B = backend_of(model)
 
         ns = len(model.state_names)
+        n_unknowns = ns + len(pe_names)
+        n_readings = int(n) * len(model.output_names)
 
         def outputs(params, U, x):  # x = [T0 (n_states) K, the per-experiment parameters (SI)]
             p = dict(params)
@@ -213,7 +215,10 @@ class _BurnInFit:
                 p[k] = x[ns + i] + 0.0 * params[k]
             return model.rollout(p, x[:ns], U, float(dt), integrator=integrator, substeps=substeps)[1]
 
-        if B.name == "jax":
+        if n_unknowns > n_readings:  # a large network: one reverse pass per reading, not a tangent per state
+            self.fy = B.jit(B.no_grad(outputs)) if B.name == "jax" else B.no_grad(outputs)
+            self.fJ = _reverse_jacobian(B, outputs, n_readings)
+        elif B.name == "jax":
             jax = B.jax
             self.fy = jax.jit(outputs)
             self.fJ = jax.jit(lambda p, U, T0: jax.jacfwd(lambda T: outputs(p, U, T))(T0))
@@ -246,12 +251,11 @@ class _BurnInFit:
             r = (y - Y)[mask]
             with np.errstate(over="ignore"):
                 rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-            A = np.vstack([J[mask] * W[:, None], np.diag(P)])
-            b = np.concatenate([-r * W, -P * (x - prior)])
-            if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+            Jm = J[mask]
+            if not (np.all(np.isfinite(Jm)) and np.all(np.isfinite(r))):
                 break  # the model's sensitivities overflow here: keep the last state (the run is checked later)
             try:
-                dx = np.linalg.lstsq(A, b, rcond=None)[0]
+                dx = gauss_newton_step(Jm, r, W, P, x - prior)
             except np.linalg.LinAlgError:
                 break
             step = float(np.max(np.abs(dx))) if dx.size else 0.0
@@ -261,6 +265,81 @@ class _BurnInFit:
             if step < 1e-7:
                 break
         return x, rms
+
+
+def gauss_newton_step(J: np.ndarray, r: np.ndarray, W: np.ndarray, P: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The step ``dx`` minimising ``‖W·(r + J·dx)‖² + ‖P·(d + dx)‖²`` (readings ``J (m, n)``, residuals
+    ``r (m,)``, weights ``W (m,)``, prior weights ``P (n,) > 0``, distance from the prior ``d (n,)``).
+
+    With no more unknowns than readings, the stacked least-squares problem (``lstsq``). With more (a large
+    network seen by a few sensors), the same minimiser in the readings' space (Woodbury:
+    ``dx = D⁻¹g − D⁻¹Jᵀ S⁻¹ J D⁻¹g`` with ``D = P²``, ``g = −JᵀW²r − D·d``, ``S = W⁻² + J D⁻¹ Jᵀ``), which
+    costs O(m² n) instead of an (m + n) × n least squares: the prior makes the problem full rank, so both
+    give the same step."""
+    m, n = J.shape
+    if n <= m:
+        A = np.vstack([J * W[:, None], np.diag(P)])
+        b = np.concatenate([-r * W, -P * d])
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+            raise np.linalg.LinAlgError("non-finite least-squares problem")
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+    Dinv = 1.0 / (P * P)
+    g = -(J.T @ (W * W * r)) - d / Dinv
+    Dg = Dinv * g
+    S = np.diag(1.0 / (W * W)) + (J * Dinv) @ J.T
+    return Dg - Dinv * (J.T @ np.linalg.solve(S, J @ Dg))
+
+
+REVERSE_CHUNK = 32
+"""Readings whose sensitivities to the initial state are computed together by reverse mode (large networks)."""
+
+
+def _reverse_jacobian(B: Any, outputs: Any, n_readings: int) -> Any:
+    """``J(p, U, x) (n_t, n_out, n_unknowns)``: the Jacobian of the burn-in readings by reverse mode, in chunks
+    of :data:`REVERSE_CHUNK` cotangents (memory: chunk × burn-in × states), for networks with more unknowns
+    than readings (forward mode would carry one tangent per state)."""
+    if B.name == "jax":
+        jax, jnp = B.jax, B.xp
+
+        @jax.jit
+        def chunk_rows(p, U, x, E):
+            _, vjp = jax.vjp(lambda T: outputs(p, U, T), x)
+            return jax.vmap(lambda e: vjp(e)[0])(E)
+
+        def J(p, U, x):
+            y_shape = jax.eval_shape(lambda T: outputs(p, U, T), x).shape
+            rows = []
+            for s0 in range(0, n_readings, REVERSE_CHUNK):
+                E = np.zeros((REVERSE_CHUNK, n_readings))
+                k = np.arange(s0, min(s0 + REVERSE_CHUNK, n_readings))
+                E[k - s0, k] = 1.0
+                rows.append(np.asarray(chunk_rows(p, U, x, jnp.asarray(E.reshape(REVERSE_CHUNK, *y_shape),
+                                                                      dtype=B.dtype)))[: k.size])
+            return np.concatenate(rows, 0).reshape(*y_shape, -1)
+
+        return J
+    torch = B.torch
+
+    def J_torch(p, U, x):
+        xr = x.detach().clone().requires_grad_(True)
+        with torch.enable_grad():
+            y = outputs(p, U, xr)
+            flat = y.reshape(-1)
+            m = flat.numel()
+            rows = []
+            for s0 in range(0, m, REVERSE_CHUNK):
+                k = min(REVERSE_CHUNK, m - s0)
+                E = torch.zeros((k, m), dtype=flat.dtype)
+                E[torch.arange(k), torch.arange(s0, s0 + k)] = 1.0
+                last = s0 + k >= m
+                try:
+                    rows.append(torch.autograd.grad(flat, xr, E, retain_graph=not last, is_grads_batched=True)[0])
+                except RuntimeError:  # an operation without a batching rule: one reading at a time
+                    rows += [torch.autograd.grad(flat, xr, E[i], retain_graph=not (last and i == k - 1))[0][None]
+                             for i in range(k)]
+        return torch.cat(rows).reshape(*y.shape, -1).detach()
+
+    return J_torch
 
 
 def _noise_std(Y: np.ndarray) -> np.ndarray:
