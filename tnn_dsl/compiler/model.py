@@ -231,6 +231,15 @@ class Model:
         out[PACKED_KEY] = packed
         return out
 
+    def pack_params(self, params: Mapping[str, Any]) -> dict:
+        """The parameter table with its constants packed into one vector (key ``"const:packed"``) on a sparse
+        model, for callers that ``jit`` their own functions of the table (one argument instead of one per
+        constant: XLA's compile time grows faster than linearly in their number). Every method of the model
+        takes either form; a dense model's table is returned as it is. Change constants in the unpacked table
+        and pack again: a packed table ignores constants set by name next to the vector."""
+        self._check(params)
+        return self._packed(params)
+
     def _check(self, params):
         if PACKED_KEY in params:
             index = self._core.const_index

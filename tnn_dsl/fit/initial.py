@@ -199,6 +199,7 @@ class _BurnInFit:
     def __init__(self, model: Any, dt: float, n: int, integrator: str, substeps: int | None,
                  pe_names: tuple[str, ...] = ()):
         key = (id(model), repr(float(dt)), int(n), integrator, substeps, pe_names)
+        self.packable = not pe_names  # per-experiment values are set by name, beside the packed constants
         hit = self._cache.get(key)
         if hit is not None and hit[0] is model:
             self.fy, self.fJ = hit[1], hit[2]
@@ -237,6 +238,8 @@ class _BurnInFit:
         burn-in's RMS error (K)."""
         B = backend_of(model)
         Ub = B.asarray(np.asarray(U, dtype=np.float64))
+        if self.packable and hasattr(model, "pack_params"):  # one jit argument, not one per constant
+            params = model.pack_params(params)
         mask = np.isfinite(Y)
         sig = _noise_std(Y)  # (n_out,)
         W = np.broadcast_to(1.0 / sig, Y.shape)[mask]
