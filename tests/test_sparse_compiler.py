@@ -313,3 +313,8 @@ def test_initial_state_of_a_large_network_by_reverse_mode(backend):
     _, y_hat = m.rollout(p, ini.T, U, 1.0)
     err = np.abs(np.asarray(m.xp.to_numpy(y_hat))[:30] - y[:30])
     assert ini.rule == "estimate" and float(err.max()) < 0.05
+    # the free run (its jitted rollout takes the packed table) gives the same run as the model's own rollout
+    from tnn_dsl.fit.simulation import free_run
+
+    run = free_run(m, p, exp, "estimate", burn_in_s=30.0)
+    np.testing.assert_allclose(run.y, np.asarray(m.xp.to_numpy(y_hat)), rtol=0, atol=1e-9)

@@ -80,7 +80,8 @@ def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str =
         params = with_values(model, params, ini.params)
     fn = _sim_fn(model, integrator, float(exp.dt), substeps)
     U = np.asarray(exp.inputs, dtype=float)
-    states, y = fn(params, ops.asarray(U[ini.at:]), ops.asarray(ini.T))
+    pack = getattr(model, "pack_params", None)  # a large network: one jit argument, not one per constant
+    states, y = fn(pack(params) if pack else params, ops.asarray(U[ini.at:]), ops.asarray(ini.T))
     states, y = ops.numpy(states), ops.numpy(y)
     if ini.at:
         states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
