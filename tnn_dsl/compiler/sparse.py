@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Coo", "SparseMatrix", "as_matrix", "matmul"]
+__all__ = ["Coo", "SparseMatrix", "as_matrix", "matmul", "concat_columns", "add", "weighted"]
 
 
 class Coo:
@@ -110,12 +110,6 @@ class SparseMatrix:
         if on.size == 0:
             return self.xp.zeros((n,))
         return _segment_sum_last(self.xp, v, _index(self.xp, self.rows[on]), n)
-
-    def dense(self) -> Any:
-        """The dense backend array (for tests and small inspections only)."""
-        xp = self.xp
-        eye = xp.asarray(np.eye(self.shape[0]))
-        return self.rmatmul(eye)
 
 
 def concat_columns(xp, blocks: list[SparseMatrix]) -> SparseMatrix:
