@@ -143,7 +143,8 @@ def _fan_files(tmp_path, backend: str):
     return paths
 
 
-@pytest.mark.parametrize("backend", ["jax", "torch"])
+# the torch variant takes 160 s on 2 cores (the doctor on eager torch: issue 18); its JAX variant stays in CI
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_a_parameter_depending_on_an_unused_column_is_found_and_the_column_declared(backend, tmp_path):
     train, val = _fan_files(tmp_path, backend)
     out = tmp_path / "ext.thn"
