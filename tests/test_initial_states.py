@@ -23,7 +23,7 @@ from tnn_dsl.compiler import backend_of
 from tnn_dsl.compiler.model import compile as compile_network
 from tnn_dsl.core import TnnError
 from tnn_dsl.data import Experiment, read_data
-from tnn_dsl.fit.initial import burn_in_samples, default_burn_in, fingerprint, initial_state
+from tnn_dsl.fit.initial import burn_in_samples, default_burn_in, fingerprint, free_run_start, initial_state
 from tnn_dsl.fit.model_files import TrainedModel, load_model
 from tnn_dsl.fit.simulation import error_metrics, free_run
 
@@ -128,6 +128,39 @@ def test_estimate_finds_an_off_rest_start_that_steady_and_measured_miss(backend)
     assert run.burn_in == 30 and np.abs(run.y - exp.outputs).max() < 1e-3
     run_m = free_run(model, params, exp, "measured")
     assert np.abs(run_m.y - exp.outputs)[30:].max() > 0.5
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_free_run_start_fits_the_whole_record(backend):
+    """``free_run_start`` (the start an ``--objective ml`` fit stores for a training file): the state from which the
+    free run over the whole record fits it, the hidden node included, from the noisy readings of the sensed one."""
+    net, model, params = _model(backend)
+    exp, T_true, _ = _simulated(backend, _prbs_inputs(3), noise=0.05, seed=3)
+    T0, rms = free_run_start(net, model, params, exp.inputs, exp.outputs, exp.dt)
+    assert np.abs(T0 - T_true).max() < 0.3, T0 - T_true  # b 8 K off rest, unsensed
+    assert rms == pytest.approx(0.05, rel=0.2)  # the noise, nothing more
+    # a record without a reading: the steady state of the first inputs, no fit
+    blind = np.full_like(exp.outputs, np.nan)
+    T0b, rmsb = free_run_start(net, model, params, exp.inputs, blind, exp.dt)
+    np.testing.assert_allclose(T0b, STEADY_5W, atol=1e-9)
+    assert np.isnan(rmsb)
+
+
+def test_start_range_of_a_fitted_initial_state_analytic():
+    """Where the trainer lets a training file's fitted initial state lie (``simulation.start_range``): from one data
+    span below the coldest reading (at least 10 K) to ``plausible_range``'s top, 100 spans above the hottest."""
+    from tnn_dsl.fit.simulation import START_PENALTY, start_range
+
+    _, model, _ = _model("jax")
+    t = np.arange(50, dtype=float)
+    y = (290.0 + 20.0 * t / 49.0)[:, None]  # 290 … 310 K: a span of 20 K
+    exp = Experiment(name="r", path="", t=t, dt=1.0, inputs=np.full((50, 1), 5.0), outputs=y, input_names=("P",),
+                     output_names=("Sa",))
+    assert start_range(model, exp) == pytest.approx((270.0, 310.0 + 100 * 20.0))
+    flat = Experiment(name="f", path="", t=t, dt=1.0, inputs=np.full((50, 1), 5.0), outputs=np.full((50, 1), 300.0),
+                      input_names=("P",), output_names=("Sa",))
+    assert start_range(model, flat)[0] == pytest.approx(290.0)  # at least 10 K
+    assert START_PENALTY > 0
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -160,3 +160,49 @@ def test_cli_objective_ml_json_meta_and_inspect(tmp_path):
     bad_cmd = [*TNNC, "train", str(net_path), str(path), "-o", str(tmp_path / "m2"), "--objective", "oe", "-q"]
     bad = subprocess.run(bad_cmd, capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "objective must be one of" in bad.stderr and "Traceback" not in bad.stderr
+
+
+HEATER = """
+network rc_heater "a sensed room and its unsensed heater"
+units temperature = K
+input Ta : temperature column "Ta"
+input P  : [W] column "P"
+boundary amb = Ta
+node n C = 100 J/K  free in [1 J/K, 10000 J/K]
+node h C = 10 J/K   free in [0.5 J/K, 1000 J/K]
+R h -- n = 0.1 K/W  free in [0.001 K/W, 10 K/W] as Rh
+R n -- amb = 0.5 K/W  free in [0.01 K/W, 50 K/W] as Rn
+source h = P
+sensor y = n column "y"
+"""
+
+
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
+def test_ml_fit_stores_a_free_run_start_for_its_training_file(backend, tmp_path):
+    """After ``--objective ml`` each training file keeps, as its free-run start, the state the free run with the
+    likelihood's parameters fits best (``free_run_start``), not the filter's prior mean ``x0`` (loose for the
+    unsensed heater: Bacher & Madsen's TiTh put it at −605.7 K): the model re-simulates its training file within
+    the physical range and about as well as the output-error fit does."""
+    from tnn_dsl.fit.initial import free_run_start
+
+    path = _white_noise_record(tmp_path, n=200, seed=5)
+    net = tnn_dsl.loads(HEATER, "rc_heater.thn")
+    opts = dict(epochs=60, integrator="expeuler", backend=backend, val_fraction=0.0)
+    oe = tnn_dsl.train(net, path, objective="output-error", **opts)
+    ml = tnn_dsl.train(net, path, objective="ml", **opts)
+    (exp,) = tnn_dsl.read_data(net, path)
+    (rec,) = ml.meta["initial_states"]
+    stored = np.array([rec["T0"][n] for n in ("n", "h")])
+    model = ml.compiled(backend)
+    want, _ = free_run_start(net, model, ml.backend_params(backend), exp.inputs, exp.outputs, exp.dt,
+                             integrator="expeuler")
+    np.testing.assert_allclose(stored, want, atol=1e-9)
+    assert 280.0 < stored[1] < 320.0, stored  # the heater near the room (296 K), not wherever x0 went
+    from tnn_dsl.fit.simulation import start_range
+
+    lo, hi = start_range(oe.compiled(backend), exp)  # the output-error fit's own fitted start, fenced in training
+    assert all(lo <= v <= hi for v in oe.meta["initial_states"][0]["T0"].values())
+    (pred,) = ml.predict(path, backend=backend)
+    assert pred["init"] == "stored"
+    mae_ml, mae_oe = ml.evaluate(path, backend=backend)["mae"], oe.evaluate(path, backend=backend)["mae"]
+    assert mae_ml < 1.5 * mae_oe + 0.02, (mae_ml, mae_oe)

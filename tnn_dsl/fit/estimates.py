@@ -27,6 +27,7 @@ from ..core import Diagnostic, TnnError
 from ..estimation import Estimates, fit_ml, output_error_estimates
 from ..estimation.estimates import file_temperatures
 from .config import OBJECTIVES
+from .initial import free_run_start
 from .simulation import free_run
 
 __all__ = ["OBJECTIVES", "scored_records", "output_error_summary", "ml_refit", "estimation_meta",
@@ -114,8 +115,12 @@ def ml_refit(trained: Any, model: Any, exps: list, cfg: Any, log: Callable[[str]
         log(f"likelihood fit: log L {est.loglik:.2f} from {label}" + (f" ({others})" if others else ""))
     for name, v in est.fitted.items():
         trained.params[name] = np.asarray(v, dtype=np.float64).reshape(np.shape(trained.params[name]))
+    # each training file's stored start is refitted for a free run with the new parameters (free_run_start):
+    # the likelihood's x0 (in the table) is the filter's prior mean, loose for an unsensed node
     names = list(model.state_names)
-    by_name = {n: T for n, T in zip((r[0] for r in recs), est.initial_states)}
+    params = trained.backend_params(cfg.backend)
+    by_name = {n: free_run_start(trained.network, model, params, U, Y, dt, integrator=cfg.integrator,
+                                 substeps=cfg.substeps)[0] for n, U, Y, dt, _ in recs}
     for rec in trained.meta.get("initial_states") or []:
         T = by_name.get(rec.get("name"))
         if T is not None:

@@ -401,14 +401,7 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
         ini.params = pe
         return ini
     names = tuple(pe)
-    fit = _BurnInFit(model, float(exp.dt), b, integrator, substeps, names)
-    sensed = np.zeros(len(model.state_names), dtype=bool)
-    for i, j, _ in sensed_states(model, net, None):
-        sensed[i] = bool(np.isfinite(Y[0, j]))
-    prior = np.concatenate([measured, [pe[k] for k in names]])
-    prior_std = np.concatenate([np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K),
-                                [_param_prior_std(net, k, pe[k]) for k in names]])
-    x, rms = fit.solve(model, params, U[:b], Y[:b], prior, prior_std)
+    x, rms = _map_start(net, model, params, U[:b], Y[:b], float(exp.dt), measured, pe, integrator, substeps)
     if not np.all(np.isfinite(x)):
         raise TnnError(Diagnostic("the initial state could not be estimated from the burn-in (not finite)",
                                   hint="try --init measured, or a longer --burn-in"))
@@ -418,6 +411,45 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
     return InitialState(x[:ns], 0, b, "estimate",
                         [f"note: initial state{also} estimated from the first {span}, not scored (RMS there "
                          f"{rms:.3g} K)"], params=values)
+
+
+def _map_start(net: Network, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, dt: float,
+               measured: np.ndarray, pe: Mapping[str, float], integrator: str,
+               substeps: int | None) -> tuple[np.ndarray, float]:
+    """The ``estimate`` rule's fit over ``U (n, n_in)``, ``Y (n, n_out)``: the initial state (then the
+    per-experiment values ``pe``) around the ``measured`` state, tight for sensed states, weak for the others;
+    returns ``(x, rms K)``."""
+    names = tuple(pe)
+    fit = _BurnInFit(model, dt, len(U), integrator, substeps, names)
+    sensed = np.zeros(len(model.state_names), dtype=bool)
+    for i, j, _ in sensed_states(model, net, None):
+        sensed[i] = bool(np.isfinite(Y[0, j]))
+    prior = np.concatenate([measured, [pe[k] for k in names]])
+    prior_std = np.concatenate([np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K),
+                                [_param_prior_std(net, k, pe[k]) for k in names]])
+    return fit.solve(model, params, U, Y, prior, prior_std)
+
+
+def free_run_start(net: Network, model: Any, params: Mapping[str, Any], inputs: np.ndarray, outputs: np.ndarray,
+                   dt: float, *, integrator: str = "rk4", substeps: int | None = None) -> tuple[np.ndarray, float]:
+    """The initial state ``(n_states,)`` K from which a free run with ``params`` fixed best fits a whole record
+    (``inputs (n, n_in)`` SI, ``outputs (n, n_out)`` K, NaN where missing): the ``estimate`` rule's fit with the
+    whole record as its burn-in. Returns ``(T0, rms K)``.
+
+    What a training file stores when its parameters were not fitted by free runs (``--objective ml``): the
+    likelihood's own initial state is the filter's prior mean, which an unsensed node barely constrains (the first
+    updates move the state wherever the data says), so it is no start for a free run."""
+    U = np.asarray(inputs, dtype=np.float64)
+    Y = np.asarray(outputs, dtype=np.float64)
+    y0 = Y[0] if np.isfinite(Y[0]).any() else None
+    _, measured = measured_state(net, model, params, U[0], y0)
+    if len(U) < 2 or not np.isfinite(Y).any():
+        return measured, math.nan
+    x, rms = _map_start(net, model, params, U, Y, float(dt), measured, {}, integrator, substeps)
+    if not np.all(np.isfinite(x)):
+        raise TnnError(Diagnostic("the initial state for a free run could not be estimated (not finite)",
+                                  hint="check the fitted parameters"))
+    return x, rms
 
 
 def _param_prior_std(net: Network, name: str, value: float) -> float:

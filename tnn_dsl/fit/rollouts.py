@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from .initial import check_rule, fingerprint, initial_state, measured_arrays, sensed_states
+from .simulation import start_range
 from .transforms import _NumpyOps
 from .windows import _Window, _windows, auto_window
 
@@ -177,6 +178,10 @@ class _Rollouts:
                 guess[w_i] = np.where(m, v, guess[w_i])
             self.x0_guess = guess
             self.n_x0 = len(wins)
+            # where a fitted initial state may lie (a penalty outside: start_range), per window's file
+            bounds = [start_range(self.model, self.exps[w.exp]) for w in wins]
+            self.x0_low = np.array([b[0] for b in bounds])[:, None] * np.ones((1, n_states))
+            self.x0_high = np.array([b[1] for b in bounds])[:, None] * np.ones((1, n_states))
         self.wins = wins
         for (dt, L, e_i), ids in by_len.items():
             U = np.stack([np.asarray(self.exps[wins[i].exp].inputs, dtype=float)[wins[i].start:wins[i].start + L]

@@ -108,6 +108,33 @@ def plausible_range(model: Any, exp: Experiment) -> tuple[float, float]:
     return max(lo - span * IMPLAUSIBLE_SPANS_BELOW, 0.0), hi + span * IMPLAUSIBLE_SPANS
 
 
+START_SPANS_BELOW = 1.0
+"""A fitted initial state may lie this many data spans below the data's coldest temperature (a node does not start
+far colder than everything measured unless something cools it; the high side is :func:`plausible_range`'s)."""
+
+START_PENALTY = 1.0
+"""Weight (per K², beside the mean squared error in K²) of a fitted initial state's distance outside
+:func:`start_range` in the training loss: zero inside, so it changes no fit that starts within the range."""
+
+
+def start_range(model: Any, exp: Experiment) -> tuple[float, float]:
+    """``(low, high)`` K where the fitted initial state of a training file on ``exp`` may lie:
+    :func:`plausible_range` with the low side ``START_SPANS_BELOW`` data spans below the coldest temperature.
+    Without it an unsensed fast node's start is a free kick: Bacher & Madsen's TiTeTh fitted its heater node to
+    start at −605.7 K, which the free-run check then refuses."""
+    lo, hi = plausible_range(model, exp)
+    parts = [np.asarray(exp.outputs, dtype=float).ravel()]
+    temp_inputs = [k for k, inp in enumerate(model.network.inputs) if inp.is_temperature]
+    if temp_inputs and np.size(exp.inputs):
+        parts.append(np.asarray(exp.inputs, dtype=float)[:, temp_inputs].ravel())
+    vals = np.concatenate(parts)
+    vals = vals[np.isfinite(vals)]
+    if vals.size:
+        span = max(float(vals.max() - vals.min()), 10.0)
+        lo = max(lo, float(vals.min()) - START_SPANS_BELOW * span)
+    return lo, hi
+
+
 def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray, start: int = 0) -> None:
     """Raise :class:`~tnn_dsl.core.TnnError` if a free run over ``exp`` (simulated from row ``start`` on) produced
     a non-finite temperature or one outside :func:`plausible_range`: the message names the first node (or

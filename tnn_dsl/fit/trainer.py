@@ -43,7 +43,7 @@ from .config import TrainConfig
 from .initial import check_rule
 from .model_files import load_model
 from .rollouts import _Rollouts, _safe
-from .simulation import free_run, simulate
+from .simulation import START_PENALTY, free_run, simulate
 from .transforms import _from_z, _make_slot, _NumpyOps, _sigmoid_to_tanh, _Slot, _tanh_to_sigmoid, _to_z
 
 
@@ -443,6 +443,8 @@ class _Trainer(_Rollouts):
         n_states = len(model.state_names)
         n_x0, n_param_z = self.n_x0, self.n_param_z
         x0_guess = ops.asarray(self.x0_guess) if n_x0 else None
+        x0_low = ops.asarray(self.x0_low) if n_x0 else None
+        x0_high = ops.asarray(self.x0_high) if n_x0 else None
         n_windows = sum(st["B"] for st in statics)
         n_valid = max(sum(st["n_valid"] for st in statics), 1)
 
@@ -472,6 +474,10 @@ class _Trainer(_Rollouts):
                 total = total + cfg.lam * mx / n_windows
             if n_x0 and cfg.continuity > 0:
                 total = total + cfg.continuity * cont
+            if n_x0:  # a fitted start outside the data's range is no start (simulation.start_range)
+                below = ops.where(X0 < x0_low, x0_low - X0, 0.0 * X0)
+                above = ops.where(X0 > x0_high, X0 - x0_high, 0.0 * X0)
+                total = total + START_PENALTY * ops.sum(below * below + above * above)
             for sl, w, ref, den in self.reg:
                 dv = (params[sl.name] - ops.asarray(ref)) / ops.asarray(den)
                 total = total + w * ops.sum(dv * dv)
