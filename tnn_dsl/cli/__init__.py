@@ -30,6 +30,7 @@ COMMANDS = {
     "generate": "_generate",
     "estimate": "_estimate",
     "compare": "_compare",
+    "fleet": "_fleet",
     "demo": "_demo",
 }
 

@@ -1,0 +1,254 @@
+"""Fleets (issue 19, tnn_dsl/fleet): the fleet's description (directories, YAML manifests and their errors), the
+per-unit overrides, the report's robust statistics, and runs on a local Ray with 2 CPUs: the same results as the
+units one by one in this process, a bad unit isolated, Ctrl-C and a killed run resumed without losing or redoing a
+finished unit."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import tnn_dsl
+from tnn_dsl.core import TnnError
+from tnn_dsl.fleet import (
+    FleetOptions,
+    fleet_report,
+    generate_fleet,
+    read_fleet,
+    robust_z,
+    run_fleet,
+    template_path,
+    unit_network,
+)
+from tnn_dsl.fleet.report import OUTLIER_Z
+
+ROOT = Path(__file__).resolve().parents[1]
+TNNC = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())"]
+
+
+def _fleet(tmp_path: Path, n: int = 4, faulty: int = 1, seed: int = 0) -> Path:
+    out = tmp_path / "fleet"
+    generate_fleet(out, n_units=n, n_faulty=faulty, n_train=300, n_val=150, seed=seed, kinds=("sensor_lag",))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the fleet's description
+# ---------------------------------------------------------------------------------------------
+
+
+def test_directory_fleets_one_unit_per_subdirectory_or_per_file(tmp_path):
+    d = tmp_path / "units"
+    (d / "b1").mkdir(parents=True)
+    (d / "b2").mkdir()
+    (d / "b1" / "prbs.csv").write_text("t,x\n0,1\n")
+    (d / "b1" / "val_setpoint.csv").write_text("t,x\n0,1\n")
+    (d / "b2" / "run.csv").write_text("t,x\n0,1\n")
+    fl = read_fleet(d)
+    assert fl.names() == ["b1", "b2"]
+    b1 = fl.units[0]
+    assert [Path(p).name for p in b1.train] == ["prbs.csv"] and [Path(p).name for p in b1.val] == ["val_setpoint.csv"]
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for k in (2, 1):
+        (flat / f"unit{k}.csv").write_text("t,x\n0,1\n")
+    assert read_fleet(flat).names() == ["unit1", "unit2"]
+
+
+def test_manifest_with_overrides_and_its_errors(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "d.csv").write_text("t,x\n0,1\n")
+    m = tmp_path / "fleet.yaml"
+    m.write_text("units:\n  - name: u1\n    train: [a/d.csv]\n    columns: {T1: \"T1 (degC)\"}\n"
+                 "    params: {Ta: 22.5 degC}\n")
+    fl = read_fleet(tmp_path)  # a directory holding fleet.yaml is read as the manifest
+    (u,) = fl.units
+    assert u.name == "u1" and dict(u.columns) == {"T1": "T1 (degC)"} and dict(u.params) == {"Ta": "22.5 degC"}
+
+    m.write_text("units:\n  - name: u1\n    trian: [a/d.csv]\n")
+    with pytest.raises(TnnError) as e:
+        read_fleet(m)
+    text = str(e.value)
+    assert f"{m}:3:5: error: unknown key 'trian' in a unit" in text and "did you mean `train`?" in text
+    assert "    trian: [a/d.csv]" in text and "^" in text
+
+    m.write_text("units:\n  - name: u1\n    train: [../outside.csv]\n")
+    (tmp_path.parent / "outside.csv").write_text("t,x\n0,1\n")
+    with pytest.raises(TnnError, match="lies outside the manifest's directory"):
+        read_fleet(m)
+    os.symlink(tmp_path.parent / "outside.csv", tmp_path / "link.csv")
+    m.write_text("units:\n  - name: u1\n    train: [link.csv]\n")
+    with pytest.raises(TnnError, match="lies outside the manifest's directory"):  # a link is followed, then refused
+        read_fleet(m)
+    m.write_text("units:\n  - name: u1\n    train: [a/d.csv]\n  - name: u1\n    train: [a/d.csv]\n")
+    with pytest.raises(TnnError, match="unit 'u1' is listed twice") as e:
+        read_fleet(m)
+    assert "first listed here" in str(e.value)
+    m.write_text("units:\n  - name: ../evil\n    train: [a/d.csv]\n")
+    with pytest.raises(TnnError, match="not usable as a directory name"):
+        read_fleet(m)
+    m.write_text("units: [\n")
+    with pytest.raises(TnnError, match="not valid YAML"):
+        read_fleet(m)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(max_size=200))
+def test_any_manifest_text_is_a_fleet_or_a_clear_error(tmp_path, text):
+    """Whatever a manifest holds: a fleet, or a TnnError (never another exception, never a file outside read)."""
+    m = tmp_path / "fleet.yaml"
+    m.write_text(text, encoding="utf-8")
+    try:
+        fl = read_fleet(m)
+    except TnnError as e:
+        assert str(e).strip()
+    else:
+        for u in fl.units:
+            for f in (*u.train, *u.val):
+                assert Path(f).resolve().is_relative_to(tmp_path.resolve())
+
+
+def test_unit_overrides_rename_columns_and_fix_known_values():
+    net = tnn_dsl.load(template_path())
+    unet = unit_network(net, {"name": "u", "columns": {"T1": "temp1"}, "params": {"Ta": "22.5 degC"}})
+    assert next(s for s in unet.sensors if s.name == "T1").column == "temp1"
+    ta = unet.param("Ta")
+    assert ta.value == pytest.approx(295.65) and not ta.free
+    assert net.param("Ta").free  # the template is untouched
+    with pytest.raises(TnnError, match="wrong dimension"):
+        unit_network(net, {"name": "u", "params": {"Ta": "3 W/K"}})
+    with pytest.raises(TnnError, match="neither an input nor a sensor"):
+        unit_network(net, {"name": "u", "columns": {"T9": "x"}})
+    with pytest.raises(TnnError, match="not a parameter of network"):
+        unit_network(net, {"name": "u", "params": {"Cx": "1 J/K"}})
+
+
+# ---------------------------------------------------------------------------------------------
+# the report's statistics
+# ---------------------------------------------------------------------------------------------
+
+
+def test_robust_z_analytic():
+    med, s, z = robust_z(np.array([1.0, 2.0, 3.0, 4.0, 100.0]))
+    assert med == 3.0 and s == pytest.approx(1.4826)  # MAD = median(|[-2,-1,0,1,97]|) = 1
+    assert z[-1] == pytest.approx(97 / 1.4826)
+
+
+def test_report_flags_a_parameter_outlier_with_a_reading_and_groups_findings():
+    net = tnn_dsl.load(template_path())
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(12):
+        u2 = 0.02 * (1 + rng.uniform(-0.1, 0.1)) * (0.6 if i == 7 else 1.0)
+        rows.append({"unit": f"b{i}", "status": "ok", "val_mae": 0.016, "gain": 1.0,
+                     "params": {"U2": {"estimate": u2, "se": 1e-5, "status": "ok", "unit_si": "W/K"},
+                                "C_h1": {"estimate": 4.0 + 0.01 * i, "se": None, "status": "not identifiable"}},
+                     "findings": ([{"kind": "sensor_lag", "target": "T1", "depends_on": [], "accepted": True}]
+                                  if i in (3, 5) else [])})
+    rows.append({"unit": "bad", "status": "failed", "reason": "data.csv:3:1: error: ...", "params": {}, "findings": []})
+    rep = fleet_report(rows, net)
+    (o,) = rep["outliers"]
+    assert o["unit"] == "b7" and o["parameter"] == "U2" and o["z"] <= -OUTLIER_Z
+    assert re.search(r"U2 is 3[5-9] % below the fleet median: less heat flows from h2 to amb", o["reading"])
+    assert "C_h1" not in rep["distributions"]  # no standard error: no distribution, no outlier
+    assert rep["groups"] == {"sensor lag on T1": ["b3", "b5"]}
+    flagged = sorted(u["unit"] for u in rep["units"] if u["flagged"])
+    assert flagged == ["b3", "b5", "b7"]
+    assert rep["counts"] == {"units": 13, "ok": 12, "failed": 1, "error": 0, "flagged": 3}
+
+
+# ---------------------------------------------------------------------------------------------
+# runs
+# ---------------------------------------------------------------------------------------------
+
+
+def _strip(row: dict) -> dict:
+    return {k: v for k, v in row.items() if k not in ("seconds", "key")}
+
+
+def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
+    """Six generated boards (one with a 25 s lag on T1) and one unit whose file is not a data file: on a local Ray
+    with 2 CPUs every good unit's result equals the in-process run's (to round-off), the bad one has a row saying
+    why, the lagging board is the one flagged; a re-run skips every unit."""
+    fl = _fleet(tmp_path, n=6, faulty=1, seed=2)
+    (fl / "broken").mkdir()
+    (fl / "broken" / "train.csv").write_text("time_s,Q1_pct\n0,1\n1,x\n")
+    opts = FleetOptions(mode="train", epochs=60)
+    serial = run_fleet(template_path(), fl, tmp_path / "serial", options=opts, workers=0)
+    ray_run = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2)
+    assert [r["unit"] for r in ray_run.rows] == [r["unit"] for r in serial.rows]
+    for a, b in zip(serial.rows, ray_run.rows):
+        assert a["status"] == b["status"]
+        if a["status"] == "ok":
+            for k, p in a["params"].items():
+                assert b["params"][k]["estimate"] == pytest.approx(p["estimate"], rel=1e-8, abs=1e-12), (a["unit"], k)
+            assert b["val_mae"] == pytest.approx(a["val_mae"], rel=1e-8)
+    broken = next(r for r in ray_run.rows if r["unit"] == "broken")
+    assert broken["status"] == "failed" and "train.csv" in broken["reason"]
+    truth = json.loads((fl / "truth.json").read_text())
+    lagging = [u for u, t in truth["units"].items() if t["fault"]]
+    assert sorted(u["unit"] for u in ray_run.report["units"] if u["flagged"]) == lagging
+    for name in ("report.json", "report.html", "fleet.json"):
+        assert (tmp_path / "ray" / name).is_file()
+    doc = json.loads((tmp_path / "ray" / "report.json").read_text())
+    assert {"unit", "status", "val_mae", "findings", "gain"} <= set(doc["units"][0])
+    assert (tmp_path / "ray" / "units" / lagging[0] / "model" / "meta.json").is_file()
+    again = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2)
+    assert again.ran == [] and len(again.skipped) == 7
+    with pytest.raises(TnnError, match="holds a fleet run of other options"):
+        run_fleet(template_path(), fl, tmp_path / "ray", options=FleetOptions(mode="train", epochs=61), workers=0)
+
+
+def _wait_for_results(out: Path, n: int, proc: subprocess.Popen, timeout: float = 300.0) -> list[Path]:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        done = sorted((out / "units").glob("*/result.json")) if (out / "units").is_dir() else []
+        if len(done) >= n:
+            return done
+        if proc.poll() is not None:
+            raise AssertionError(f"the fleet run ended before {n} results: {proc.stderr.read() if proc.stderr else ''}")
+        time.sleep(0.2)
+    raise AssertionError("no result in time")
+
+
+@pytest.mark.parametrize("how", ["ctrl-c on ray", "killed in process"])
+def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
+    """``tnnc fleet train`` stopped after its first finished unit (SIGINT on a local Ray: exit 130; SIGKILL of a
+    run in this process): every finished unit stays on disk, and the same command finishes the rest without redoing
+    them."""
+    fl = _fleet(tmp_path, n=5, faulty=0, seed=4)
+    out = tmp_path / "out"
+    workers = "2" if how == "ctrl-c on ray" else "0"
+    cmd = TNNC + ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers",
+                  workers, "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = _wait_for_results(out, 1, proc)
+        proc.send_signal(signal.SIGINT if how == "ctrl-c on ray" else signal.SIGKILL)
+        rc = proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == (130 if how == "ctrl-c on ray" else -signal.SIGKILL)
+    kept = {p.parent.name: p.stat().st_mtime_ns for p in sorted((out / "units").glob("*/result.json"))}
+    assert first[0].parent.name in kept
+    for name in kept:
+        assert json.loads((out / "units" / name / "result.json").read_text())["status"] == "ok"
+    res = subprocess.run(cmd[:-1] + ["--json", "-"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout[res.stdout.index("{"):res.stdout.rindex("}") + 1])
+    assert [u["status"] for u in doc["units"]] == ["ok"] * 5
+    for name, mtime in kept.items():  # not redone
+        assert (out / "units" / name / "result.json").stat().st_mtime_ns == mtime
+    assert not [p for p in (out / "units").iterdir() if p.name.startswith(".")]  # no leftovers

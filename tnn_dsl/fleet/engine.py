@@ -1,0 +1,321 @@
+"""Running a fleet: every unit's work (:func:`tnn_dsl.fleet.units.run_unit`) as a Ray task, each result written
+atomically under ``OUT/units/<unit>/`` as it arrives, then the fleet report.
+
+* **Ray**: a local Ray started on demand (``ray.init(num_cpus=workers)``) and stopped at the end, or an existing
+  cluster (``address="auto"`` or ``"HOST:PORT"``, left running). ``workers=0`` runs the units one by one in this
+  process, without Ray (the reference the Ray path is tested against).
+* **Resume**: a unit whose ``result.json`` holds the same key (template text, the unit's entry, the options, the
+  SHA-256 of its data files: :func:`~tnn_dsl.fleet.units.unit_key`) is not run again; a unit that ended in an
+  internal error is.
+* **Isolation**: a unit whose data cannot be read, or whose fit fails, gets a ``failed`` row saying why; the rest
+  go on. A worker that dies is retried once by Ray (``max_retries=1``), then the unit is reported as ``error``.
+* **Ctrl-C**: the pending tasks are cancelled; every unit whose result had arrived is on disk (each is written as
+  it arrives); the next run continues from there.
+* Only the driver reads the data files and writes ``OUT`` (the workers receive arrays and return bytes), so a
+  cluster needs no shared file system: only ``tnn_dsl`` installed on its nodes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from ..core import Diagnostic, OutputKind, TnnError, check_output, file_sha256, fsync_dir, write_text_atomic
+from ..core.files import exchange_paths
+from .manifest import Fleet, read_fleet
+from .units import FleetOptions, run_unit, unit_key, unit_network
+
+__all__ = ["run_fleet", "FleetRun", "FLEET_DIR", "RESULT_FILE", "load_results"]
+
+RESULT_FILE = "result.json"
+FLEET_FILE = "fleet.json"
+
+
+def _is_fleet_dir(p: Path) -> bool:
+    return (p / FLEET_FILE).is_file() and (p / "units").is_dir() or not any(p.iterdir())
+
+
+FLEET_DIR = OutputKind("fleet output directory", is_dir=True, ours=_is_fleet_dir, example="fleet_out/")
+
+
+@dataclass
+class FleetRun:
+    """What :func:`run_fleet` did: ``rows`` (one result row per unit, in the fleet's order, without the model
+    bytes), ``ran``/``skipped`` (unit names run now / found finished), ``interrupted`` (Ctrl-C), ``out`` (the
+    directory), ``seconds``, ``report`` (the fleet report, :func:`tnn_dsl.fleet.report.fleet_report`)."""
+
+    rows: list[dict[str, Any]]
+    ran: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    interrupted: bool = False
+    out: str = ""
+    seconds: float = 0.0
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+def _unit_dir(out: Path, name: str) -> Path:
+    return out / "units" / name
+
+
+def load_results(out: str | os.PathLike) -> dict[str, dict[str, Any]]:
+    """``{unit: row}`` of the finished units under ``out`` (their ``result.json``); unreadable ones are left out
+    (they are run again)."""
+    res = {}
+    base = Path(out) / "units"
+    if not base.is_dir():
+        return res
+    for d in sorted(base.iterdir()):
+        f = d / RESULT_FILE
+        if d.is_dir() and not d.name.startswith(".") and f.is_file():
+            try:
+                row = json.loads(f.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                continue
+            if isinstance(row, dict) and row.get("unit") == d.name:
+                res[d.name] = row
+    return res
+
+
+def _write_unit(out: Path, row: dict[str, Any], key: str) -> dict[str, Any]:
+    """Write one unit's result in one step: everything into a hidden sibling directory, then renamed (or swapped
+    with the unit's previous result, which is then removed) into ``OUT/units/<unit>/``."""
+    name = row["unit"]
+    final = _unit_dir(out, name)
+    tmp = out / "units" / f".{name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)  # our own leftover from a killed run (hidden name with our pid)
+    tmp.mkdir(parents=True)
+    model = row.pop("model", None) or {}
+    if model:
+        (tmp / "model").mkdir()
+        for fname, data in model.items():
+            (tmp / "model" / Path(fname).name).write_bytes(data)
+    if row.get("extended"):
+        (tmp / "extended.thn").write_text(row["extended"], encoding="utf-8")
+    doc = {**row, "key": key}
+    (tmp / RESULT_FILE).write_text(json.dumps(doc, indent=1, default=_jsonable), encoding="utf-8")
+    fsync_dir(tmp)
+    if final.exists():
+        if not exchange_paths(tmp, final):
+            old = out / "units" / f".{name}.old-{os.getpid()}"
+            os.rename(final, old)
+            os.rename(tmp, final)
+            tmp = old
+        shutil.rmtree(tmp)  # the unit's previous result, replaced by this one (its key had changed)
+    else:
+        os.rename(tmp, final)
+    fsync_dir(out / "units")
+    return doc
+
+
+def _remove_partial_writes(out: Path) -> None:
+    """A killed run may leave a unit half written in a hidden ``.<unit>.tmp-<pid>`` (or a replaced result in
+    ``.<unit>.old-<pid>``): never a finished result (that is only ever ``units/<unit>/``); removed."""
+    import re
+
+    pat = re.compile(r"^\..+\.(tmp|old)-\d+$")
+    for p in (out / "units").iterdir():
+        if p.is_dir() and not p.is_symlink() and pat.match(p.name):
+            shutil.rmtree(p)
+
+
+def _jsonable(x: Any) -> Any:
+    from ..core.jsonable import to_jsonable
+
+    return to_jsonable(x)
+
+
+def _read_unit(net, unit) -> tuple[list, list]:
+    from ..data import read_data
+
+    unet = unit_network(net, unit.to_dict())
+    train = read_data(unet, list(unit.train))
+    val = read_data(unet, list(unit.val)) if unit.val else []
+    return train, val
+
+
+def _task(template_text: str, template_file: str, unit: dict[str, Any], train: list, val: list,
+          options: FleetOptions) -> dict[str, Any]:
+    """One unit in a worker (or in this process): the template parsed, the overrides applied, the work done."""
+    from ..lang import loads
+
+    try:
+        torch_threads()
+        net = unit_network(loads(template_text, template_file), unit)
+    except TnnError as e:
+        return {"unit": unit["name"], "status": "failed", "reason": str(e).strip(), "params": {}, "findings": []}
+    return run_unit(net, unit, train, val, options)
+
+
+def torch_threads() -> None:
+    """One intra-op thread per worker (the workers share the cores)."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except Exception:  # noqa: BLE001 - torch absent or already set: nothing to do
+        pass
+
+
+def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out: str | os.PathLike, *,
+              options: FleetOptions | None = None, workers: int = 2, address: str | None = None,
+              force: bool = False, progress: Callable[[str], None] | None = None) -> FleetRun:
+    """Fit (``options.mode="train"``) or diagnose (``"diagnose"``) every unit of ``fleet`` with the network template
+    ``network`` (a ``.thn`` path), writing each unit's result under ``out/units/<unit>/`` and the fleet report
+    (``out/report.json``, ``out/report.html``). ``workers``: Ray CPUs of a local Ray (0: this process, no Ray);
+    ``address``: an existing Ray cluster (``"auto"`` or ``"HOST:PORT"``). ``force``: allow ``out`` to hold a
+    fleet run with other options or another network (its units are then redone as their keys differ).
+    Returns a :class:`FleetRun`; Ctrl-C returns one with ``interrupted`` set after the finished units are written."""
+    from ..lang import load
+
+    t0 = time.perf_counter()
+    say = progress or (lambda s: None)
+    options = options or FleetOptions()
+    fl = fleet if isinstance(fleet, Fleet) else read_fleet(fleet)
+    template_path = Path(network)
+    inputs = [str(template_path), fl.source] + [f for u in fl.units for f in (*u.train, *u.val)]
+    outp = check_output(out, FLEET_DIR, inputs=inputs, force=force, option="-o")
+    net = load(template_path)
+    template_text = template_path.read_text(encoding="utf-8")
+    _check_same_run(outp, net.name, template_text, options, force)
+    (outp / "units").mkdir(parents=True, exist_ok=True)
+    _remove_partial_writes(outp)
+    header = {"tool": "tnnc fleet", "network": net.name, "template": str(template_path),
+              "template_sha256": _sha(template_text), "fleet": fl.source, "options": options.to_dict(),
+              "units": [u.name for u in fl.units], "status": "running", "started": time.time()}
+    write_text_atomic(outp / FLEET_FILE, json.dumps(header, indent=1))
+
+    done = load_results(outp)
+    rows: dict[str, dict[str, Any]] = {}
+    jobs: list[tuple[Any, ...]] = []
+    keys: dict[str, str] = {}
+    run = FleetRun(rows=[], out=str(outp))
+    for u in fl.units:
+        try:
+            digest = "+".join(file_sha256(f) for f in (*u.train, *u.val))
+        except OSError as e:
+            digest = f"unreadable: {e}"
+        key = keys[u.name] = unit_key(template_text, u.to_dict(), options, digest)
+        prev = done.get(u.name)
+        if prev is not None and prev.get("key") == key and prev.get("status") in ("ok", "failed"):
+            rows[u.name] = prev
+            run.skipped.append(u.name)
+            continue
+        try:
+            train, val = _read_unit(net, u)
+        except TnnError as e:  # the unit's data is at fault: its row says why, the rest go on
+            rows[u.name] = _write_unit(outp, {"unit": u.name, "status": "failed", "reason": str(e).strip(),
+                                              "params": {}, "findings": [], "val_mae": None, "gain": None}, key)
+            run.ran.append(u.name)
+            say(f"{u.name}: failed: {str(e).strip().splitlines()[0]}")
+            continue
+        jobs.append((template_text, str(template_path), u.to_dict(), train, val, options))
+    if run.skipped:
+        say(f"{len(run.skipped)} of {len(fl.units)} units already finished in {outp}: not run again")
+
+    def arrived(row: dict[str, Any]) -> None:
+        rows[row["unit"]] = _write_unit(outp, row, keys[row["unit"]])
+        run.ran.append(row["unit"])
+        n = len(rows)
+        extra = f" ({row.get('reason', '').splitlines()[0]})" if row.get("status") != "ok" and row.get("reason") else ""
+        say(f"[{n}/{len(fl.units)}] {row['unit']}: {row.get('status')}{extra}")
+
+    try:
+        if jobs:
+            if workers <= 0 and address is None:
+                for job in jobs:
+                    arrived(_task(*job))
+            else:
+                _run_on_ray(jobs, workers, address, arrived, say)
+    except KeyboardInterrupt:
+        run.interrupted = True
+        say(f"interrupted: {len(rows)} of {len(fl.units)} units finished and written; run the same command again "
+            "to continue")
+    from .report import fleet_report, write_report
+
+    run.rows = [rows[u.name] for u in fl.units if u.name in rows]
+    run.report = fleet_report(run.rows, net)
+    write_report(run.report, outp)
+    header.update(status="interrupted" if run.interrupted else "finished", finished=time.time(),
+                  ran=len(run.ran), skipped=len(run.skipped))
+    write_text_atomic(outp / FLEET_FILE, json.dumps(header, indent=1))
+    run.seconds = time.perf_counter() - t0
+    return run
+
+
+def _sha(text: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _check_same_run(out: Path, network: str, template_text: str, options: FleetOptions, force: bool) -> None:
+    f = out / FLEET_FILE
+    if not f.is_file() or force:
+        return
+    try:
+        prev = json.loads(f.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    if prev.get("template_sha256") != _sha(template_text) or prev.get("options") != options.to_dict():
+        what = "another network" if prev.get("template_sha256") != _sha(template_text) else "other options"
+        raise TnnError(Diagnostic(
+            f"-o {out}: holds a fleet run of {what} (network {prev.get('network')!r}, options {prev.get('options')})",
+            hint="write to a new directory; or add --force to redo every unit there with this network and these "
+                 "options (each unit's previous result is replaced as its new one arrives)"))
+
+
+def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable[[dict], None],
+                say: Callable[[str], None]) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise TnnError(Diagnostic("fleets run on Ray, which is not installed",
+                                  hint="pip install 'tnn_dsl[fleet]' (or ray); or run in this process with "
+                                       "--workers 0")) from None
+    started = False
+    if not ray.is_initialized():
+        env = {"env_vars": {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                            "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}}
+        kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "runtime_env": env,
+                              "logging_level": "ERROR"}
+        t = time.perf_counter()
+        if address is not None:
+            ray.init(address=address, **kw)
+            say(f"connected to the Ray cluster at {address} in {time.perf_counter() - t:.1f} s")
+        else:
+            ray.init(num_cpus=max(int(workers), 1), **kw)
+            say(f"local Ray with {max(int(workers), 1)} CPUs started in {time.perf_counter() - t:.1f} s")
+        started = True
+    task = ray.remote(num_cpus=1, max_retries=1, retry_exceptions=False)(_task)
+    refs = {task.remote(*job): job[2]["name"] for job in jobs}
+    pending = list(refs)
+    try:
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1, timeout=0.5)  # Ctrl-C is seen between waits
+            for r in ready:
+                try:
+                    row = ray.get(r)
+                except ray.exceptions.RayError as e:  # the worker died (twice: Ray retried once) or was lost
+                    row = {"unit": refs[r], "status": "error", "params": {}, "findings": [],
+                           "reason": f"the worker running this unit died and its retry too: {type(e).__name__}: "
+                                     f"{str(e).strip().splitlines()[0] if str(e).strip() else ''}"}
+                arrived(row)
+    except KeyboardInterrupt:
+        # a local Ray is stopped below (its workers with it); on a cluster the pending tasks are cancelled without
+        # force (Ray 2.60 aborts the driver when a forced cancel races a task that is just completing)
+        if not started:
+            for r in pending:
+                try:
+                    ray.cancel(r, force=False)
+                except Exception:  # noqa: BLE001 - a task that finished meanwhile: nothing to cancel
+                    pass
+        raise
+    finally:
+        if started:
+            ray.shutdown()
