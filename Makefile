@@ -6,7 +6,7 @@ TNNC   := $(VENV)/bin/tnnc
 STAMP  := $(VENV)/.installed
 JOBS   ?= 2
 
-.PHONY: venv demo test test-all lint bench check clean
+.PHONY: venv demo test test-all lint bench check clean browser
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,14 +25,23 @@ check: $(STAMP)
 
 # The fast suite (CI runs this): lint (ruff), the layering of the packages (import-linter: see pyproject.toml),
 # then the tests; slow training/diagnosis tests have fast variants that run here.
-test: $(STAMP) lint
+# Headless Chromium from Debian's packages, for the browser tests of the HTML reports (tests/test_reports_in_browser.py
+# skip without it). Installed with apt-get where this runs as root; elsewhere the command to run is printed.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium) \
+	      >/dev/null 2>&1 || echo "warning: could not install chromium; the browser tests will be skipped"; \
+	  else echo "note: install chromium (sudo apt-get install chromium) to run the browser tests"; fi; }
+
+test: $(STAMP) lint browser
 	$(PY) -m pytest -q -n $(JOBS) -m "not slow" --durations=25 tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check tnn_dsl tests benchmarks examples
 	$(VENV)/bin/lint-imports
 
-test-all: $(STAMP)
+test-all: $(STAMP) browser
 	$(PY) -m pytest -q -n $(JOBS) tests
 
 bench: $(STAMP)

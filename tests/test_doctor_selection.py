@@ -42,3 +42,29 @@ def test_a_rival_clearly_worse_does_not_win():
     pick = _choose(fits, (0.15, 0.3), np.full_like(heat, 0.15))
     assert pick["cand"].kind == "heat_load"
     assert fits[1]["reason"] == "explains less than the chosen one"
+
+
+def test_a_gain_that_halves_the_held_out_error_is_confirmed_whatever_the_test_says():
+    """A generated fleet board: the heat load from heater 1 at h2 cut the held-out MAE 1.11 → 0.0159 K, and the
+    Diebold–Mariano test (N_eff a handful on the smooth residual) gave p = 0.052; a wrong constant cutting it to
+    0.864 K at p = 0.018 was accepted instead. With ``CONFIRM_RATIO`` the 70-fold gain is confirmed and wins; a
+    gain below the ratio still needs the test, and on noise-free data (below ``CONFIRM_FLOOR_K``) nothing changes."""
+    from tnn_dsl.doctor.selection import CONFIRM_FLOOR_K, CONFIRM_RATIO, P_ACCEPT
+
+    t = np.linspace(0, 20, 900)
+    smooth = np.sin(t)
+    load = _fit("heat_load", "Q[h2]", 0.0159 * np.sign(smooth))
+    load["p"] = 0.052
+    const = _fit("wrong_constant", "Q_src_h2", 0.864 * np.sign(smooth))
+    const["p"] = 0.018
+    pick = _choose([load, const], (1.11, 1.0), None)
+    assert pick is load and 1.11 / load["val_mae"] >= CONFIRM_RATIO
+    assert const["reason"] == "explains less than the chosen one"
+
+    small = _fit("heat_load", "Q[h2]", 0.7 * np.sign(smooth))  # 1.11 → 0.7 K: not halved, the test decides
+    small["p"] = 0.2
+    assert _choose([small], (1.11, 1.0), None) is None and "not confirmed" in small["reason"]
+    tiny = _fit("heat_load", "Q[h2]", 1e-15 * np.sign(smooth))  # halving round-off on noise-free data
+    tiny["p"] = 0.3
+    assert _choose([tiny], (0.5 * CONFIRM_FLOOR_K * 1e-6, 1.0), None) is None
+    assert tiny["p"] >= P_ACCEPT

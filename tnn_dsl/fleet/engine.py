@@ -239,7 +239,7 @@ def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out:
     from .report import fleet_report, write_report
 
     run.rows = [rows[u.name] for u in fl.units if u.name in rows]
-    run.report = fleet_report(run.rows, net)
+    run.report = fleet_report(run.rows, net, options.mode)
     write_report(run.report, outp)
     header.update(status="interrupted" if run.interrupted else "finished", finished=time.time(),
                   ran=len(run.ran), skipped=len(run.skipped))

@@ -90,7 +90,7 @@ ERROR_RATIO = 2.0
 ``OUTLIER_Z`` and it is more than this many times the fleet median."""
 
 
-def _error_outliers(ok: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _error_outliers(ok: list[dict[str, Any]], mode: str) -> list[dict[str, Any]]:
     """The units whose held-out MAE lies far above the fleet's (the template does not describe them)."""
     have = [(r["unit"], float(r["val_mae"])) for r in ok if r.get("val_mae") is not None and r["val_mae"] > 0]
     if len(have) < MIN_UNITS_ERROR:
@@ -104,8 +104,9 @@ def _error_outliers(ok: list[dict[str, Any]]) -> list[dict[str, Any]]:
             out.append({"unit": unit, "parameter": "val_mae", "z": float(zi), "value": v, "median": med, "se": None,
                         "unit_si": "K",
                         "reading": f"unit {unit}: held-out MAE {v:.3g} K is {v / med:.3g}× the fleet median "
-                                   f"({med:.3g} K): the network does not describe this unit (the doctor names "
-                                   "what is missing: tnnc fleet diagnose)"})
+                                   f"({med:.3g} K): the network does not describe this unit"
+                                   + (" (the doctor names what is missing: tnnc fleet diagnose)" if mode == "train"
+                                      else "")})
     return out
 
 
@@ -115,8 +116,9 @@ def _finding_label(f: dict[str, Any]) -> str:
     return f"{kind} on {f.get('target')}" + (f" depending on {', '.join(deps)}" if deps else "")
 
 
-def fleet_report(rows: list[dict[str, Any]], net: Network) -> dict[str, Any]:
-    """The report as a JSON-able dict: ``units`` (per unit: ``unit``, ``status``, ``reason``, ``val_mae``,
+def fleet_report(rows: list[dict[str, Any]], net: Network, mode: str = "train") -> dict[str, Any]:
+    """The report (``mode``: the fleet run's, ``train`` or ``diagnose``) as a JSON-able dict: ``units`` (per
+    unit: ``unit``, ``status``, ``reason``, ``val_mae``,
     ``gain``, ``findings`` (accepted ones, as ``tnnc diagnose --json``), ``params``, ``flagged``, ``why``),
     ``distributions`` (per parameter: ``n``, ``median``, ``s``, ``q10``, ``q90``, unit), ``outliers`` (``unit``,
     ``parameter``, ``z``, ``value``, ``median``, ``se``, ``reading``), ``groups`` (``finding`` -> units) and
@@ -145,7 +147,7 @@ def fleet_report(rows: list[dict[str, Any]], net: Network) -> dict[str, Any]:
                 outliers.append({"unit": unit, "parameter": pname, "z": float(zi), "value": float(xi),
                                  "median": med, "se": float(p["se"]), "unit_si": p.get("unit_si"),
                                  "reading": f"unit {unit}: " + _reading(pname, role, where, rel)})
-    fit_outliers = _error_outliers(ok)
+    fit_outliers = _error_outliers(ok, mode)
     outliers += fit_outliers
     outliers.sort(key=lambda o: -abs(o["z"]))
     by_unit: dict[str, list[dict]] = {}
@@ -165,8 +167,8 @@ def fleet_report(rows: list[dict[str, Any]], net: Network) -> dict[str, Any]:
                       "seconds": r.get("seconds")})
     counts = {"units": len(rows), "ok": len(ok), "failed": sum(r.get("status") == "failed" for r in rows),
               "error": sum(r.get("status") == "error" for r in rows), "flagged": sum(u["flagged"] for u in units)}
-    return {"network": net.name, "counts": counts, "units": units, "distributions": dists, "outliers": outliers,
-            "groups": dict(sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])))}
+    return {"network": net.name, "mode": mode, "counts": counts, "units": units, "distributions": dists,
+            "outliers": outliers, "groups": dict(sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])))}
 
 
 def _g(x: Any, d: int = 4) -> str:
@@ -254,7 +256,8 @@ def report_html(rep: dict[str, Any]) -> str:
              f"<title>fleet report: {e(rep['network'])}</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em}"
              "table{border-collapse:collapse;font-size:90%}td,th{padding:0.2em 0.6em;border-bottom:1px solid #ddd;"
-             "text-align:left;vertical-align:top}.flag{background:#fff3f0}.num{text-align:right}</style>",
+             "text-align:left;vertical-align:top}.flag{background:#fff3f0}.num{text-align:right}"
+             "td:first-child{white-space:nowrap}</style>",
              "</head><body>", f"<h1>Fleet report: {e(rep['network'])}</h1>",
              f"<p>{c['units']} units: {c['ok']} fitted, {c['failed']} failed, {c['error']} internal errors; "
              f"<b>{c['flagged']} flagged</b>.</p>"]
