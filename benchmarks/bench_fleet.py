@@ -149,10 +149,12 @@ def main(argv=None) -> int:
                          force=True)
     del sub
     thr = {}
-    for label, workers in (("in process (no Ray)", 0), ("Ray, 1 worker", 1), ("Ray, 2 workers", 2)):
+    runs = (("in process (no Ray)", 0, True), ("Ray, 1 worker", 1, True), ("Ray, 2 workers", 2, True),
+            ("Ray, 2 workers, no shared compilation cache", 2, False))
+    for label, workers, cache in runs:
         t = time.perf_counter()
-        run_fleet(template_path(), work / "sub", work / f"train_{workers}", options=FleetOptions(mode="train"),
-                  workers=workers, force=True)
+        run_fleet(template_path(), work / "sub", work / f"train_{workers}_{cache}",
+                  options=FleetOptions(mode="train"), workers=workers, force=True, compile_cache=cache)
         dt = time.perf_counter() - t
         thr[label] = (dt, 60.0 * a.throughput_units / dt)
         say(f"train {a.throughput_units} units, {label}: {dt:.1f} s")

@@ -44,6 +44,8 @@ def register(subparsers) -> None:
                    help="CPUs of the local Ray (default 2; 0: one unit after another in this process, no Ray)")
     p.add_argument("--address", default=None, metavar="auto|HOST:PORT", help="use a running Ray cluster")
     p.add_argument("--json", default=None, metavar="OUT", help="write the fleet report as JSON ('-': stdout)")
+    p.add_argument("--no-compile-cache", action="store_true",
+                   help="do not share JAX's compilation cache between the units (OUT/.jax_cache)")
     add_backend(p)
     p.add_argument("--epochs", type=int, default=None, metavar="N", help="training epochs (default: the trainer's)")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="the doctor's wall-clock budget per unit")
@@ -95,7 +97,7 @@ def run(args) -> int:
                         max_rounds=args.max_rounds, budget_s=args.budget, mlp_check=args.mlp_check, init=args.init,
                         burn_in=args.burn_in)
     res = run_fleet(args.net, args.fleet, args.output, options=opts, workers=args.workers, address=args.address,
-                    force=args.force, progress=progress)
+                    force=args.force, progress=progress, compile_cache=not args.no_compile_cache)
     print(report_text(res.report))
     print(f"\n{len(res.ran)} units run, {len(res.skipped)} already finished; {res.seconds:.1f} s; report: "
           f"{args.output}/report.html")

@@ -162,14 +162,36 @@ def torch_threads() -> None:
         pass
 
 
+COMPILE_CACHE = ".jax_cache"
+"""Under ``OUT``: JAX's persistent compilation cache shared by the units (one structure, one data length: the
+programs of the second unit on are read, not compiled)."""
+
+
+def _cache_env(out: Path) -> dict[str, str]:
+    return {"JAX_COMPILATION_CACHE_DIR": str((out / COMPILE_CACHE).resolve()),
+            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+
+
+def _use_cache_here(env: dict[str, str]) -> None:
+    """JAX's persistent compilation cache for the units run in this process."""
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", env["JAX_COMPILATION_CACHE_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out: str | os.PathLike, *,
               options: FleetOptions | None = None, workers: int = 2, address: str | None = None,
-              force: bool = False, progress: Callable[[str], None] | None = None) -> FleetRun:
+              force: bool = False, progress: Callable[[str], None] | None = None,
+              compile_cache: bool = True) -> FleetRun:
     """Fit (``options.mode="train"``) or diagnose (``"diagnose"``) every unit of ``fleet`` with the network template
     ``network`` (a ``.thn`` path), writing each unit's result under ``out/units/<unit>/`` and the fleet report
     (``out/report.json``, ``out/report.html``). ``workers``: Ray CPUs of a local Ray (0: this process, no Ray);
     ``address``: an existing Ray cluster (``"auto"`` or ``"HOST:PORT"``). ``force``: allow ``out`` to hold a
     fleet run with other options or another network (its units are then redone as their keys differ).
+    ``compile_cache``: share JAX's persistent compilation cache between the units (``OUT/.jax_cache``; with
+    ``workers=0`` it stays set in this process's JAX configuration afterwards).
     Returns a :class:`FleetRun`; Ctrl-C returns one with ``interrupted`` set after the finished units are written."""
     from ..lang import load
 
@@ -225,13 +247,16 @@ def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out:
         extra = f" ({row.get('reason', '').splitlines()[0]})" if row.get("status") != "ok" and row.get("reason") else ""
         say(f"[{n}/{len(fl.units)}] {row['unit']}: {row.get('status')}{extra}")
 
+    env = _cache_env(outp) if compile_cache else {}
     try:
         if jobs:
             if workers <= 0 and address is None:
+                if env:
+                    _use_cache_here(env)
                 for job in jobs:
                     arrived(_task(*job))
             else:
-                _run_on_ray(jobs, workers, address, arrived, say)
+                _run_on_ray(jobs, workers, address, arrived, say, env)
     except KeyboardInterrupt:
         run.interrupted = True
         say(f"interrupted: {len(rows)} of {len(fl.units)} units finished and written; run the same command again "
@@ -271,7 +296,7 @@ def _check_same_run(out: Path, network: str, template_text: str, options: FleetO
 
 
 def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable[[dict], None],
-                say: Callable[[str], None]) -> None:
+                say: Callable[[str], None], cache_env: dict[str, str]) -> None:
     try:
         import ray
     except ImportError:
@@ -281,7 +306,8 @@ def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable
     started = False
     if not ray.is_initialized():
         env = {"env_vars": {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-                            "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}}
+                            "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+                            **(cache_env if address is None else {})}}  # a cluster's nodes: no shared cache path
         kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "runtime_env": env,
                               "logging_level": "ERROR"}
         t = time.perf_counter()
