@@ -208,6 +208,14 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     assert again.ran == [] and len(again.skipped) == 7
     with pytest.raises(TnnError, match="holds a fleet run of other options"):
         run_fleet(template_path(), fl, tmp_path / "ray", options=FleetOptions(mode="train", epochs=61), workers=0)
+    # a unit whose data changed is redone; its previous result (a trained model) is moved aside, not deleted
+    good = next(r["unit"] for r in ray_run.rows if r["status"] == "ok")
+    csv = fl / good / "train.csv"
+    csv.write_text(csv.read_text().replace("\n1,", "\n1.0,", 1))
+    redo = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=0)
+    assert redo.ran == [good]
+    (kept,) = list((tmp_path / "ray" / "replaced").iterdir())
+    assert kept.name.startswith(good + ".") and (kept / "model" / "meta.json").is_file()
 
 
 def _wait_for_results(out: Path, n: int, proc: subprocess.Popen, timeout: float = 300.0) -> list[Path]:

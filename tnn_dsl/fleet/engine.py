@@ -33,6 +33,9 @@ from .units import FleetOptions, run_unit, unit_key, unit_network
 __all__ = ["run_fleet", "FleetRun", "FLEET_DIR", "RESULT_FILE", "load_results"]
 
 RESULT_FILE = "result.json"
+REPLACED = "replaced"
+"""Under ``OUT``: a unit's earlier results, moved here when a re-run replaces them (its data, entry, options or
+the template changed): a re-run never deletes a trained model."""
 FLEET_FILE = "fleet.json"
 
 
@@ -100,13 +103,15 @@ def _write_unit(out: Path, row: dict[str, Any], key: str) -> dict[str, Any]:
     doc = {**row, "key": key}
     (tmp / RESULT_FILE).write_text(json.dumps(doc, indent=1, default=_jsonable), encoding="utf-8")
     fsync_dir(tmp)
-    if final.exists():
+    if final.exists():  # the unit's previous result (its key changed): kept under OUT/replaced/, never deleted
         if not exchange_paths(tmp, final):
             old = out / "units" / f".{name}.old-{os.getpid()}"
             os.rename(final, old)
             os.rename(tmp, final)
             tmp = old
-        shutil.rmtree(tmp)  # the unit's previous result, replaced by this one (its key had changed)
+        keep = out / REPLACED / f"{name}.{time.strftime('%Y%m%dT%H%M%S')}.{os.getpid()}"
+        keep.parent.mkdir(exist_ok=True)
+        os.rename(tmp, keep)
     else:
         os.rename(tmp, final)
     fsync_dir(out / "units")
@@ -114,14 +119,19 @@ def _write_unit(out: Path, row: dict[str, Any], key: str) -> dict[str, Any]:
 
 
 def _remove_partial_writes(out: Path) -> None:
-    """A killed run may leave a unit half written in a hidden ``.<unit>.tmp-<pid>`` (or a replaced result in
-    ``.<unit>.old-<pid>``): never a finished result (that is only ever ``units/<unit>/``); removed."""
+    """A killed run may leave a unit half written in a hidden ``.<unit>.tmp-<pid>``: never a finished result (that
+    is only ever ``units/<unit>/``, and a replaced one ``replaced/<unit>.<time>.<pid>``); removed. A hidden
+    ``.<unit>.old-<pid>`` (a replaced result caught between two renames) is moved to ``replaced/``."""
     import re
 
-    pat = re.compile(r"^\..+\.(tmp|old)-\d+$")
+    pat = re.compile(r"^\..+\.tmp-\d+$")
+    old = re.compile(r"^\.(.+)\.old-(\d+)$")
     for p in (out / "units").iterdir():
         if p.is_dir() and not p.is_symlink() and pat.match(p.name):
             shutil.rmtree(p)
+        elif p.is_dir() and not p.is_symlink() and (m := old.match(p.name)):
+            (out / REPLACED).mkdir(exist_ok=True)
+            os.rename(p, out / REPLACED / f"{m.group(1)}.recovered.{m.group(2)}")
 
 
 def _jsonable(x: Any) -> Any:
@@ -292,7 +302,7 @@ def _check_same_run(out: Path, network: str, template_text: str, options: FleetO
         raise TnnError(Diagnostic(
             f"-o {out}: holds a fleet run of {what} (network {prev.get('network')!r}, options {prev.get('options')})",
             hint="write to a new directory; or add --force to redo every unit there with this network and these "
-                 "options (each unit's previous result is replaced as its new one arrives)"))
+                 "options (each unit's previous result is moved to OUT/replaced/ as its new one arrives)"))
 
 
 def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable[[dict], None],
