@@ -10,7 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("backend", ["jax", "torch"])
+# the torch variant (104 s on 2 cores in CI) is slow; the JAX variant (23 s) stays in CI
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_quickstart_runs_and_training_helps(tmp_path, backend):
     spec = importlib.util.spec_from_file_location("quickstart", ROOT / "examples" / "quickstart.py")
     mod = importlib.util.module_from_spec(spec)

@@ -217,14 +217,12 @@ def _distribution_plot(rep: dict[str, Any]) -> str | None:
     dists = rep["distributions"]
     if not dists:
         return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot state (the library never switches the backend)
 
     out = {(o["unit"], o["parameter"]) for o in rep["outliers"]}
     names = list(dists)
-    fig, ax = plt.subplots(figsize=(8, 0.45 * len(names) + 1.2))
+    fig = Figure(figsize=(8, 0.45 * len(names) + 1.2))
+    ax = fig.subplots()
     rng = np.random.default_rng(0)
     for i, n in enumerate(names):
         d = dists[n]
@@ -240,9 +238,7 @@ def _distribution_plot(rep: dict[str, Any]) -> str | None:
     ax.set_xlabel("relative to the fleet median (%)")
     ax.set_title("fitted parameters across the fleet (red: outliers)")
     fig.tight_layout()
-    uri = _png(fig)
-    plt.close(fig)
-    return uri
+    return _png(fig)
 
 
 _MARK = "<meta name='generator' content='tnnc fleet'>"
