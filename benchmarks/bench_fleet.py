@@ -8,13 +8,16 @@ kinds, sensor noise) run through ``tnn_dsl.fleet.run_fleet`` on a local Ray, the
   equation-identical one (a heat load from Q1 at h2 = heater 2's source depending on Q1);
 * **healthy parameters**: the share of healthy units' parameter estimates within 1 and 2 standard errors of the
   truth the template can identify (the apparent capacity and conductance at the datasheet heater gain);
-* **throughput**: units per minute of ``train`` on a subset, in this process (no Ray) and on a local Ray with 1
-  and 2 workers; Ray's task overhead (an empty task's round trip); a projection to a 100-node cluster.
+* **throughput**: units per minute of ``train`` on a subset, one unit per task and batched (units fitted together
+  in one compiled program, ``--batch``), in this process (no Ray) and on a local Ray with 1 and 2 workers; the
+  batch size swept in this process; Ray's task overhead (an empty task's round trip); a projection to a 100-node
+  cluster.
 
 Writes the ``fleet`` section of BENCHMARKS.md (``--no-write``: print only).
 
     python benchmarks/bench_fleet.py                         # 200 boards, 20 faulty, 0.02 K (about 30 min)
     python benchmarks/bench_fleet.py --units 12 --faulty 5 --throughput-units 4 --no-write   # a smoke run
+    python benchmarks/bench_fleet.py --only throughput --no-write      # the throughput part alone
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from tnn_dsl.fleet import FAULT_KINDS, FleetOptions, generate_fleet, run_fleet, template_path  # noqa: E402
+from tnn_dsl.fleet.engine import auto_batch  # noqa: E402
 
 EQUIVALENT = {
     "dependence": [("param_dependence", "U1", "T(h1)")],
@@ -118,6 +122,65 @@ def ray_overhead(n: int = 200) -> float:
         ray.shutdown()
 
 
+def throughput(work: Path, a: argparse.Namespace, say) -> tuple[dict, dict, float]:
+    """``tnnc fleet train`` on ``a.throughput_units`` healthy boards: one unit per task and batched, in this process
+    and on Ray with 1 and 2 workers; the batch size swept in this process; Ray's task overhead."""
+    generate_fleet(work / "sub", n_units=a.throughput_units, n_faulty=0, noise=a.noise, seed=a.seed + 1, force=True)
+    thr: dict[str, tuple[float, float]] = {}
+    runs = (("in process (no Ray), one unit at a time", 0, 1, True), ("Ray, 1 worker, one unit per task", 1, 1, True),
+            ("Ray, 2 workers, one unit per task", 2, 1, True),
+            ("Ray, 2 workers, one unit per task, no shared compilation cache", 2, 1, False),
+            ("in process, batched (auto)", 0, None, True), ("Ray, 1 worker, batched (auto)", 1, None, True),
+            ("Ray, 2 workers, batched (auto)", 2, None, True))
+    for label, workers, batch, cache in runs:
+        t = time.perf_counter()
+        run_fleet(template_path(), work / "sub", work / f"train_{workers}_{batch}_{cache}",
+                  options=FleetOptions(mode="train"), workers=workers, force=True, compile_cache=cache, batch=batch)
+        dt = time.perf_counter() - t
+        if batch is None:
+            label += f": {auto_batch(a.throughput_units, workers, FleetOptions(mode='train'))} per task"
+        thr[label] = (dt, 60.0 * a.throughput_units / dt)
+        say(f"train {a.throughput_units} units, {label}: {dt:.1f} s")
+    sweep: dict[int, tuple[float, float]] = {}
+    for b in (2, 4, 8, 16, 32):
+        if b > a.throughput_units:
+            break
+        t = time.perf_counter()
+        run_fleet(template_path(), work / "sub", work / f"sweep_{b}", options=FleetOptions(mode="train"), workers=0,
+                  force=True, batch=b)
+        dt = time.perf_counter() - t
+        sweep[b] = (dt, 60.0 * a.throughput_units / dt)
+        say(f"train {a.throughput_units} units in this process, batches of {b}: {dt:.1f} s")
+    return thr, sweep, ray_overhead()
+
+
+def throughput_lines(a: argparse.Namespace, thr: dict, sweep: dict, overhead: float, proj: tuple | None) -> list[str]:
+    lines = [
+        f"Throughput of `tnnc fleet train` on {a.throughput_units} healthy boards (fit, standard errors, held-out "
+        "error); batched: the units of a task fitted together in one compiled program (`--batch`, "
+        "`tnn_dsl.fit.joint`):",
+        "",
+        "| how | wall time (s) | units per minute |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {k} | {v[0]:.1f} | {v[1]:.1f} |" for k, v in thr.items()]
+    if sweep:
+        lines += ["", "Batch size, in this process (`--workers 0 --batch N`; the first batch also pays the compiles):",
+                  "", "| units per batch | " + " | ".join(str(b) for b in sweep) + " |",
+                  "|---|" + "---|" * len(sweep),
+                  "| units per minute | " + " | ".join(f"{v[1]:.1f}" for v in sweep.values()) + " |"]
+    text = (f"Ray's task overhead (an empty task's round trip, 200 tasks on 2 CPUs): {1e3 * overhead:.2f} ms.")
+    if proj is not None:
+        per_unit, proj_units_min, cluster_cores = proj
+        best = max(v[1] for k, v in thr.items() if k.startswith("Ray, 2 workers, batched"))
+        text += (f" Projection, on paper: a 100-node cluster of 16-core machines runs {cluster_cores} units at a "
+                 f"time; at {per_unit:.1f} s per diagnosed unit plus the overhead it would diagnose about "
+                 f"{proj_units_min:,.0f} units per minute, and at the batched training's {best / 2:.1f} units per "
+                 f"minute per worker train about {best / 2 * cluster_cores:,.0f} per minute, if the driver keeps up "
+                 "(it writes every result; measured here only up to 2 workers).")
+    return lines + ["", text]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--units", type=int, default=200)
@@ -128,9 +191,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dir", default=None, help="work directory (default: a temporary one)")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--only", choices=("throughput",), default=None, help="run only the throughput part")
     a = ap.parse_args(argv)
     work = Path(a.dir) if a.dir else Path(tempfile.mkdtemp(prefix="bench_fleet_"))
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    thr, sweep, overhead = throughput(work, a, say)
+    if a.only == "throughput":
+        print("\n".join(throughput_lines(a, thr, sweep, overhead, None)))
+        return 0
     t = time.perf_counter()
     truth = generate_fleet(work / "fleet", n_units=a.units, n_faulty=a.faulty, noise=a.noise, seed=a.seed,
                            force=True)
@@ -143,22 +211,6 @@ def main(argv=None) -> int:
     t_diag = time.perf_counter() - t
     sc = score(res.report, truth)
     unit_s = [r.get("seconds") or 0.0 for r in res.rows if r.get("seconds")]
-
-    # throughput of `train` on a subset: this process, Ray with 1 and 2 workers
-    sub = generate_fleet(work / "sub", n_units=a.throughput_units, n_faulty=0, noise=a.noise, seed=a.seed + 1,
-                         force=True)
-    del sub
-    thr = {}
-    runs = (("in process (no Ray)", 0, True), ("Ray, 1 worker", 1, True), ("Ray, 2 workers", 2, True),
-            ("Ray, 2 workers, no shared compilation cache", 2, False))
-    for label, workers, cache in runs:
-        t = time.perf_counter()
-        run_fleet(template_path(), work / "sub", work / f"train_{workers}_{cache}",
-                  options=FleetOptions(mode="train"), workers=workers, force=True, compile_cache=cache)
-        dt = time.perf_counter() - t
-        thr[label] = (dt, 60.0 * a.throughput_units / dt)
-        say(f"train {a.throughput_units} units, {label}: {dt:.1f} s")
-    overhead = ray_overhead()
 
     kinds = ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in sorted(sc["named"].items()))
     kinds_eq = ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in sorted(sc["named_eq"].items()))
@@ -186,20 +238,8 @@ def main(argv=None) -> int:
         f"Flagged but healthy: {', '.join(sc['false_flags']) or 'none'}; faulty but not flagged: "
         f"{', '.join(sc['missed']) or 'none'}.",
         "",
-        f"Throughput of `tnnc fleet train` on {a.throughput_units} healthy boards (fit and standard errors only):",
-        "",
-        "| how | wall time (s) | units per minute |",
-        "|---|---|---|",
     ]
-    lines += [f"| {k} | {v[0]:.1f} | {v[1]:.1f} |" for k, v in thr.items()]
-    lines += [
-        "",
-        f"Ray's task overhead (an empty task's round trip, 200 tasks on 2 CPUs): {1e3 * overhead:.2f} ms. "
-        f"Projection, on paper: a 100-node cluster of 16-core machines runs {cluster_cores} units at a time; at "
-        f"{per_unit:.1f} s per diagnosed unit plus the overhead it would diagnose about {proj_units_min:,.0f} units "
-        "per minute, if the driver keeps up (it writes every result; measured here only up to 2 workers). The batched "
-        "path (several units in one compiled program) is not built yet.",
-    ]
+    lines += throughput_lines(a, thr, sweep, overhead, (per_unit, proj_units_min, cluster_cores))
     text = "\n".join(lines)
     print(text)
     (work / "score.json").write_text(json.dumps({"score": sc, "throughput": thr, "overhead_s": overhead,

@@ -120,12 +120,19 @@ def test_a_heater_command_changes_its_source_never_a_conductance():
 
 
 @pytest.mark.skipif(not (os.path.isfile(PRBS) and os.path.isfile(SETPOINT)), reason="shared TCLab data not present")
-@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
-def test_real_tclab_sensor_lags_pay_on_the_set_point_run(backend):
-    d = tnn_dsl.diagnose(TCLAB, [PRBS], [SETPOINT], backend=backend, mlp_check=False)
+@pytest.mark.parametrize("backend,kinds", [
+    ("jax", ("sensor_lag", "source_mass")),
+    pytest.param("jax", None, marks=pytest.mark.slow), pytest.param("torch", None, marks=pytest.mark.slow)])
+def test_real_tclab_sensor_lags_pay_on_the_set_point_run(backend, kinds):
+    """With every kind of candidate (slow): both lags, then U12 rising with T(h1), ÷2.01 (README). In CI only the
+    lags and their equally fast rival, a heat capacity behind a heater's source, are offered: both lags are taken
+    (÷1.59, as much as a hand-built four-state model with sensor lags) and the source's capacity, which would reach
+    thousands of degrees, is not."""
+    d = tnn_dsl.diagnose(TCLAB, [PRBS], [SETPOINT], backend=backend, mlp_check=False,
+                         **({"kinds": kinds} if kinds else {}))
     kinds = [(f.kind, f.target) for f in d.accepted]
     assert ("sensor_lag", "T1") in kinds and ("sensor_lag", "T2") in kinds, d.summary()
-    assert d.baseline["val_mae"] / d.extended["val_mae"] >= 1.6, d.summary()
+    assert d.baseline["val_mae"] / d.extended["val_mae"] >= (1.6 if kinds is None else 1.55), d.summary()
     # every accepted cause is physical (no node far outside the data, no value beyond the network's scales)
     assert all(f.evidence["plausibility"] == "ok" for f in d.accepted), d.summary()
 

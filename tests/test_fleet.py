@@ -179,21 +179,32 @@ def _strip(row: dict) -> dict:
 
 def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     """Six generated boards (one with a 25 s lag on T1) and one unit whose file is not a data file: on a local Ray
-    with 2 CPUs every good unit's result equals the in-process run's (to round-off), the bad one has a row saying
-    why, the lagging board is the one flagged; a re-run skips every unit."""
+    with 2 CPUs and one unit per task every good unit's result equals the in-process run's, one by one (to
+    round-off); batched (three units per task, fitted together in one compiled program) each estimate lies within a
+    tenth of its standard error of the one-by-one fit. The bad unit has a row saying why, the lagging board is the
+    one flagged; a re-run skips every unit."""
     fl = _fleet(tmp_path, n=6, faulty=1, seed=2)
     (fl / "broken").mkdir()
     (fl / "broken" / "train.csv").write_text("time_s,Q1_pct\n0,1\n1,x\n")
     opts = FleetOptions(mode="train", epochs=60)
-    serial = run_fleet(template_path(), fl, tmp_path / "serial", options=opts, workers=0)
-    ray_run = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2)
-    assert [r["unit"] for r in ray_run.rows] == [r["unit"] for r in serial.rows]
-    for a, b in zip(serial.rows, ray_run.rows):
-        assert a["status"] == b["status"]
+    serial = run_fleet(template_path(), fl, tmp_path / "serial", options=opts, workers=0, batch=1)
+    one_by_one = run_fleet(template_path(), fl, tmp_path / "ray1", options=opts, workers=2, batch=1)
+    ray_run = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2, batch=3)
+    assert [r["unit"] for r in ray_run.rows] == [r["unit"] for r in serial.rows] == [r["unit"] for r in one_by_one.rows]
+    for a, b, c in zip(serial.rows, one_by_one.rows, ray_run.rows):
+        assert a["status"] == b["status"] == c["status"]
         if a["status"] == "ok":
+            assert "joint" not in b and c["joint"]["sets"] == 3
             for k, p in a["params"].items():
                 assert b["params"][k]["estimate"] == pytest.approx(p["estimate"], rel=1e-8, abs=1e-12), (a["unit"], k)
+                assert c["params"][k]["status"] == p["status"], (a["unit"], k, p, c["params"][k])
+                if p["se"] is None:  # at a bound of its range: no standard error either way
+                    assert c["params"][k]["estimate"] == pytest.approx(p["estimate"], rel=1e-3), (a["unit"], k)
+                    continue
+                assert abs(c["params"][k]["estimate"] - p["estimate"]) <= 0.1 * p["se"], (a["unit"], k)
+                assert c["params"][k]["se"] == pytest.approx(p["se"], rel=0.05), (a["unit"], k)
             assert b["val_mae"] == pytest.approx(a["val_mae"], rel=1e-8)
+            assert c["val_mae"] == pytest.approx(a["val_mae"], rel=0.02)
     broken = next(r for r in ray_run.rows if r["unit"] == "broken")
     assert broken["status"] == "failed" and "train.csv" in broken["reason"]
     truth = json.loads((fl / "truth.json").read_text())
@@ -218,6 +229,27 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     assert kept.name.startswith(good + ".") and (kept / "model" / "meta.json").is_file()
 
 
+def test_a_dying_worker_is_retried_once_then_reported(tmp_path, monkeypatch):
+    """On a local Ray: the worker fitting board-001 dies once (its retry finishes the unit); the one fitting
+    board-002 dies every time (reported as an error after one retry); the other units are not affected; the next
+    run redoes only the unit that ended in an error."""
+    from tnn_dsl.fleet.engine import KILL_WORKER_ENV
+
+    fl = _fleet(tmp_path, n=4, faulty=0, seed=5)
+    marker = tmp_path / "board-001.died"
+    monkeypatch.setenv(KILL_WORKER_ENV, f"board-001:{marker},board-002")
+    res = run_fleet(template_path(), fl, tmp_path / "out", options=FleetOptions(mode="train", epochs=20), workers=2,
+                    batch=1)
+    by = {r["unit"]: r for r in res.rows}
+    assert marker.is_file() and by["board-001"]["status"] == "ok"
+    assert by["board-002"]["status"] == "error" and "died" in by["board-002"]["reason"]
+    assert by["board-000"]["status"] == by["board-003"]["status"] == "ok"
+    monkeypatch.delenv(KILL_WORKER_ENV)  # the next run redoes the unit that ended in an error, and only it
+    again = run_fleet(template_path(), fl, tmp_path / "out", options=FleetOptions(mode="train", epochs=20),
+                      workers=0, batch=1)
+    assert again.ran == ["board-002"] and [r["status"] for r in again.rows] == ["ok"] * 4
+
+
 def _wait_for_results(out: Path, n: int, proc: subprocess.Popen, timeout: float = 300.0) -> list[Path]:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
@@ -240,7 +272,7 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     out = tmp_path / "out"
     workers = "2" if how == "ctrl-c on ray" else "0"
     cmd = TNNC + ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers",
-                  workers, "--quiet"]
+                  workers, "--batch", "1", "--quiet"]  # one unit per task: the units finish one by one
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first = _wait_for_results(out, 1, proc)
@@ -249,7 +281,7 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert rc == (130 if how == "ctrl-c on ray" else -signal.SIGKILL)
+    assert rc == (130 if how == "ctrl-c on ray" else -signal.SIGKILL), proc.stderr.read() if proc.stderr else ""
     kept = {p.parent.name: p.stat().st_mtime_ns for p in sorted((out / "units").glob("*/result.json"))}
     assert first[0].parent.name in kept
     for name in kept:

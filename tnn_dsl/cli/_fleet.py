@@ -20,7 +20,10 @@ distribution, the units outside it (robust z-score, with a reading) and the unit
 
 A local Ray with --workers CPUs is started and stopped (default 2; 0: run in this process without Ray);
 --address auto|HOST:PORT uses a running Ray cluster (tnn_dsl installed on its nodes; only this process reads
-the data and writes OUT).
+the data and writes OUT). `fleet train` fits units of one structure (the same known values, one training file
+each) together, several per task in one compiled program (--batch N units per task; default auto: the units
+spread over the workers, at most 16 per task; --batch 1: one unit per task). Held-out files are only scored,
+never used by the fit.
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=2, metavar="N",
                    help="CPUs of the local Ray (default 2; 0: one unit after another in this process, no Ray)")
     p.add_argument("--address", default=None, metavar="auto|HOST:PORT", help="use a running Ray cluster")
+    p.add_argument("--batch", default="auto", metavar="N|auto",
+                   help="units fitted together per task in one compiled program (train; default auto, 1: one by one)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the fleet report as JSON ('-': stdout)")
     p.add_argument("--no-compile-cache", action="store_true",
                    help="do not share JAX's compilation cache between the units (OUT/.jax_cache)")
@@ -93,11 +98,20 @@ def run(args) -> int:
     from ._common import check_outputs
 
     check_outputs(args, [(args.json, JSON, "--json")], inputs=[args.net, args.fleet])
+    batch = None
+    if str(args.batch) != "auto":
+        try:
+            batch = int(args.batch)
+        except ValueError:
+            batch = 0
+        if batch < 1:
+            raise TnnError(Diagnostic(f"--batch must be a positive number of units or auto, got {args.batch!r}",
+                                      hint="--batch auto (default), --batch 1 (one unit per task) or e.g. --batch 8"))
     opts = FleetOptions(mode=args.action, backend=args.backend, epochs=args.epochs, top=args.top,
                         max_rounds=args.max_rounds, budget_s=args.budget, mlp_check=args.mlp_check, init=args.init,
                         burn_in=args.burn_in)
     res = run_fleet(args.net, args.fleet, args.output, options=opts, workers=args.workers, address=args.address,
-                    force=args.force, progress=progress, compile_cache=not args.no_compile_cache)
+                    force=args.force, progress=progress, compile_cache=not args.no_compile_cache, batch=batch)
     print(report_text(res.report))
     print(f"\n{len(res.ran)} units run, {len(res.skipped)} already finished; {res.seconds:.1f} s; report: "
           f"{args.output}/report.html")

@@ -58,6 +58,24 @@ class _Rollouts:
             out[k] = params[f"{k}@{e_i}"]
         return out
 
+    def _rollout_per_file(self, params: dict, exps: Any, T0: Any, U: Any, dt: float) -> tuple[Any, Any]:
+        """Rollouts of windows of several files, each with its file's per-experiment values: ``exps (B,)`` the
+        file of each window, ``T0 (B, n_states)``, ``U (B, L, n_inputs)``. One vectorised rollout (``jax.vmap``
+        over the windows, the values gathered per window) instead of one per file: one program, whatever the number
+        of files (JAX only; :meth:`build_batches` keeps the files apart elsewhere)."""
+        import jax
+
+        xp = self.ops.xp
+        n = len(self.exps)
+        per = {k: xp.stack([params[k]] + [params[f"{k}@{i}"] for i in range(1, n)])[exps] for k in self.pe_names}
+        common = {k: v for k, v in params.items() if "@" not in k and k not in per}
+        cfg, model = self.cfg, self.model
+
+        def one(pw, T0w, Uw):
+            return model.rollout({**common, **pw}, T0w, Uw, dt, integrator=cfg.integrator, substeps=cfg.substeps)
+
+        return jax.vmap(one)(per, T0, U)
+
     def fitted_initial_states(self, z: np.ndarray) -> list[dict[str, Any]]:
         """The fitted initial state of each training file whose first window starts at its first sample (single
         shooting, multiple shooting): ``[{"name", "fingerprint", "T0": {state: K}}]``, stored with the model."""
@@ -74,6 +92,9 @@ class _Rollouts:
         return out
 
     _force_single = False
+    vectorise_files = True
+    """Windows of several files with per-experiment values in one vectorised rollout (JAX; :meth:`_rollout_per_file`)
+    rather than one rollout per file (the same loss to round-off; the tests compare both)."""
     windowed: tuple[str, float] | None = None
     """(mode, window s) of the windowed phase when :meth:`finish_single_shooting` followed it."""
 
@@ -164,9 +185,14 @@ class _Rollouts:
                                     "mask0": mask0, "vals0": vals0, "exp": e_i})
             return
         wins = _windows(self.exps, window)
-        by_len: dict[tuple[float, int, int], list[int]] = {}  # windows of one file apart: per-experiment values
+        # windows of one file apart where the files have per-experiment values, unless each window can carry its
+        # file's values through a vectorised rollout (JAX, fitted starts: one rollout for the windows of every file)
+        self.pe_vmap = (bool(self.pe_names) and mode == "estimated" and self.model.backend == "jax"
+                        and self.vectorise_files)
+        by_len: dict[tuple[float, int, int], list[int]] = {}
         for w_i, w in enumerate(wins):
-            by_len.setdefault((float(self.exps[w.exp].dt), w.length, w.exp if self.pe_names else 0), []).append(w_i)
+            apart = w.exp if self.pe_names and not self.pe_vmap else 0
+            by_len.setdefault((float(self.exps[w.exp].dt), w.length, apart), []).append(w_i)
         if mode == "estimated":
             guess = np.zeros((len(wins), n_states))
             for w_i, w in enumerate(wins):
@@ -193,7 +219,8 @@ class _Rollouts:
                 mask0[:] = False
             self.groups.append({"dt": dt, "init": "estimated" if mode == "estimated" else "measured",
                                 "windows": [wins[i] for i in ids], "ids": np.array(ids), "U": U, "Y": Y,
-                                "mask0": mask0, "vals0": vals0, "exp": e_i})
+                                "mask0": mask0, "vals0": vals0, "exp": None if self.pe_vmap else e_i,
+                                "exps": np.array([wins[i].exp for i in ids], dtype=np.int64)})
 
     def batch_arrays(self, rng: np.random.Generator | None):
         """The per-step data: list (one per group) of dicts of backend arrays, and the statics."""
@@ -207,6 +234,8 @@ class _Rollouts:
             M = np.isfinite(Y)
             d = {"U": g["U"][sel], "Y": np.where(M, Y, 0.0), "M": M}
             st = {"dt": g["dt"], "init": g["init"], "n_valid": max(int(M.sum()), 1), "B": len(sel), "exp": g["exp"]}
+            if g["exp"] is None:  # windows of several files, each rolled out with its file's values
+                d["exps"] = g["exps"][sel]
             if g["init"] == "estimated":
                 ids = g["ids"][sel]
                 cb, ck, cj, cw = [], [], [], []

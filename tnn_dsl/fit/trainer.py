@@ -455,13 +455,16 @@ class _Trainer(_Rollouts):
                 X0 = x0_guess + z[n_param_z:].reshape((n_x0, n_states))
             sse, mx, cont = 0.0, 0.0, 0.0
             for st, d in zip(statics, data):
-                gp = self._experiment_params(params, st["exp"])
-                if st["init"] == "estimated":
-                    T0 = X0[d["idx"]]
+                if st["exp"] is None and self.pe_names:  # windows of several files (fitted starts only)
+                    states, yh = self._rollout_per_file(params, d["exps"], X0[d["idx"]], d["U"], st["dt"])
                 else:
-                    T0 = ops.where(d["mask0"], d["vals0"], model.steady_state(gp, d["U"][:, 0, :]))
-                states, yh = model.rollout(gp, T0, d["U"], st["dt"], integrator=cfg.integrator,
-                                           substeps=cfg.substeps)
+                    gp = self._experiment_params(params, st["exp"] or 0)
+                    if st["init"] == "estimated":
+                        T0 = X0[d["idx"]]
+                    else:
+                        T0 = ops.where(d["mask0"], d["vals0"], model.steady_state(gp, d["U"][:, 0, :]))
+                    states, yh = model.rollout(gp, T0, d["U"], st["dt"], integrator=cfg.integrator,
+                                               substeps=cfg.substeps)
                 err = ops.where(d["M"], yh - d["Y"], 0.0 * yh)
                 sse = sse + ops.sum(err * err) / n_valid
                 if cfg.lam > 0:

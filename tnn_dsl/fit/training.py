@@ -55,12 +55,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     from ..core import check_output
     from ..data import split_by_time
 
-    if isinstance(config, TrainConfig):
-        cfg = dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
-    elif isinstance(config, dict):
-        cfg = load_config(None, **{**config, **options})
-    else:
-        cfg = load_config(config, **options)
+    cfg = make_config(config, options)
     if out is not None:
         check_output(out, MODEL_DIR, force=force, inputs=[*_input_paths(network, data, val), cfg.init_from])
     net = _net_of(network)
@@ -90,11 +85,35 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                                              "config": cfg.to_dict()}, path=None)
     trained._models[(cfg.backend, cfg.dtype)] = model
     est = _estimates(trained, model, exps, cfg, tr)
-    metrics: dict[str, Any] = {}
-    metrics["train"] = _metrics_or_nan(trained, exps, cfg)
+    trained.meta = model_meta(trained, tr, model, exps, vals, cfg, est, fitted=_fitted(tr, model, final),
+                              strategy=strategy, seconds=time.perf_counter() - t_start)
+    if out is not None:
+        trained.save(out, force=force)
+    return trained
+
+
+def make_config(config: TrainConfig | dict | str | os.PathLike | None, options: dict[str, Any]) -> TrainConfig:
+    """The :class:`TrainConfig` of ``train(config=..., **options)``: options override the config."""
+    if isinstance(config, TrainConfig):
+        return dataclasses.replace(config, **{k: v for k, v in options.items() if v is not None})
+    if isinstance(config, dict):
+        return load_config(None, **{**config, **options})
+    return load_config(config, **options)
+
+
+_CUT_SHORT = ("interrupted", "diverged", "time_limit")
+
+
+def model_meta(trained: TrainedModel, tr: _Trainer, model: Any, exps: list, vals: list, cfg: TrainConfig, est: Any,
+               *, fitted: dict[str, Any], strategy: Any, seconds: float) -> dict[str, Any]:
+    """``meta.json`` of a fitted model: ``trained`` (its parameters, ``meta["initial_states"]`` and
+    ``meta["per_experiment"]`` set) after the trainer ``tr`` on ``exps`` (validation ``vals``), with the estimates
+    ``est`` (or ``None``); its training and validation errors are computed here (free runs)."""
+    metrics: dict[str, Any] = {"train": _metrics_or_nan(trained, exps, cfg)}
     if vals:
         metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
-    trained.meta = {
+    net = trained.network
+    return {
         "network": net.name,
         "backend": cfg.backend,
         "dtype": cfg.dtype,
@@ -103,26 +122,20 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
         "data_files": data_records(sorted({e.path for e in exps + vals if getattr(e, "path", None)})),
         "normalisation": tr.normalisation,
         "metrics": metrics,
-        "fitted": _fitted(tr, model, final),
+        "fitted": fitted,
         "curve": tr.curve,
         "config": cfg.to_dict(),
         **_rollout_meta(tr),
         "strategies": strategy,
         "init": cfg.init,
-        "initial_states": initial_states,
-        "per_experiment": per_experiment,
+        "initial_states": trained.meta.get("initial_states") or [],
+        "per_experiment": trained.meta.get("per_experiment") or [],
         "objective": cfg.objective,
         "estimation": estimation_meta(est) if est is not None else None,
         "stopped": tr.stopped,
-        "warnings": tr.warnings,
-        "train_seconds": time.perf_counter() - t_start,
+        "warnings": list(tr.warnings),
+        "train_seconds": seconds,
     }
-    if out is not None:
-        trained.save(out, force=force)
-    return trained
-
-
-_CUT_SHORT = ("interrupted", "diverged", "time_limit")
 
 
 def _estimates(trained: TrainedModel, model: Any, exps: list, cfg: TrainConfig, tr: _Trainer) -> Any:

@@ -28,9 +28,9 @@ from typing import Any, Callable
 from ..core import Diagnostic, OutputKind, TnnError, check_output, file_sha256, fsync_dir, write_text_atomic
 from ..core.files import exchange_paths
 from .manifest import Fleet, read_fleet
-from .units import FleetOptions, run_unit, unit_key, unit_network
+from .units import FleetOptions, run_batch, run_unit, unit_key, unit_network
 
-__all__ = ["run_fleet", "FleetRun", "FLEET_DIR", "RESULT_FILE", "load_results"]
+__all__ = ["run_fleet", "FleetRun", "FLEET_DIR", "RESULT_FILE", "load_results", "auto_batch", "BATCH_MAX"]
 
 RESULT_FILE = "result.json"
 REPLACED = "replaced"
@@ -149,17 +149,89 @@ def _read_unit(net, unit) -> tuple[list, list]:
     return train, val
 
 
-def _task(template_text: str, template_file: str, unit: dict[str, Any], train: list, val: list,
-          options: FleetOptions) -> dict[str, Any]:
-    """One unit in a worker (or in this process): the template parsed, the overrides applied, the work done."""
+KILL_WORKER_ENV = "TNN_FLEET_KILL_WORKER"
+"""Fault injection for the tests of a dying worker (comma-separated entries): ``UNIT`` makes the process running
+that unit exit at once, every time; ``UNIT:FILE`` only while ``FILE`` does not exist (it is created first: the
+worker dies once and its retry lives)."""
+
+
+def _task(template_text: str, template_file: str, members: list[tuple[dict[str, Any], list, list]],
+          options: FleetOptions) -> list[dict[str, Any]]:
+    """One task in a worker (or in this process): the template parsed, each unit's overrides applied, the work
+    done — one unit, or a batch of units of one structure fitted in one compiled program
+    (:func:`~tnn_dsl.fleet.units.run_batch`). Returns the units' rows."""
     from ..lang import loads
 
+    _maybe_die([u["name"] for u, _t, _v in members])
+    torch_threads()
+    rows: list[dict[str, Any] | None] = [None] * len(members)
+    ok: list[tuple[int, Any, tuple]] = []
     try:
-        torch_threads()
-        net = unit_network(loads(template_text, template_file), unit)
+        template = loads(template_text, template_file)
     except TnnError as e:
-        return {"unit": unit["name"], "status": "failed", "reason": str(e).strip(), "params": {}, "findings": []}
-    return run_unit(net, unit, train, val, options)
+        return [{"unit": u["name"], "status": "failed", "reason": str(e).strip(), "params": {}, "findings": []}
+                for u, _t, _v in members]
+    for i, (u, t, v) in enumerate(members):
+        try:
+            ok.append((i, unit_network(template, u), (u, t, v)))
+        except TnnError as e:
+            rows[i] = {"unit": u["name"], "status": "failed", "reason": str(e).strip(), "params": {}, "findings": []}
+    if ok:
+        # the engine batches units with the same overrides only: one network for the batch
+        done = run_batch(ok[0][1], [m for _i, _n, m in ok], options) if len(ok) > 1 else \
+            [run_unit(ok[0][1], *ok[0][2], options)]
+        for (i, _n, _m), row in zip(ok, done):
+            rows[i] = row
+    return [r for r in rows if r is not None]
+
+
+def _maybe_die(names: list[str]) -> None:
+    for entry in filter(None, os.environ.get(KILL_WORKER_ENV, "").split(",")):
+        unit, _, marker = entry.partition(":")
+        if unit not in names:
+            continue
+        if marker:
+            if os.path.exists(marker):
+                continue
+            with open(marker, "w", encoding="utf-8") as f:
+                f.write("died once\n")
+        os._exit(70)
+
+
+BATCH_MAX = 16
+"""The largest batch of units fitted in one compiled program (``--batch auto``): the joint program's compile time
+and each L-BFGS step grow with the units in it (BENCHMARKS.md, fleet)."""
+
+
+def auto_batch(n_units: int, workers: int, options: FleetOptions) -> int:
+    """``--batch auto``: units per task. ``train``: the units spread evenly over the workers (``workers=0``: one
+    process), at most :data:`BATCH_MAX` per batch, one by one where a worker would get fewer than two;
+    ``diagnose``: one (the doctor runs unit by unit)."""
+    if options.mode != "train":
+        return 1
+    per_worker = -(-n_units // max(int(workers), 1))
+    return 1 if per_worker < 2 else min(BATCH_MAX, per_worker)
+
+
+def _batches(jobs: list[tuple[dict[str, Any], list, list]], size: int) -> list[list[tuple[dict[str, Any], list, list]]]:
+    """The units in tasks of at most ``size``: units with the same known values (``params:`` overrides, so the same
+    free constants) and one training file each, in the fleet's order; every other unit alone."""
+    if size <= 1:
+        return [[j] for j in jobs]
+    groups: dict[str, list] = {}
+    alone = []
+    for j in jobs:
+        u, train, _val = j
+        if len(train) != 1:
+            alone.append([j])
+            continue
+        groups.setdefault(json.dumps(u.get("params") or {}, sort_keys=True), []).append(j)
+    out = []
+    for members in groups.values():
+        n = -(-len(members) // size)  # as many tasks as needed, evenly filled
+        k = -(-len(members) // n)
+        out += [members[i:i + k] for i in range(0, len(members), k)]
+    return out + alone
 
 
 def torch_threads() -> None:
@@ -194,14 +266,16 @@ def _use_cache_here(env: dict[str, str]) -> None:
 def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out: str | os.PathLike, *,
               options: FleetOptions | None = None, workers: int = 2, address: str | None = None,
               force: bool = False, progress: Callable[[str], None] | None = None,
-              compile_cache: bool = True) -> FleetRun:
+              compile_cache: bool = True, batch: int | None = None) -> FleetRun:
     """Fit (``options.mode="train"``) or diagnose (``"diagnose"``) every unit of ``fleet`` with the network template
     ``network`` (a ``.thn`` path), writing each unit's result under ``out/units/<unit>/`` and the fleet report
     (``out/report.json``, ``out/report.html``). ``workers``: Ray CPUs of a local Ray (0: this process, no Ray);
     ``address``: an existing Ray cluster (``"auto"`` or ``"HOST:PORT"``). ``force``: allow ``out`` to hold a
     fleet run with other options or another network (its units are then redone as their keys differ).
     ``compile_cache``: share JAX's persistent compilation cache between the units (``OUT/.jax_cache``; with
-    ``workers=0`` it stays set in this process's JAX configuration afterwards).
+    ``workers=0`` it stays set in this process's JAX configuration afterwards). ``batch``: units per task, fitted
+    in one compiled program (:func:`~tnn_dsl.fleet.units.run_batch`; 1: one unit per task; ``None``:
+    :func:`auto_batch`).
     Returns a :class:`FleetRun`; Ctrl-C returns one with ``interrupted`` set after the finished units are written."""
     from ..lang import load
 
@@ -246,9 +320,14 @@ def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out:
             run.ran.append(u.name)
             say(f"{u.name}: failed: {str(e).strip().splitlines()[0]}")
             continue
-        jobs.append((template_text, str(template_path), u.to_dict(), train, val, options))
+        jobs.append((u.to_dict(), train, val))
     if run.skipped:
         say(f"{len(run.skipped)} of {len(fl.units)} units already finished in {outp}: not run again")
+    size = auto_batch(len(jobs), workers if address is None else max(workers, 1), options) if batch is None \
+        else max(int(batch), 1)
+    tasks = [(template_text, str(template_path), members, options) for members in _batches(jobs, size)]
+    if size > 1 and jobs:
+        say(f"{len(jobs)} units in {len(tasks)} tasks (up to {size} units fitted together per task)")
 
     def arrived(row: dict[str, Any]) -> None:
         rows[row["unit"]] = _write_unit(outp, row, keys[row["unit"]])
@@ -259,14 +338,15 @@ def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out:
 
     env = _cache_env(outp) if compile_cache else {}
     try:
-        if jobs:
+        if tasks:
             if workers <= 0 and address is None:
                 if env:
                     _use_cache_here(env)
-                for job in jobs:
-                    arrived(_task(*job))
+                for task in tasks:
+                    for row in _task(*task):
+                        arrived(row)
             else:
-                _run_on_ray(jobs, workers, address, arrived, say, env)
+                _run_on_ray(tasks, workers, address, arrived, say, env)
     except KeyboardInterrupt:
         run.interrupted = True
         say(f"interrupted: {len(rows)} of {len(fl.units)} units finished and written; run the same command again "
@@ -305,7 +385,7 @@ def _check_same_run(out: Path, network: str, template_text: str, options: FleetO
                  "options (each unit's previous result is moved to OUT/replaced/ as its new one arrives)"))
 
 
-def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable[[dict], None],
+def _run_on_ray(tasks: list, workers: int, address: str | None, arrived: Callable[[dict], None],
                 say: Callable[[str], None], cache_env: dict[str, str]) -> None:
     try:
         import ray
@@ -329,19 +409,21 @@ def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable
             say(f"local Ray with {max(int(workers), 1)} CPUs started in {time.perf_counter() - t:.1f} s")
         started = True
     task = ray.remote(num_cpus=1, max_retries=1, retry_exceptions=False)(_task)
-    refs = {task.remote(*job): job[2]["name"] for job in jobs}
+    refs = {task.remote(*t): [u["name"] for u, _tr, _v in t[2]] for t in tasks}
     pending = list(refs)
     try:
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=0.5)  # Ctrl-C is seen between waits
             for r in ready:
                 try:
-                    row = ray.get(r)
+                    rows = ray.get(r)
                 except ray.exceptions.RayError as e:  # the worker died (twice: Ray retried once) or was lost
-                    row = {"unit": refs[r], "status": "error", "params": {}, "findings": [],
-                           "reason": f"the worker running this unit died and its retry too: {type(e).__name__}: "
-                                     f"{str(e).strip().splitlines()[0] if str(e).strip() else ''}"}
-                arrived(row)
+                    why = str(e).strip().splitlines()[0] if str(e).strip() else ""
+                    rows = [{"unit": name, "status": "error", "params": {}, "findings": [],
+                             "reason": f"the worker running this unit died and its retry too: {type(e).__name__}: "
+                                       f"{why}"} for name in refs[r]]
+                for row in rows:
+                    arrived(row)
     except KeyboardInterrupt:
         # a local Ray is stopped below (its workers with it); on a cluster the pending tasks are cancelled without
         # force (Ray 2.60 aborts the driver when a forced cancel races a task that is just completing)
@@ -354,4 +436,23 @@ def _run_on_ray(jobs: list, workers: int, address: str | None, arrived: Callable
         raise
     finally:
         if started:
-            ray.shutdown()
+            _shutdown_ray(ray)
+
+
+def _shutdown_ray(ray: Any) -> None:
+    """``ray.shutdown()`` with Ctrl-C held until it is done: a shutdown cut short leaves Ray half stopped, and the
+    process then ends with status 1 at exit, its output lost. A Ctrl-C that came meanwhile is raised after."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        ray.shutdown()
+        return
+    got: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+    try:
+        ray.shutdown()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if got:
+        raise KeyboardInterrupt

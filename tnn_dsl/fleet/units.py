@@ -18,7 +18,7 @@ import numpy as np
 from ..core import Diagnostic, TnnError
 from ..ir import Network, Num
 
-__all__ = ["FleetOptions", "unit_network", "run_unit", "unit_key", "HELD_OUT_FRACTION"]
+__all__ = ["FleetOptions", "unit_network", "run_unit", "run_batch", "batch_problem", "unit_key", "HELD_OUT_FRACTION"]
 
 HELD_OUT_FRACTION = 0.3
 """A unit without held-out files is judged on the last 30 % of each training file (as ``tnnc diagnose``)."""
@@ -156,15 +156,36 @@ def run_unit(net: Network, unit: dict[str, Any], train: list, val: list, options
 
 
 def _fit(net: Network, unit: dict[str, Any], train: list, val: list, options: FleetOptions, row: dict) -> None:
-    import tempfile
-    from pathlib import Path
-
     from ..fit import train as train_model
 
     exps, vals = _split(list(train), list(val))
     extra = {} if options.epochs is None else {"epochs": int(options.epochs)}
-    tm = train_model(net, exps, vals, backend=options.backend, init=options.init, burn_in=options.burn_in,
+    # the held-out files are only scored: early stopping on the training loss, as in a joint fit (run_batch)
+    tm = train_model(net, exps, None, backend=options.backend, init=options.init, burn_in=options.burn_in,
                      val_fraction=0.0, **extra)
+    _score_held_out(tm, vals, options)
+    _fill_row(tm, row)
+    if options.mode == "diagnose":
+        _diagnose(net, exps, vals, options, row)
+
+
+def _score_held_out(tm: Any, vals: list, options: FleetOptions) -> None:
+    """The held-out error of a model fitted without ``vals`` (``meta["metrics"]["validation"]``)."""
+    from ..fit.training import _data_desc
+
+    try:
+        m = tm.evaluate(vals, backend=options.backend, init=options.init, burn_in_s=options.burn_in)
+    except (FloatingPointError, TnnError):  # a model that leaves the physical range there
+        m = {"mae": math.nan}
+    tm.meta.setdefault("metrics", {})["validation"] = m
+    tm.meta.setdefault("data", {})["validation"] = _data_desc(vals)
+
+
+def _fill_row(tm: Any, row: dict) -> None:
+    """A fitted unit's row: errors, the network's constants with their standard errors, the saved model's files."""
+    import tempfile
+    from pathlib import Path
+
     metrics = tm.meta.get("metrics") or {}
     row["train_mae"] = _finite((metrics.get("train") or {}).get("mae"))
     row["val_mae"] = _finite((metrics.get("validation") or {}).get("mae"))
@@ -175,22 +196,68 @@ def _fit(net: Network, unit: dict[str, Any], train: list, val: list, options: Fl
             continue
         row["params"][name] = {"estimate": _finite(r.get("estimate")), "se": _finite(r.get("se")),
                                "status": r.get("status"), "unit_si": r.get("unit_si"), "display": r.get("display")}
+    if tm.meta.get("joint"):
+        row["joint"] = {k: tm.meta["joint"][k] for k in ("sets", "seconds", "stopped")}
     with tempfile.TemporaryDirectory(prefix="tnn-fleet-") as tmp:
         out = tm.save(Path(tmp) / "model")
         row["model"] = {p.name: p.read_bytes() for p in sorted(Path(out).iterdir()) if p.is_file()}
-    if options.mode == "diagnose":
-        from ..doctor import diagnose
 
-        d = diagnose(net, exps, vals, budget_s=options.budget_s, backend=options.backend, top=options.top,
-                     max_rounds=options.max_rounds, mlp_check=options.mlp_check, init=options.init,
-                     burn_in=options.burn_in)
-        doc = d.to_dict()
-        findings = sorted(doc.get("findings") or [], key=lambda f: (not f.get("accepted"), f.get("rank") or 0))
-        row["findings"] = findings
-        gain = doc.get("gain") or {}
-        row["gain"] = _finite(gain.get("val_mae_ratio")) if d.accepted else 1.0
-        row["extended"] = d.extended_text if d.accepted else None
-        row["diagnosis"] = {k: doc.get(k) for k in ("verdict", "notes", "baseline", "gain", "left", "diff")}
+
+def _diagnose(net: Network, exps: list, vals: list, options: FleetOptions, row: dict) -> None:
+    from ..doctor import diagnose
+
+    d = diagnose(net, exps, vals, budget_s=options.budget_s, backend=options.backend, top=options.top,
+                 max_rounds=options.max_rounds, mlp_check=options.mlp_check, init=options.init,
+                 burn_in=options.burn_in)
+    doc = d.to_dict()
+    findings = sorted(doc.get("findings") or [], key=lambda f: (not f.get("accepted"), f.get("rank") or 0))
+    row["findings"] = findings
+    gain = doc.get("gain") or {}
+    row["gain"] = _finite(gain.get("val_mae_ratio")) if d.accepted else 1.0
+    row["extended"] = d.extended_text if d.accepted else None
+    row["diagnosis"] = {k: doc.get(k) for k in ("verdict", "notes", "baseline", "gain", "left", "diff")}
+
+
+def batch_problem(net: Network, members: list[tuple[dict[str, Any], list, list]], options: FleetOptions) -> str | None:
+    """Why the units ``members`` (``(unit, train, val)``, each with ``net``, its overrides applied) cannot be fitted
+    together in one compiled program (:func:`tnn_dsl.fit.joint.train_jointly`), or ``None``."""
+    from ..fit.joint import joint_fit_problem
+
+    if options.mode != "train":
+        return "the model doctor runs unit by unit"
+    return joint_fit_problem(net, [_split(list(t), list(v)) for _u, t, v in members])
+
+
+def run_batch(net: Network, members: list[tuple[dict[str, Any], list, list]],
+              options: FleetOptions) -> list[dict[str, Any]]:
+    """Fit the units ``members`` (``(unit, train, val)``, all with the network ``net``) in one compiled program
+    (:func:`tnn_dsl.fit.joint.train_jointly`) and return their rows, as :func:`run_unit`'s. Where they cannot be
+    fitted together (:func:`batch_problem`) or the joint fit fails (one unit's bad data), each unit is run on its
+    own, so that a bad unit gets its own row and the rest go on."""
+    from ..fit.joint import train_jointly
+
+    t0 = time.perf_counter()
+    if len(members) < 2 or batch_problem(net, members, options) is not None:
+        return [run_unit(net, u, t, v, options) for u, t, v in members]
+    sets = [_split(list(t), list(v)) for _u, t, v in members]
+    extra = {} if options.epochs is None else {"epochs": int(options.epochs)}
+    try:
+        models = train_jointly(net, sets, backend=options.backend, init=options.init, burn_in=options.burn_in,
+                               **extra)
+    except Exception:  # noqa: BLE001 - one unit's data or fit: each unit on its own says which
+        return [run_unit(net, u, t, v, options) for u, t, v in members]
+    rows = []
+    share = (time.perf_counter() - t0) / len(members)
+    for (u, _t, _v), tm in zip(members, models):
+        row: dict[str, Any] = {"unit": u["name"], "status": "ok", "reason": "", "val_mae": None, "train_mae": None,
+                               "params": {}, "findings": [], "gain": None, "extended": None, "model": {}}
+        try:
+            _fill_row(tm, row)
+        except TnnError as e:
+            row.update(status="failed", reason=str(e).strip())
+        row["seconds"] = share
+        rows.append(row)
+    return rows
 
 
 def data_digest(experiments: list) -> str:
