@@ -138,7 +138,9 @@ def throughput(work: Path, a: argparse.Namespace, say) -> tuple[dict, dict, floa
                   options=FleetOptions(mode="train"), workers=workers, force=True, compile_cache=cache, batch=batch)
         dt = time.perf_counter() - t
         if batch is None:
-            label += f": {auto_batch(a.throughput_units, workers, FleetOptions(mode='train'))} per task"
+            size = auto_batch(a.throughput_units, workers, FleetOptions(mode="train"))
+            n_tasks = -(-a.throughput_units // size)
+            label += f": {n_tasks} tasks of up to {-(-a.throughput_units // n_tasks)} units"
         thr[label] = (dt, 60.0 * a.throughput_units / dt)
         say(f"train {a.throughput_units} units, {label}: {dt:.1f} s")
     sweep: dict[int, tuple[float, float]] = {}
