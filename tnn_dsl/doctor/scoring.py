@@ -317,12 +317,19 @@ def _score_stats(J_all: np.ndarray, n_base: int, r: np.ndarray, cands: list[Cand
     return out
 
 
+EXACT_TWIN_COS = 0.999
+"""|cos| at and above which two candidates' linearised corrections are the same equations to the data: every such
+twin is listed (a board's offset on T1 and a constant heat at its other heater, with a fitted ambient: ten
+candidates at |cos| = 1.000); nearer-than-``cos_min`` ones only up to ``most``."""
+
+
 def _indistinguishable(chosen: dict, scored: list[dict], cos_min: float = 0.95, most: int = 5) -> list[dict]:
     """Candidates whose linearised correction of the training outputs is (nearly) the same as the chosen
     one's (|cos| ≥ ``cos_min`` between the fitted output changes, free directions projected out): the data
     cannot tell them apart, e.g. two series resistances seen through one sensor (thesis §6.2.4). This is
     the identifiability test of ``tnn_dsl.sensitivity`` (|corr| > 0.95 between sensitivity columns) applied
-    to the candidates' columns."""
+    to the candidates' columns. Every twin at |cos| ≥ :data:`EXACT_TWIN_COS` is listed, then up to ``most`` of the
+    others."""
     d0 = chosen.get("dir")
     if d0 is None:
         return []
@@ -334,7 +341,8 @@ def _indistinguishable(chosen: dict, scored: list[dict], cos_min: float = 0.95, 
         if cos >= cos_min:
             out.append({"candidate": s["cand"].describe(), "key": s["cand"].key, "cos": cos, "k": s["k"]})
     out.sort(key=lambda d: -d["cos"])
-    return out[:most]
+    exact = [d for d in out if d["cos"] >= EXACT_TWIN_COS]
+    return exact + [d for d in out if d["cos"] < EXACT_TWIN_COS][:most]
 
 
 def _shortlist(scored: list[dict], top: int, same_cos: float = 0.99999) -> list[dict]:
