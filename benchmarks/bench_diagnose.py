@@ -75,13 +75,23 @@ def run_one(data: Path, backend: str, out: Path) -> dict:
 
 
 def phases(r: dict) -> list[str]:
-    """The RSS reached by the end of each progress line's phase (the lines that mark a phase)."""
+    """The highest RSS of each phase of the doctor's progress lines: a phase starts at a line that is not a
+    candidate's fit (its ``fitting`` / ``fitted`` / ``continuing`` lines are one phase, "fitting candidates")."""
+    marks: list[tuple[float, str]] = []
+    for t, s in r["lines"]:
+        text = s.split("]", 1)[-1].strip()
+        if not text or "Warning" in s or "warn(" in s or text.startswith(("return ", "states,")):
+            continue
+        own = text.startswith(("fitting the", "fitting it"))
+        if text.startswith(("fitting ", "fitted ", "continuing ")) and not own:
+            text = "fitting candidates (Gauss–Newton, then continued to convergence)"
+        if marks and marks[-1][1] == text:
+            continue
+        marks.append((t, text))
     out = []
-    marks = [(t, s) for t, s in r["lines"] if "round" in s or "compiling" in s or "fitting the" in s
-             or "baseline" in s or "building" in s]
     for (t, s), nxt in zip(marks, marks[1:] + [(r["wall_s"], "end")]):
         peak = max((m for tt, m in r["trace"] if t <= tt <= nxt[0]), default=float("nan"))
-        out.append(f"| {t:.1f} | {s.split(']', 1)[-1].strip()[:70]} | {peak:.0f} |")
+        out.append(f"| {t:.1f} | {nxt[0] - t:.1f} | {s[:80]} | {peak:.0f} |")
     return out
 
 
@@ -103,8 +113,8 @@ def main(argv=None) -> int:
         lines.append(f"| {r['backend']} | {r['wall_s']:.1f} | {r['peak_mb']:.0f} | "
                      f"{(r['gain'] or float('nan')):.2f} | ≤ {TARGET_S:.0f} s, ≤ {TARGET_MB:.0f} MB |")
     for r in results:
-        lines += ["", f"RSS by phase ({r['backend']}; the phase's start in s, the highest RSS until the next):", "",
-                  "| s | phase | RSS MB |", "|---|---|---|"] + phases(r)
+        lines += ["", f"By phase ({r['backend']}; its start and length in s, the highest RSS in it):", "",
+                  "| start s | length s | phase | RSS MB |", "|---|---|---|---|"] + phases(r)
     text = "\n".join(lines)
     print(text)
     (work / "bench_diagnose.json").write_text(json.dumps(results, indent=1))

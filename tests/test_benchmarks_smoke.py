@@ -190,3 +190,21 @@ def test_bench_scaling_tiny_run(tmp_path):
         assert r["us_per_step"] > 0 and r["steady_residual"] < 1e-9
     assert data["end_to_end"] == []
     assert "log-log slope" in res.stdout
+
+
+def test_bench_diagnose_splits_the_progress_lines_into_phases():
+    """The diagnosis benchmark's phase table: a candidate's fit lines are one phase, each phase gets the highest RSS
+    sampled in it and its length."""
+    import bench_diagnose
+
+    lines = [(0.0, "[ 0.0 s] building candidates from the network ..."),
+             (2.0, "[ 2.0 s] round 1: score test over 3 candidates ..."),
+             (5.0, "[ 5.0 s]   fitting a depends on u (k=1) ..."), (6.0, "[ 6.0 s]     fitted in 1 s (4 iterations)"),
+             (7.0, "[ 7.0 s]   continuing a depends on u ..."),
+             (9.0, "[ 9.0 s] fitting it again from the values written in the file ...")]
+    trace = [(0.5, 100.0), (3.0, 900.0), (5.5, 400.0), (8.0, 450.0), (9.5, 300.0)]
+    rows = bench_diagnose.phases({"lines": lines, "trace": trace, "wall_s": 10.0})
+    assert len(rows) == 4
+    assert rows[1].startswith("| 2.0 | 3.0 | round 1: score test") and rows[1].endswith("| 900 |")
+    assert "fitting candidates" in rows[2] and rows[2].startswith("| 5.0 | 4.0 |") and rows[2].endswith("| 450 |")
+    assert "fitting it again" in rows[3]
