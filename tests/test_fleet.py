@@ -229,6 +229,33 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     assert kept.name.startswith(good + ".") and (kept / "model" / "meta.json").is_file()
 
 
+def test_a_batch_keeps_each_units_own_column_names_and_a_unit_with_known_values_apart(tmp_path):
+    """In this process, batches of up to 3: board-001 logs T1 under another name (a `columns:` override) and is
+    fitted with board-000 in one program, its saved model reading its own column; board-002 has a known ambient
+    (`params:`), another structure, and is fitted on its own."""
+    fl = _fleet(tmp_path, n=3, faulty=0, seed=6)
+    csv = fl / "board-001" / "train.csv"
+    csv.write_text(csv.read_text().replace("T1_degC", "temp_1", 1))
+    val = fl / "board-001" / "val.csv"
+    val.write_text(val.read_text().replace("T1_degC", "temp_1", 1))
+    m = fl / "fleet.yaml"
+    m.write_text("units:\n"
+                 "  - {name: board-000, train: [board-000/train.csv], val: [board-000/val.csv]}\n"
+                 "  - {name: board-001, train: [board-001/train.csv], val: [board-001/val.csv],\n"
+                 "     columns: {T1: temp_1}}\n"
+                 "  - {name: board-002, train: [board-002/train.csv], val: [board-002/val.csv],\n"
+                 "     params: {Ta: 23 degC}}\n")
+    res = run_fleet(template_path(), m, tmp_path / "out", options=FleetOptions(mode="train", epochs=20), workers=0,
+                    batch=3)
+    by = {r["unit"]: r for r in res.rows}
+    assert [by[u]["status"] for u in ("board-000", "board-001", "board-002")] == ["ok"] * 3
+    assert by["board-000"]["joint"]["sets"] == by["board-001"]["joint"]["sets"] == 2 and "joint" not in by["board-002"]
+    model = tnn_dsl.load_model(tmp_path / "out" / "units" / "board-001" / "model")
+    assert next(s for s in model.network.sensors if s.name == "T1").column == "temp_1"
+    assert model.evaluate([str(val)])["mae"] == pytest.approx(by["board-001"]["val_mae"], rel=1e-9)
+    assert "Ta" not in by["board-002"]["params"]  # known, not fitted
+
+
 def test_a_dying_worker_is_retried_once_then_reported(tmp_path, monkeypatch):
     """On a local Ray: the worker fitting board-001 dies once (its retry finishes the unit); the one fitting
     board-002 dies every time (reported as an error after one retry); the other units are not affected; the next

@@ -178,8 +178,8 @@ def _task(template_text: str, template_file: str, members: list[tuple[dict[str, 
             rows[i] = {"unit": u["name"], "status": "failed", "reason": str(e).strip(), "params": {}, "findings": []}
     if ok:
         # the engine batches units with the same overrides only: one network for the batch
-        done = run_batch(ok[0][1], [m for _i, _n, m in ok], options) if len(ok) > 1 else \
-            [run_unit(ok[0][1], *ok[0][2], options)]
+        done = run_batch(ok[0][1], [m for _i, _n, m in ok], options, networks=[n for _i, n, _m in ok]) \
+            if len(ok) > 1 else [run_unit(ok[0][1], *ok[0][2], options)]
         for (i, _n, _m), row in zip(ok, done):
             rows[i] = row
     return [r for r in rows if r is not None]

@@ -228,27 +228,30 @@ def batch_problem(net: Network, members: list[tuple[dict[str, Any], list, list]]
     return joint_fit_problem(net, [_split(list(t), list(v)) for _u, t, v in members])
 
 
-def run_batch(net: Network, members: list[tuple[dict[str, Any], list, list]],
-              options: FleetOptions) -> list[dict[str, Any]]:
+def run_batch(net: Network, members: list[tuple[dict[str, Any], list, list]], options: FleetOptions,
+              networks: list[Network] | None = None) -> list[dict[str, Any]]:
     """Fit the units ``members`` (``(unit, train, val)``, all with the network ``net``) in one compiled program
-    (:func:`tnn_dsl.fit.joint.train_jointly`) and return their rows, as :func:`run_unit`'s. Where they cannot be
-    fitted together (:func:`batch_problem`) or the joint fit fails (one unit's bad data), each unit is run on its
-    own, so that a bad unit gets its own row and the rest go on."""
+    (:func:`tnn_dsl.fit.joint.train_jointly`) and return their rows, as :func:`run_unit`'s. ``networks``: each
+    unit's own network (the same structure; its column names may differ), kept in its saved model. Where they
+    cannot be fitted together (:func:`batch_problem`) or the joint fit fails (one unit's bad data), each unit is run
+    on its own, so that a bad unit gets its own row and the rest go on."""
+    nets = list(networks) if networks is not None else [net] * len(members)
     from ..fit.joint import train_jointly
 
     t0 = time.perf_counter()
     if len(members) < 2 or batch_problem(net, members, options) is not None:
-        return [run_unit(net, u, t, v, options) for u, t, v in members]
+        return [run_unit(n, u, t, v, options) for n, (u, t, v) in zip(nets, members)]
     sets = [_split(list(t), list(v)) for _u, t, v in members]
     extra = {} if options.epochs is None else {"epochs": int(options.epochs)}
     try:
         models = train_jointly(net, sets, backend=options.backend, init=options.init, burn_in=options.burn_in,
                                **extra)
     except Exception:  # noqa: BLE001 - one unit's data or fit: each unit on its own says which
-        return [run_unit(net, u, t, v, options) for u, t, v in members]
+        return [run_unit(n, u, t, v, options) for n, (u, t, v) in zip(nets, members)]
     rows = []
     share = (time.perf_counter() - t0) / len(members)
-    for (u, _t, _v), tm in zip(members, models):
+    for (u, _t, _v), tm, own in zip(members, models, nets):
+        tm.network = own  # the unit's column names in its saved model (the structure is the batch's)
         row: dict[str, Any] = {"unit": u["name"], "status": "ok", "reason": "", "val_mae": None, "train_mae": None,
                                "params": {}, "findings": [], "gain": None, "extended": None, "model": {}}
         try:
