@@ -178,15 +178,15 @@ def _strip(row: dict) -> dict:
 
 
 def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
-    """Six generated boards (one with a 25 s lag on T1) and one unit whose file is not a data file: on a local Ray
+    """Five generated boards (one with a 25 s lag on T1) and one unit whose file is not a data file: on a local Ray
     with 2 CPUs and one unit per task every good unit's result equals the in-process run's, one by one (to
-    round-off); batched (three units per task, fitted together in one compiled program) each estimate lies within a
+    round-off); batched (three and two units per task, fitted together in one compiled program) each estimate lies within a
     tenth of its standard error of the one-by-one fit. The bad unit has a row saying why, the lagging board is the
     one flagged; a re-run skips every unit."""
-    fl = _fleet(tmp_path, n=6, faulty=1, seed=2)
+    fl = _fleet(tmp_path, n=5, faulty=1, seed=2)
     (fl / "broken").mkdir()
     (fl / "broken" / "train.csv").write_text("time_s,Q1_pct\n0,1\n1,x\n")
-    opts = FleetOptions(mode="train", epochs=60)
+    opts = FleetOptions(mode="train", epochs=40)
     serial = run_fleet(template_path(), fl, tmp_path / "serial", options=opts, workers=0, batch=1)
     one_by_one = run_fleet(template_path(), fl, tmp_path / "ray1", options=opts, workers=2, batch=1)
     ray_run = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2, batch=3)
@@ -194,7 +194,7 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     for a, b, c in zip(serial.rows, one_by_one.rows, ray_run.rows):
         assert a["status"] == b["status"] == c["status"]
         if a["status"] == "ok":
-            assert "joint" not in b and c["joint"]["sets"] == 3
+            assert "joint" not in b and c["joint"]["sets"] in (2, 3)  # tasks of 3 and 2
             for k, p in a["params"].items():
                 assert b["params"][k]["estimate"] == pytest.approx(p["estimate"], rel=1e-8, abs=1e-12), (a["unit"], k)
                 assert c["params"][k]["status"] == p["status"], (a["unit"], k, p, c["params"][k])
@@ -215,10 +215,10 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     doc = json.loads((tmp_path / "ray" / "report.json").read_text())
     assert {"unit", "status", "val_mae", "findings", "gain"} <= set(doc["units"][0])
     assert (tmp_path / "ray" / "units" / lagging[0] / "model" / "meta.json").is_file()
-    again = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=2)
-    assert again.ran == [] and len(again.skipped) == 7
+    again = run_fleet(template_path(), fl, tmp_path / "ray", options=opts, workers=0)
+    assert again.ran == [] and len(again.skipped) == 6
     with pytest.raises(TnnError, match="holds a fleet run of other options"):
-        run_fleet(template_path(), fl, tmp_path / "ray", options=FleetOptions(mode="train", epochs=61), workers=0)
+        run_fleet(template_path(), fl, tmp_path / "ray", options=FleetOptions(mode="train", epochs=41), workers=0)
     # a unit whose data changed is redone; its previous result (a trained model) is moved aside, not deleted
     good = next(r["unit"] for r in ray_run.rows if r["status"] == "ok")
     csv = fl / good / "train.csv"
