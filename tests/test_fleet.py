@@ -277,10 +277,21 @@ def test_a_dying_worker_is_retried_once_then_reported(tmp_path, monkeypatch):
     assert again.ran == ["board-002"] and [r["status"] for r in again.rows] == ["ok"] * 4
 
 
+def _finished(out: Path) -> list[Path]:
+    """The finished units' ``result.json`` under ``out/units`` (never a hidden one being written, which the running
+    fleet renames meanwhile: a glob over it can fail with FileNotFoundError, as CI saw)."""
+    try:
+        names = sorted(os.listdir(out / "units"))
+    except FileNotFoundError:
+        return []
+    return [out / "units" / n / "result.json" for n in names
+            if not n.startswith(".") and (out / "units" / n / "result.json").is_file()]
+
+
 def _wait_for_results(out: Path, n: int, proc: subprocess.Popen, timeout: float = 300.0) -> list[Path]:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
-        done = sorted((out / "units").glob("*/result.json")) if (out / "units").is_dir() else []
+        done = _finished(out)
         if len(done) >= n:
             return done
         if proc.poll() is not None:
@@ -309,7 +320,7 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
         if proc.poll() is None:
             proc.kill()
     assert rc == (130 if how == "ctrl-c on ray" else -signal.SIGKILL), proc.stderr.read() if proc.stderr else ""
-    kept = {p.parent.name: p.stat().st_mtime_ns for p in sorted((out / "units").glob("*/result.json"))}
+    kept = {p.parent.name: p.stat().st_mtime_ns for p in _finished(out)}
     assert first[0].parent.name in kept
     for name in kept:
         assert json.loads((out / "units" / name / "result.json").read_text())["status"] == "ok"
