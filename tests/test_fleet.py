@@ -180,9 +180,9 @@ def _strip(row: dict) -> dict:
 def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path):
     """Five generated boards (one with a 25 s lag on T1) and one unit whose file is not a data file: on a local Ray
     with 2 CPUs and one unit per task every good unit's result equals the in-process run's, one by one (to
-    round-off); batched (three and two units per task, fitted together in one compiled program) each estimate lies within a
-    tenth of its standard error of the one-by-one fit. The bad unit has a row saying why, the lagging board is the
-    one flagged; a re-run skips every unit."""
+    round-off); batched (three and two units per task, fitted together in one compiled program) each estimate lies
+    within a tenth of its standard error of the one-by-one fit. The bad unit has a row saying why, the lagging
+    board is the one flagged; a re-run skips every unit."""
     fl = _fleet(tmp_path, n=5, faulty=1, seed=2)
     (fl / "broken").mkdir()
     (fl / "broken" / "train.csv").write_text("time_s,Q1_pct\n0,1\n1,x\n")
