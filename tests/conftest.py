@@ -2,8 +2,28 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+
+NO_SHARED_JAX_CACHE_ENV = "TNN_TEST_NO_JAX_CACHE"
+"""Set to 1 to run the tests without the session's shared JAX compilation cache."""
+
+
+def _jax_cache_dir(config) -> str:
+    """One JAX persistent compilation cache for the whole test session, shared by the xdist workers (their parent is
+    the controlling pytest process): the same networks are compiled in many tests, and a program read back from the
+    cache is the program XLA would compile (its key is the program itself). Removed when the session ends."""
+    owner = os.getppid() if hasattr(config, "workerinput") else os.getpid()
+    return os.path.join(tempfile.gettempdir(), f"tnn_dsl_test_jax_cache_{owner}")
+
 
 def pytest_configure(config):
+    if os.environ.get(NO_SHARED_JAX_CACHE_ENV) != "1":
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", _jax_cache_dir(config))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     # The networks are small: torch's intra-op threads only add synchronisation (measured 47× slower per
     # batched step with 2 threads than with 1 on the 2-core CI machine, benchmarks/bench_rollout.py
     # --torch-threads), and pytest-xdist already runs one worker per core.
@@ -12,3 +32,8 @@ def pytest_configure(config):
     except ImportError:  # pragma: no cover
         return
     torch.set_num_threads(1)
+
+
+def pytest_unconfigure(config):
+    if not hasattr(config, "workerinput"):  # the controlling process: the workers have stopped
+        shutil.rmtree(_jax_cache_dir(config), ignore_errors=True)
