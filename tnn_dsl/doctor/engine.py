@@ -16,6 +16,8 @@ from ..ir import POSITIVE_ROLES, Input, Network, Param
 from .base import Candidate, Extended
 
 # Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
+POINT_BLOCK = 2048
+"""Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`)."""
 FIT_ITER = 80
 
 
@@ -281,13 +283,16 @@ class _Engine:
         ym, _ = self.simulate(params)
         return self.y - ym  # (N, n_out), NaN where unmeasured
 
-    def jacobian(self, active: list[int], chunk: int = 16) -> np.ndarray:
-        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in batches of
-        ``chunk`` forward-mode tangents (one compiled shape: 8 for small sets, else ``chunk``)."""
+    def jacobian(self, active: list[int], chunk: int = 32) -> np.ndarray:
+        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in one batch of
+        forward-mode tangents, their number rounded up to a multiple of 4 (a compiled shape per size; the doctor's
+        active sets vary by a few columns within a round), in batches of ``chunk`` beyond that. A tangent costs
+        about as much as the simulation it rides on: a fixed batch of 16 for a set of 17 columns doubled the cost of
+        every Gauss–Newton iteration of a round (issue 18)."""
         base = self._to(self.params)
         n = len(self.cols)
         out = []
-        size = 8 if len(active) <= 8 else chunk
+        size = min(chunk, 4 * max(1, -(-len(active) // 4)))
         for s in range(0, len(active), size):
             part = active[s: s + size]
             tan = np.zeros((size, n))
@@ -334,19 +339,30 @@ class _Engine:
         and inputs ``U (N, n_in)`` SI (vectorised over time, no simulation)."""
         base = self._to(self.params)
         n = len(self.cols)
-        t = self._to({"X": X, "U": _pad(U, self.n_force)})
-        d_rhs, d_out = [], []
+        N = X.shape[0]
+        # time in blocks of POINT_BLOCK samples (the last padded: one compiled shape): the extended network's
+        # right-hand side holds every candidate's term, each a (chunk, block) array in the derivative
+        block = N if N <= POINT_BLOCK else POINT_BLOCK
+        n_blocks = -(-N // block)
+        Xp = np.concatenate([X, np.repeat(X[-1:], n_blocks * block - N, 0)]) if n_blocks * block > N else X
+        Up = _pad(U, self.n_force)
+        Up = np.concatenate([Up, np.repeat(Up[-1:], n_blocks * block - N, 0)]) if n_blocks * block > N else Up
+        blocks = [self._to({"X": Xp[b * block: (b + 1) * block], "U": Up[b * block: (b + 1) * block]})
+                  for b in range(n_blocks)]
+        ns, no = X.shape[1], len(self.model.output_names)
+        d_rhs, d_out = np.zeros((len(active), N, ns)), np.zeros((len(active), N, no))
         for s0 in range(0, len(active), chunk):
             ta = np.zeros((chunk, n))
             part = active[s0: s0 + chunk]
             for r, j in enumerate(part):
                 ta[r, j] = 1.0
-            a, b = self._point(base, self._to({"a": ta})["a"], t["X"], t["U"])
-            d_rhs.append(np.asarray(self._np(a))[: len(part)])
-            d_out.append(np.asarray(self._np(b))[: len(part)])
-        ns, no = X.shape[1], len(self.model.output_names)
-        return (np.concatenate(d_rhs) if d_rhs else np.zeros((0, X.shape[0], ns)),
-                np.concatenate(d_out) if d_out else np.zeros((0, X.shape[0], no)))
+            tan = self._to({"a": ta})["a"]
+            for b, t in enumerate(blocks):
+                a, o = self._point(base, tan, t["X"], t["U"])
+                stop = min(block, N - b * block)
+                d_rhs[s0: s0 + len(part), b * block: b * block + stop] = np.asarray(self._np(a))[: len(part), :stop]
+                d_out[s0: s0 + len(part), b * block: b * block + stop] = np.asarray(self._np(o))[: len(part), :stop]
+        return d_rhs, d_out
 
     def rates(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
         """``dT/dt (N, ns)`` K/s at states ``X`` and inputs ``U`` (current parameters, forcing 0)."""
@@ -388,6 +404,15 @@ class _Engine:
         with np.errstate(over="ignore"):  # a trial step far along a valley may blow a simulation up: inf
             return float(np.dot(v, v))
 
+    def _train_sse(self, params) -> tuple[float, np.ndarray]:
+        """The training rows' SSE K² (inf where the simulation is not finite) and residual (n_train,) K of
+        ``params``: one simulation."""
+        v = self.residual(params).ravel()[self.train_idx]
+        if not np.all(np.isfinite(v)):
+            return math.inf, v
+        with np.errstate(over="ignore"):
+            return float(np.dot(v, v)), v
+
     def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
             deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True) -> dict:
         """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``)."""
@@ -402,7 +427,7 @@ class _Engine:
                 if sse_t < best:
                     params, best = trial, sse_t
                     break
-        cur = self.sse(params)
+        cur, r = self._train_sse(params)
         lam = 1e-3
         it = 0
         if not active:
@@ -410,7 +435,6 @@ class _Engine:
             return {"sse": cur, "iterations": 0}
         for it in range(1, max_iter + 1):
             self.params = params
-            r = self.residual(params).ravel()[self.train_idx]
             J = self.jacobian(active)
             A = J.T @ J
             g = J.T @ r
@@ -423,7 +447,7 @@ class _Engine:
                 except np.linalg.LinAlgError:
                     delta = np.linalg.lstsq(M, g, rcond=None)[0]
                 trial = self.apply(params, active, delta)
-                new = self.sse(trial)
+                new, r_new = self._train_sse(trial)
                 if new < cur:
                     rel = (cur - new) / max(cur, 1e-300)
                     # flat valleys (free constants that are not identifiable as written, a conductance
@@ -432,12 +456,12 @@ class _Engine:
                     mult = 1.0
                     while extrapolate and mult < 64:
                         t2 = self.apply(params, active, 2 * mult * delta)
-                        n2 = self.sse(t2)
+                        n2, r2 = self._train_sse(t2)
                         if not n2 < new:
                             break
-                        trial, new, mult = t2, n2, 2 * mult
+                        trial, new, r_new, mult = t2, n2, r2, 2 * mult
                     rel = (cur - new) / max(cur, 1e-300)
-                    params, cur = trial, new
+                    params, cur, r = trial, new, r_new  # the accepted step's residual: no second simulation
                     lam = max(lam / 4, 1e-9)
                     improved = True
                     break
@@ -663,9 +687,12 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     eng = _Engine(model.network, exps, train_mask, val_mask, backend, free_cols + cand_cols, params0, model=model,
                   n_force=n_force, init=plan)
     eng.n_free = len(free_cols)
-    eng.initial_states(range(len(exps)), "measured")  # at the nominal values; the state's fitted ones replace them
     all_u = np.concatenate([e.inputs for e in exps], 0)
-    if "states" not in ref:
+    if "states" not in ref:  # the first (nominal) engine: the learned inputs' scales from a run at nominal values
+        # started at the measured steady state; every engine's parameters are then the state's (below), so later
+        # engines skip this run and the steady-state solve it compiles (the extended network's: ~280 MB and 2.7 s
+        # on the 4 h case study, issue 18)
+        eng.initial_states(range(len(exps)), "measured")
         _, st = eng.simulate()
         ref["states"] = st
         ref["names"] = list(model.state_names)

@@ -14,6 +14,9 @@ from .base import STRUCTURAL_KINDS, Candidate
 from .engine import _Engine
 from .selection import _place
 
+FORCED_CHUNK = 32
+"""Candidate columns whose forcing series are built and pushed through the forced Jacobian together (the engine's
+tangent batch): memory per chunk ``FORCED_CHUNK × N × nodes`` floats."""
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 
@@ -56,11 +59,8 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     taken = {(cur.cols[i].key, cur.cols[i].index) for i in active_base}
     cand_idx = sorted({j for cand in cands for j in cols_of.get(cand.key, [])
                        if (big.cols[j].key, big.cols[j].index) not in acc_cols | taken})
-    d_rhs, d_out = big.point_derivs(cand_idx, X, U)
     inv_c = cur.inv_capacity(X, U)  # (N, ns)
     nn = cur.n_force
-    with np.errstate(divide="ignore", invalid="ignore"):
-        F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
     # structural candidates, no simulation of the edit. A thermal mass C_m on a link a–b is an extra heat flow
     # per node (``_candidates.mass_forcing``: −C_m·(1−f)·dT_m/dt into a, −C_m·f·dT_m/dt into b, f = 1/2 here;
     # the proper fit frees f), pushed through the forced Jacobian with the other candidates' F; a sensor lag τ
@@ -70,17 +70,30 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     smass = [c for c in struct if c.kind == "source_mass"]
     rates = cur.rates(X, U) if struct else None  # (N, ns) K/s
     mass_rows: list[tuple[Candidate, float | None, str | None]] = []  # (candidate, C or τ, source part)
+    Fm: list[np.ndarray] = []
     if mass or smass:
         Fm, mass_rows = _structural_forcing(cur, mass, smass, X, U, rates, nn)
-        if Fm:
-            F = np.concatenate([F, np.stack(Fm)], axis=0)
-    J_all = cur.forced_jacobian(active_base, F)
-    direct = (d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T if len(cand_idx)  # (n_train, m)
-              else np.zeros((len(cur.train_idx), 0)))  # only structural candidates (``kinds``)
+    # columns [nominal free and accepted | candidates' (forced response + direct output term) | structural forcings],
+    # computed FORCED_CHUNK columns at a time: the forcing series of all candidates at once, (m, N, nodes) floats,
+    # held 1 GB on the 4 h case study (issue 18); a chunk holds a few MB
     n0 = len(active_base)
-    J_all[:, n0: n0 + direct.shape[1]] += direct
+    blocks = [cur.forced_jacobian(active_base)]
+    for s0 in range(0, len(cand_idx), FORCED_CHUNK):
+        part = cand_idx[s0: s0 + FORCED_CHUNK]
+        d_rhs, d_out = big.point_derivs(part, X, U)  # (k, N, ns), (k, N, n_out)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
+        del d_rhs
+        J = cur.forced_jacobian([], F)
+        J += d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # the direct output term (sensor offsets)
+        blocks.append(J)
+    for s0 in range(0, len(Fm), FORCED_CHUNK):
+        blocks.append(cur.forced_jacobian([], np.stack(Fm[s0: s0 + FORCED_CHUNK])))
+    del Fm
+    J_all = np.concatenate(blocks, axis=1)
+    del blocks
     if struct:
-        J_all, cols_of, cand_idx = _structural_columns(cur, big, struct, mass_rows, J_all, n0, direct.shape[1], X,
+        J_all, cols_of, cand_idx = _structural_columns(cur, big, struct, mass_rows, J_all, n0, len(cand_idx), X,
                                                        rates, dict(cols_of), cand_idx)
     e = cur.residual()
     return _score_stats(J_all, len(active_base), e.ravel()[cur.train_idx], cands, cand_idx, cols_of,
