@@ -62,7 +62,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
-             burn_in: float | None = None, objective: str = "output-error") -> Diagnosis:
+             burn_in: float | None = None, objective: str = "output-error", threads: int | None = None) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -100,13 +100,18 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         by a likelihood-ratio test with the held-out one-step log-likelihood as the check; the largest likelihood
         first (Bacher & Madsen's forward selection). The values reported and written are then the likelihood fit's.
 
+    threads : int, optional
+        Candidate fits run side by side in this many threads (default ``$TNN_DOCTOR_THREADS``, else the CPUs this
+        process may use, at most 4; JAX only: torch fits one at a time, its forward-mode derivatives are per
+        thread). The result does not depend on it, except through ``budget_s``.
+
     Returns
     -------
     Diagnosis
     """
     run = _Session(net_or_path, train, val, budget_s, backend, progress, top=top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
-                   burn_in=burn_in, objective=objective)
+                   burn_in=burn_in, objective=objective, threads=threads)
     run.read_data()
     run.fit_baseline()
     run.analyse_residuals()

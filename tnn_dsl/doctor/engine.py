@@ -3,6 +3,7 @@ simulation, residuals and Jacobians (forward mode, batched) through the backend 
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 import time as _time
@@ -116,6 +117,13 @@ class _Engine:
     def params(self, value: dict[str, np.ndarray]) -> None:
         self._params = value
         self.x0_stale = True
+
+    def clone(self) -> "_Engine":
+        """The same compiled network and data with its own parameter table: fits on clones run side by side in
+        threads (the compiled programs are shared; JAX releases the interpreter while a simulation runs)."""
+        e = copy.copy(self)
+        e._params = {k: np.array(v, copy=True) for k, v in self._params.items()}
+        return e
 
     def x0_keys(self, i: int) -> list[str]:
         """Experiment ``i``'s initial-state keys, in state order (empty under ``steady``)."""
@@ -375,18 +383,31 @@ class _Engine:
         t = self._to({"X": X, "U": _pad(U, self.n_force)})
         return np.asarray(self._np(self._inv_cap(self._to(self.params), t["X"], t["U"])))
 
+    def trusted(self, active: list[int], delta: np.ndarray) -> np.ndarray:
+        """``delta`` inside the trust region of one step: log-parameters move by at most ±2 (a factor e²), learned
+        weights (acting on normalised inputs) by at most ±1."""
+        out = np.array(delta, dtype=float, copy=True)
+        for r, j in enumerate(active):
+            c = self.cols[j]
+            if c.log:
+                out[r] = np.clip(out[r], -2, 2)
+            elif c.key.rsplit(".", 1)[-1][:1] in "Wbc" and "." in c.key:
+                out[r] = np.clip(out[r], -1, 1)
+        return out
+
     def apply(self, params, active: list[int], delta: np.ndarray, trust: bool = True) -> dict[str, np.ndarray]:
-        """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped; with ``trust``,
-        log-parameters move by at most e^±2 and learned weights by at most ±1 per step)."""
+        """New numpy params after the step ``delta`` on columns ``active`` (bounds clipped; with ``trust``, inside
+        the trust region of :meth:`trusted`)."""
         p = {k: np.array(v, dtype=float, copy=True) for k, v in params.items()}
+        if trust:
+            delta = self.trusted(active, delta)
         for j, d in zip(active, delta):
             c = self.cols[j]
             flat = p[c.key].reshape(-1)
             if c.log:
-                v = flat[c.index] * math.exp(float(np.clip(d, -2, 2) if trust else np.clip(d, -30, 30)))
-            else:  # learned weights act on normalised inputs: at most ±1 per step (a trust region)
-                v = flat[c.index] + (float(np.clip(d, -1, 1)) if trust and c.key.rsplit(".", 1)[-1][:1] in "Wbc"
-                                     and "." in c.key else d)
+                v = flat[c.index] * math.exp(float(np.clip(d, -30, 30)))
+            else:
+                v = flat[c.index] + float(d)
             if c.lower is not None:
                 v = max(v, c.lower)
             if c.upper is not None:
@@ -446,16 +467,18 @@ class _Engine:
                     delta = np.linalg.solve(M, g)
                 except np.linalg.LinAlgError:
                     delta = np.linalg.lstsq(M, g, rcond=None)[0]
-                trial = self.apply(params, active, delta)
+                delta = self.trusted(active, delta)
+                trial = self.apply(params, active, delta, trust=False)
                 new, r_new = self._train_sse(trial)
                 if new < cur:
                     rel = (cur - new) / max(cur, 1e-300)
                     # flat valleys (free constants that are not identifiable as written, a conductance
-                    # drifting towards 0 in log space): the damped step is right in direction but short, so
-                    # go on along it (2δ, 4δ, ...) while the SSE keeps dropping; one simulation per try
+                    # drifting towards 0 in log space) and steps cut by the trust region (a heat load's weight
+                    # 40 units away moved 1 per iteration): the step is right in direction but short, so go on
+                    # along it (2δ, 4δ, ...) while the SSE keeps dropping; one simulation per try
                     mult = 1.0
                     while extrapolate and mult < 64:
-                        t2 = self.apply(params, active, 2 * mult * delta)
+                        t2 = self.apply(params, active, 2 * mult * delta, trust=False)
                         n2, r2 = self._train_sse(t2)
                         if not n2 < new:
                             break

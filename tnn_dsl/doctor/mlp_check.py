@@ -58,12 +58,13 @@ def _n_params(trained) -> int:
 
 
 def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax", time_limit: float = 60.0,
-            say: Callable[[str], None] = lambda s: None) -> dict | None:
+            say: Callable[[str], None] = lambda s: None, threads: int = 1) -> dict | None:
     """Train the extension ``net`` as it is (the doctor's linear functions, of ``targets``) and with those as MLPs
     (:func:`mlp_variant`) on ``train`` (Experiments), measure both on ``val`` (Experiments; free runs). Returns
     None when there is no linear function to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max,
     K; trainable parameter count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"),
-    ``reason``, ``network`` (the chosen variant), ``n_clauses``."""
+    ``reason``, ``network`` (the chosen variant), ``n_clauses``. With ``threads`` ≥ 2 the two trainings run side by
+    side (their progress lines are said in order when both are done)."""
     from ..fit import train as train_model
 
     net_mlp, n = mlp_variant(net, targets)
@@ -71,16 +72,32 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         return None
     out: dict = {"n_clauses": n}
     errors = {}
-    for form, variant in (("linear", net), ("mlp", net_mlp)):
+
+    def run(form: str, variant: Network, tell: Callable[[str], None]) -> tuple[np.ndarray, dict]:
         t0 = time.monotonic()
-        say(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
+        tell(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
         trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0)
         e = _held_out_errors(trained, val)
-        errors[form] = e
-        out[form] = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
-                     "k": _n_params(trained), "seconds": round(time.monotonic() - t0, 1),
-                     "stopped": trained.meta.get("stopped")}
-        say(f"    held-out MAE {out[form]['val_mae']:.4g} K ({out[form]['seconds']} s)")
+        row = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
+               "k": _n_params(trained), "seconds": round(time.monotonic() - t0, 1),
+               "stopped": trained.meta.get("stopped")}
+        tell(f"    held-out MAE {row['val_mae']:.4g} K ({row['seconds']} s)")
+        return e, row
+
+    forms = (("linear", net), ("mlp", net_mlp))
+    if threads >= 2:
+        from concurrent.futures import ThreadPoolExecutor
+
+        bufs: dict[str, list[str]] = {f: [] for f, _ in forms}
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="tnn-mlp-check") as pool:
+            futures = {f: pool.submit(run, f, v, bufs[f].append) for f, v in forms}
+            for f, _ in forms:
+                errors[f], out[f] = futures[f].result()
+                for line in bufs[f]:
+                    say(line)
+    else:
+        for f, v in forms:
+            errors[f], out[f] = run(f, v, say)
     k_extra = max(out["mlp"]["k"] - out["linear"]["k"], 1)
     stat, p, n_eff = held_out_test(errors["linear"], errors["mlp"], k_extra)
     gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0

@@ -146,13 +146,41 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
     return out
 
 
+THREADS_ENV = "TNN_DOCTOR_THREADS"
+"""Environment variable: the number of candidate fits run side by side (default: the CPUs this process may use, at
+most ``MAX_THREADS``)."""
+MAX_THREADS = 4
+
+
+def fit_threads(threads: int | None = None) -> int:
+    """How many candidate fits run side by side: ``threads`` if given, else ``$TNN_DOCTOR_THREADS``, else the CPUs
+    this process may use (at most ``MAX_THREADS``: a round fits five candidates and continues three)."""
+    if threads is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        if env:
+            try:
+                threads = int(env)
+            except ValueError:
+                raise TnnError(Diagnostic(f"{THREADS_ENV}={env!r} is not a whole number",
+                                          hint=f"set {THREADS_ENV} to 1 (one fit at a time) or more")) from None
+        else:
+            try:
+                threads = min(MAX_THREADS, len(os.sched_getaffinity(0)))
+            except AttributeError:  # not Linux
+                threads = min(MAX_THREADS, os.cpu_count() or 1)
+    if threads < 1:
+        raise TnnError(Diagnostic(f"threads must be at least 1 (got {threads})", hint="use 1 for one fit at a time"))
+    return int(threads)
+
+
 class _Session:
     """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
 
     def __init__(self, net_or_path, train, val, budget_s: float | None, backend: str,
                  progress: Callable[[str], None] | None, *, top: int, max_rounds: int, output: str | None,
                  kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool,
-                 init: str = "estimate", burn_in: float | None = None, objective: str = "output-error"):
+                 init: str = "estimate", burn_in: float | None = None, objective: str = "output-error",
+                 threads: int | None = None):
         from .likelihood import OBJECTIVES
 
         self.t_start = _time.monotonic()
@@ -180,6 +208,9 @@ class _Session:
         if backend not in ("jax", "torch"):
             raise TnnError(Diagnostic(f"unknown backend {backend!r}", hint="use --backend jax or --backend torch"))
         self.train_arg, self.val_arg = train, val
+        # torch's forward-mode derivatives (the Gauss–Newton Jacobians) keep their dual levels per thread and fail
+        # in a worker thread: torch fits one candidate at a time
+        self.threads = fit_threads(threads) if backend == "jax" else 1
 
     def lap(self, name: str, t0: float) -> None:
         self.timings[name] = round(_time.monotonic() - t0, 3)
@@ -448,39 +479,79 @@ class _Session:
             if s_["r2"] < MIN_R2 and short:
                 continue  # the linearised fit explains too little of the residual to pay
             short.append(s_)
+        if short and short[0]["r2"] < MIN_R2:
+            self.say(f"  {short[0]['cand'].describe()}: the score test explains only {100 * short[0]['r2']:.2g} % of "
+                     "the residual; not fitted")
+            return []
         acc_keys = self.acc_keys()
         sh_keys = [s_["cand"].key for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
         t_c = _time.monotonic()
         e_s, x_s, f_s, c_s = self.small(acc_keys + sh_keys)
         t_c = _time.monotonic() - t_c
         start_params = {k: np.array(v, copy=True) for k, v in e_s.params.items()}
-        fits: list[dict] = []
-        for s_ in short:
-            c: Candidate = s_["cand"]
-            if self.spent() and fits:
-                break
-            if s_["r2"] < MIN_R2:
-                self.say(f"  {c.describe()}: the score test explains only {100 * s_['r2']:.2g} % of the residual;"
-                         " not fitted")
-                break
-            self.say(f"  fitting {c.describe()} (k={c.k}) ...")
-            if c.kind in STRUCTURAL_KINDS:
+        structural = [s_ for s_ in short if s_["cand"].kind in STRUCTURAL_KINDS]
+        exact = [s_ for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
+
+        def fit_structural(say) -> list[dict | None]:
+            """The structural candidates one after the other (each compiles its own network and may update the
+            learned inputs' reference run that the next one reads)."""
+            out: list[dict | None] = []
+            for s_ in structural:
+                if self.spent() and (out or exact):
+                    break
+                c: Candidate = s_["cand"]
+                say(f"  fitting {c.describe()} (k={c.k}) ...")
                 # a lag or mass whose linearised fit wants a negative value starts at its smallest (lag, mass) or at
                 # the score test's lag (behind a source)
                 small = [1.0 if c.kind == "source_mass" else 1e-300] if any(s_ is t for t in ml_neg) else None
-                f = _fit_structural(c, s_, self.net_x, self.varying, self.extra, self.kinds, acc_keys, self.exps,
-                                    self.train_mask, self.val_mask, self.backend, self.state, self.ref, self.dt_min,
-                                    self.deadline, e_base_val, self.say, delta=small)
-                if f is not None:
-                    fits.append(f)
-                continue
-            fits.append(self.fit_exact(s_, (e_s, x_s, f_s, c_s), start_params, acc_keys, FIT_ITER_FIRST,
-                                       f", network compiled in {t_c:.1f} s" if len(fits) == 0 else ""))
-        self.continue_fits(fits, e_s, x_s)
+                out.append(_fit_structural(c, s_, self.net_x, self.varying, self.extra, self.kinds, acc_keys,
+                                           self.exps, self.train_mask, self.val_mask, self.backend, self.state,
+                                           self.ref, self.dt_min, self.deadline, e_base_val, say, delta=small))
+            return out
+
+        def fit_one(i: int, s_: dict):
+            def run(say) -> dict | None:
+                if i > 0 and self.spent():
+                    return None
+                say(f"  fitting {s_['cand'].describe()} (k={s_['cand'].k}) ...")
+                return self.fit_exact(s_, (e_s.clone(), x_s, f_s, c_s), start_params, acc_keys, FIT_ITER_FIRST,
+                                      f", network compiled in {t_c:.1f} s" if i == 0 else "", say=say)
+            return run
+
+        done = self.side_by_side(([fit_structural] if structural else [])
+                                 + [fit_one(i, s_) for i, s_ in enumerate(exact)])
+        by_id = {id(s_): f for s_, f in zip(exact, done[1:] if structural else done)}
+        struct_fits = iter(done[0] if structural else [])
+        fits: list[dict] = []
+        for s_ in short:  # in the shortlist's order
+            f = next(struct_fits, None) if s_["cand"].kind in STRUCTURAL_KINDS else by_id.get(id(s_))
+            if f is not None:
+                fits.append(f)
+        self.continue_fits(fits, x_s)
         return fits
 
+    def side_by_side(self, jobs: list[Callable[[Callable[[str], None]], object]]) -> list:
+        """Run ``jobs`` (each called with its own progress function) on up to ``self.threads`` threads; results in
+        job order, and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are
+        independent (each on its own engine clone or network) and spend their time inside compiled simulations,
+        where JAX and torch release the interpreter: on two cores two fits take little more than one."""
+        if self.threads <= 1 or len(jobs) <= 1:
+            return [job(self.say) for job in jobs]
+        from concurrent.futures import ThreadPoolExecutor
+
+        bufs: list[list[str]] = [[] for _ in jobs]
+        out = []
+        with ThreadPoolExecutor(max_workers=min(self.threads, len(jobs)), thread_name_prefix="tnn-doctor") as pool:
+            futures = [pool.submit(job, buf.append) for job, buf in zip(jobs, bufs)]
+            for fut, buf in zip(futures, bufs):
+                res = fut.result()
+                for line in buf:
+                    self.say(line)
+                out.append(res)
+        return out
+
     def fit_exact(self, s_: dict, small, start_params: dict, acc_keys: list[str], max_iter: int,
-                  note: str = "") -> dict:
+                  note: str = "", say: Callable[[str], None] | None = None) -> dict:
         """One exactly-null candidate fitted on the round's small network ``small`` (engine, extension, free and
         candidate columns) with only its own columns and the free ones moving, from ``start_params`` and the score
         test's Gauss–Newton step (kept only if it helps)."""
@@ -493,7 +564,7 @@ class _Session:
             init[act.index(j)] = d
         t_f = _time.monotonic()
         info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4)
-        self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations{note})")
+        (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations{note})")
         f = _fit_result(c, s_, e_s, x_s, self.e_base_val)
         f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
         return f
@@ -521,20 +592,27 @@ class _Session:
             out.append(f)
         return out
 
-    def continue_fits(self, fits: list[dict], e_s: _Engine, x_s: Extended) -> None:
+    def continue_fits(self, fits: list[dict], x_s: Extended) -> None:
         """Successive halving: the fits still moving after ``FIT_ITER_FIRST`` iterations, best training SSE
-        first, go on to convergence (the held-out rows never decide who continues)."""
+        first, go on to convergence (the held-out rows never decide who continues), side by side."""
         going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
-        for f in going:
-            if self.spent():
-                break
-            c = f["cand"]
-            self.say(f"  continuing {c.describe()} ...")
-            e_s.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
-            t_f = _time.monotonic()
-            info = e_s.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
-            self.say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
-            f.update(_fit_result(c, f["score"], e_s, x_s, self.e_base_val), train_sse=info["sse"])
+
+        def go_on(f: dict):
+            def run(say) -> dict | None:
+                if self.spent():
+                    return None
+                c, e = f["cand"], f["eng"]
+                say(f"  continuing {c.describe()} ...")
+                e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
+                t_f = _time.monotonic()
+                info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
+                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
+                return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
+            return run
+
+        for f, new in zip(going, self.side_by_side([go_on(f) for f in going])):
+            if new is not None:
+                f.update(new)
 
     def ml_choose(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> dict | None:
         """The likelihood objective's decision (:mod:`.likelihood`): each candidate whose output-error fit did not
@@ -805,7 +883,8 @@ class _Session:
             tr_e, va_e = [a for a, _ in parts], [b for _, b in parts]
         try:
             ext = _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
-            form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say)
+            form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say,
+                           threads=self.threads)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
         if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:

@@ -1,0 +1,62 @@
+"""Candidate fits side by side (issue 18): the doctor's result does not depend on how many threads fit its
+candidates, and the thread count is checked where it is given."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+import tnn_dsl
+from tnn_dsl.core import TnnError
+from tnn_dsl.doctor.session import THREADS_ENV, fit_threads
+from tnn_dsl.studies.planted import plant
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TCLAB = os.path.join(ROOT, "networks", "tclab", "tclab.thn")
+BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}  # heater fraction (SI of [%])
+
+
+def test_one_thread_and_two_give_the_same_diagnosis():
+    """A dependence planted in TCLab data (U1 grows with T(h1)), three candidates fitted per round and the best
+    continued: one thread and two name the same findings in the same order with the same values, word for word.
+    JAX only: torch fits one candidate at a time (next test)."""
+    net = tnn_dsl.load(TCLAB)
+    backend = "jax"
+    pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.01, seed=3, n_train=700, n_val=400,
+               hold=(20, 150), backend=backend)
+    runs = [tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, backend=backend,
+                             threads=n) for n in (1, 2)]
+    a, b = (d.to_dict() for d in runs)
+    assert [f["words"] for f in a["findings"]] == [f["words"] for f in b["findings"]], (runs[0].summary(),
+                                                                                         runs[1].summary())
+    assert [f["accepted"] for f in a["findings"]] == [f["accepted"] for f in b["findings"]]
+    assert runs[0].extended_text == runs[1].extended_text
+    np.testing.assert_allclose(a["extended"]["val_mae"], b["extended"]["val_mae"], rtol=1e-12)
+    assert len(a["findings"]) >= 2  # more than one candidate was fitted, so the threads had work to share
+
+
+def test_thread_count_from_argument_environment_or_cpus(monkeypatch):
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert fit_threads(3) == 3
+    assert 1 <= fit_threads() <= 4
+    monkeypatch.setenv(THREADS_ENV, "1")
+    assert fit_threads() == 1
+    monkeypatch.setenv(THREADS_ENV, "two")
+    with pytest.raises(TnnError, match="TNN_DOCTOR_THREADS='two' is not a whole number"):
+        fit_threads()
+    with pytest.raises(TnnError, match="at least 1"):
+        fit_threads(0)
+
+
+def test_torch_fits_one_candidate_at_a_time():
+    """torch's forward-mode derivatives keep their dual levels per thread (a Jacobian taken in a worker thread
+    fails: "no level exists"), so a torch diagnosis asked for two threads uses one."""
+    from tnn_dsl.doctor.session import _Session
+
+    run = _Session(TCLAB, [], None, None, "torch", None, top=1, max_rounds=1, output=None, kinds=None,
+                   mlp_check=False, mlp_time=1.0, force=False, threads=2)
+    assert run.threads == 1
+    assert _Session(TCLAB, [], None, None, "jax", None, top=1, max_rounds=1, output=None, kinds=None,
+                    mlp_check=False, mlp_time=1.0, force=False, threads=2).threads == 2
