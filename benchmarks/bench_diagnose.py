@@ -4,6 +4,7 @@ peak resident memory (the child's ``ru_maxrss``), and the RSS over time (``/proc
 0.2 s) with the doctor's progress lines, to see which phase holds the memory.
 
     python benchmarks/bench_diagnose.py                  # JAX, writes the `diagnose` section of BENCHMARKS.md
+    python benchmarks/bench_diagnose.py --threads 1,2                       # one fit at a time against two
     python benchmarks/bench_diagnose.py --backends jax,torch --no-write
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -40,14 +42,20 @@ def _rss_mb(pid: int) -> float | None:
     return None
 
 
-def run_one(data: Path, backend: str, out: Path) -> dict:
-    """One ``tnnc diagnose`` in a child process: wall s, peak RSS MB, the RSS trace and the progress lines."""
+def run_one(data: Path, backend: str, out: Path, threads: int | None = None) -> dict:
+    """One ``tnnc diagnose`` in a child process (``threads``: its ``TNN_DOCTOR_THREADS``, default the doctor's):
+    wall s, peak RSS MB, the RSS trace and the progress lines."""
+    tag = backend + (f"_t{threads}" if threads else "")
     cmd = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())", "diagnose", str(M1),
            str(data / "train.csv"), "--val", str(data / "val.csv"), "--backend", backend, "--json",
-           str(out / f"diagnosis_{backend}.json")]
+           str(out / f"diagnosis_{tag}.json")]
+    env = dict(os.environ)
+    if threads:
+        env["TNN_DOCTOR_THREADS"] = str(threads)
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=str(ROOT))
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=str(ROOT),
+                            env=env)
     trace: list[tuple[float, float]] = []
     lines: list[tuple[float, str]] = []
 
@@ -68,8 +76,9 @@ def run_one(data: Path, backend: str, out: Path) -> dict:
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     if proc.returncode != 0:
         raise SystemExit(f"tnnc diagnose failed ({proc.returncode}): " + "\n".join(s for _, s in lines[-20:]))
-    doc = json.loads((out / f"diagnosis_{backend}.json").read_text())
-    return {"backend": backend, "wall_s": wall, "peak_mb": peak if peak * 1024 > before else max(m for _, m in trace),
+    doc = json.loads((out / f"diagnosis_{tag}.json").read_text())
+    return {"backend": backend, "threads": threads or "default", "wall_s": wall,
+            "peak_mb": peak if peak * 1024 > before else max(m for _, m in trace),
             "trace": trace, "lines": lines, "gain": (doc.get("gain") or {}).get("val_mae_ratio"),
             "accepted": [f.get("words", "")[:80] for f in doc.get("findings") or [] if f.get("accepted")]}
 
@@ -99,22 +108,28 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--backends", default="jax")
     ap.add_argument("--dir", default=None)
+    ap.add_argument("--threads", default="",
+                    help="comma-separated TNN_DOCTOR_THREADS values, one run each (default: the doctor's default)")
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args(argv)
     work = Path(a.dir) if a.dir else Path(tempfile.mkdtemp(prefix="bench_diagnose_"))
     data = work / "cs"
     if not (data / "train.csv").is_file():
         generate_case_study(data, widen=(), n_ood=0)
-    results = [run_one(data, b, work) for b in a.backends.split(",")]
+    threads = [int(t) for t in a.threads.split(",") if t.strip()] or [None]
+    results = [run_one(data, b, work, t) for b in a.backends.split(",") for t in threads]
     lines = ["`tnnc diagnose networks/peltier_heatpipe/m1.thn` on the generated case study (4 h training, 2 h held "
-             "out), one fresh process per backend:", "",
-             "| backend | wall time s | peak RSS MB | gain (held-out MAE ratio) | target |", "|---|---|---|---|---|"]
+             "out), one fresh process per row (threads: `TNN_DOCTOR_THREADS`, the candidate fits run side by side; "
+             "JAX only):", "",
+             "| backend | threads | wall time s | peak RSS MB | gain (held-out MAE ratio) | accepted | target |",
+             "|---|---|---|---|---|---|---|"]
     for r in results:
-        lines.append(f"| {r['backend']} | {r['wall_s']:.1f} | {r['peak_mb']:.0f} | "
-                     f"{(r['gain'] or float('nan')):.2f} | ≤ {TARGET_S:.0f} s, ≤ {TARGET_MB:.0f} MB |")
+        lines.append(f"| {r['backend']} | {r['threads']} | {r['wall_s']:.1f} | {r['peak_mb']:.0f} | "
+                     f"{(r['gain'] or float('nan')):.2f} | {'; '.join(r['accepted'])[:90]} | "
+                     f"≤ {TARGET_S:.0f} s, ≤ {TARGET_MB:.0f} MB |")
     for r in results:
-        lines += ["", f"By phase ({r['backend']}; its start and length in s, the highest RSS in it):", "",
-                  "| start s | length s | phase | RSS MB |", "|---|---|---|---|"] + phases(r)
+        lines += ["", f"By phase ({r['backend']}, threads {r['threads']}; its start and length in s, the highest RSS "
+                  "in it):", "", "| start s | length s | phase | RSS MB |", "|---|---|---|---|"] + phases(r)
     text = "\n".join(lines)
     print(text)
     (work / "bench_diagnose.json").write_text(json.dumps(results, indent=1))

@@ -39,6 +39,7 @@ def test_m1_extension_names_the_heat_pipe_with_u1_pays_and_says_what_it_cannot_t
                          mlp_check=False, output=str(tmp_path / "m1x.thn"))
     acc = d.accepted
     assert acc, d.summary()
+    assert len({f.words for f in acc}) == len(acc), d.summary()  # no finding said twice
     # only heat-pipe elements, depending on u1
     for f in acc:
         assert f.kind == "param_dependence" and f.depends_on == ["u1"], d.summary()
@@ -69,3 +70,22 @@ def test_m1_extension_names_the_heat_pipe_with_u1_pays_and_says_what_it_cannot_t
                 assert _close_or_said(name, e["value"], slope, unsure), (name, e, d.summary())
                 checked += 1
     assert checked >= 5, sorted(est)
+
+
+@pytest.mark.slow
+def test_a_law_grown_over_two_rounds_is_told_once(tmp_path):
+    """Dependences only, on 80 / 40 minutes: R_hp1 is found depending on T(hx1) in one round and on u1 in a later
+    one (one learned function, grown). The earlier finding keeps the words it was accepted with and points to the
+    later one, which gives the final law: before, both printed the final law, word for word (slow, ~2 min; the CI
+    case-study test checks that no accepted finding is said twice)."""
+    generate_case_study(tmp_path / "cs", widen=(), n_ood=0, durations=(80 * 60.0, 40 * 60.0, 60.0))
+    d = tnn_dsl.diagnose(M1, [str(tmp_path / "cs" / "train.csv")], [str(tmp_path / "cs" / "val.csv")],
+                         mlp_check=False, kinds=("param_dependence",))
+    acc = d.accepted
+    assert len({f.words for f in acc}) == len(acc), d.summary()
+    grown = [f for f in acc if "(grown in round" in f.words]
+    assert grown, d.summary()
+    for f in grown:
+        later = next(g for g in acc if g.round > f.round and g.target == f.target)
+        assert f"(grown in round {later.round}: the final law of {f.target} is given there)" in f.words
+        assert later.words != f.words

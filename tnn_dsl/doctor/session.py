@@ -792,8 +792,18 @@ class _Session:
             self.second_start(eng)
             self.state.harvest(eng, self.final_ext, [c.key for c in self.accepted])
         P = eng.params
-        for finding, fit in zip(self.acc_findings, self.acc_fits):
+        # a dependence found in one round and grown by a later one (R_hp1 on T(hx1), then on u1) is one learned
+        # function: its final law is the later finding's words; the earlier keeps the words it was accepted with
+        # (both printed from the final law read "R_hp1 depends on u1 and T(hx1)" twice)
+        last = {fit["cand"].target: i for i, fit in enumerate(self.acc_fits) if fit["cand"].kind == "param_dependence"}
+        for i, (finding, fit) in enumerate(zip(self.acc_findings, self.acc_fits)):
             c = fit["cand"]
+            if c.kind == "param_dependence" and last[c.target] != i:
+                later = self.acc_findings[last[c.target]]
+                note = f" (grown in round {later.round}: the final law of {c.target} is given there)"
+                if not finding.words.endswith(note):
+                    finding.words += note
+                continue
             cf = _cand_in(self.final_ext, c.key) or c
             words = _words(cf, P, self.final_ext if _cand_in(self.final_ext, c.key) else fit["ext"], eng, eng.model)
             if words != finding.words:
