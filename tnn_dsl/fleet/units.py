@@ -206,9 +206,10 @@ def _fill_row(tm: Any, row: dict) -> None:
 def _diagnose(net: Network, exps: list, vals: list, options: FleetOptions, row: dict) -> None:
     from ..doctor import diagnose
 
+    # one fit at a time: a fleet's parallelism is across units (a Ray CPU each); the result does not depend on it
     d = diagnose(net, exps, vals, budget_s=options.budget_s, backend=options.backend, top=options.top,
                  max_rounds=options.max_rounds, mlp_check=options.mlp_check, init=options.init,
-                 burn_in=options.burn_in)
+                 burn_in=options.burn_in, threads=1)
     doc = d.to_dict()
     findings = sorted(doc.get("findings") or [], key=lambda f: (not f.get("accepted"), f.get("rank") or 0))
     row["findings"] = findings
