@@ -534,7 +534,8 @@ class _Session:
         """Run ``jobs`` (each called with its own progress function) on up to ``self.threads`` threads; results in
         job order, and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are
         independent (each on its own engine clone or network) and spend their time inside compiled simulations,
-        where JAX and torch release the interpreter: on two cores two fits take little more than one."""
+        where JAX releases the interpreter (torch runs one job at a time, ``self.threads`` = 1). The case study's
+        whole diagnosis on 2 cores: 229 s with one thread, 182 s with two (benchmarks/bench_diagnose.py)."""
         if self.threads <= 1 or len(jobs) <= 1:
             return [job(self.say) for job in jobs]
         from concurrent.futures import ThreadPoolExecutor
