@@ -416,23 +416,22 @@ class _Engine:
             p[c.key] = flat.reshape(p[c.key].shape)
         return p
 
-    def sse(self, params=None, which="train") -> float:
-        e = self.residual(params).ravel()
-        idx = self.train_idx if which == "train" else self.val_idx
-        v = e[idx]
+    @staticmethod
+    def _sse_of(v: np.ndarray) -> float:
+        """Sum of squares K² of the residual rows ``v``; inf where the simulation is not finite."""
         if not np.all(np.isfinite(v)):
             return math.inf
         with np.errstate(over="ignore"):  # a trial step far along a valley may blow a simulation up: inf
             return float(np.dot(v, v))
 
+    def sse(self, params=None, which="train") -> float:
+        e = self.residual(params).ravel()
+        return self._sse_of(e[self.train_idx if which == "train" else self.val_idx])
+
     def _train_sse(self, params) -> tuple[float, np.ndarray]:
-        """The training rows' SSE K² (inf where the simulation is not finite) and residual (n_train,) K of
-        ``params``: one simulation."""
+        """The training rows' SSE K² and residual (n_train,) K of ``params``: one simulation."""
         v = self.residual(params).ravel()[self.train_idx]
-        if not np.all(np.isfinite(v)):
-            return math.inf, v
-        with np.errstate(over="ignore"):
-            return float(np.dot(v, v)), v
+        return self._sse_of(v), v
 
     def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
             deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True) -> dict:
