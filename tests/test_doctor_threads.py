@@ -10,7 +10,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.core import TnnError
-from tnn_dsl.doctor.session import THREADS_ENV, fit_threads
+from tnn_dsl.doctor.threads import THREADS_ENV, fit_threads
 from tnn_dsl.studies.planted import plant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -25,6 +25,7 @@ import numpy as np
 from ..analysis import held_out_test
 from ..ir import Network
 from .selection import MIN_GAIN, P_ACCEPT
+from .threads import side_by_side
 
 HIDDEN = 8
 
@@ -85,19 +86,9 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         return e, row
 
     forms = (("linear", net), ("mlp", net_mlp))
-    if threads >= 2:
-        from concurrent.futures import ThreadPoolExecutor
-
-        bufs: dict[str, list[str]] = {f: [] for f, _ in forms}
-        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="tnn-mlp-check") as pool:
-            futures = {f: pool.submit(run, f, v, bufs[f].append) for f, v in forms}
-            for f, _ in forms:
-                errors[f], out[f] = futures[f].result()
-                for line in bufs[f]:
-                    say(line)
-    else:
-        for f, v in forms:
-            errors[f], out[f] = run(f, v, say)
+    done = side_by_side([lambda tell, f=f, v=v: run(f, v, tell) for f, v in forms], min(threads, 2), say)
+    for (f, _), (e, row) in zip(forms, done):
+        errors[f], out[f] = e, row
     k_extra = max(out["mlp"]["k"] - out["linear"]["k"], 1)
     stat, p, n_eff = held_out_test(errors["linear"], errors["mlp"], k_extra)
     gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0

@@ -38,6 +38,7 @@ from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
 from .selection import MIN_GAIN, _choose, unphysical_reason
 from .structural import structural_candidates
+from .threads import fit_threads, side_by_side
 from .uncertainty import final_uncertainty
 from .words import _what_is_left, _words
 
@@ -144,33 +145,6 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
         out.append({"param": name, "written": v0, "fitted": v, "change": change, "at_bound": bound,
                     "words": f"warning: the baseline fit: {what}: the nominal model absorbs something here"})
     return out
-
-
-THREADS_ENV = "TNN_DOCTOR_THREADS"
-"""Environment variable: the number of candidate fits run side by side (default: the CPUs this process may use, at
-most ``MAX_THREADS``)."""
-MAX_THREADS = 4
-
-
-def fit_threads(threads: int | None = None) -> int:
-    """How many candidate fits run side by side: ``threads`` if given, else ``$TNN_DOCTOR_THREADS``, else the CPUs
-    this process may use (at most ``MAX_THREADS``: a round fits five candidates and continues three)."""
-    if threads is None:
-        env = os.environ.get(THREADS_ENV, "").strip()
-        if env:
-            try:
-                threads = int(env)
-            except ValueError:
-                raise TnnError(Diagnostic(f"{THREADS_ENV}={env!r} is not a whole number",
-                                          hint=f"set {THREADS_ENV} to 1 (one fit at a time) or more")) from None
-        else:
-            try:
-                threads = min(MAX_THREADS, len(os.sched_getaffinity(0)))
-            except AttributeError:  # not Linux
-                threads = min(MAX_THREADS, os.cpu_count() or 1)
-    if threads < 1:
-        raise TnnError(Diagnostic(f"threads must be at least 1 (got {threads})", hint="use 1 for one fit at a time"))
-    return int(threads)
 
 
 class _Session:
@@ -531,25 +505,8 @@ class _Session:
         return fits
 
     def side_by_side(self, jobs: list[Callable[[Callable[[str], None]], object]]) -> list:
-        """Run ``jobs`` (each called with its own progress function) on up to ``self.threads`` threads; results in
-        job order, and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are
-        independent (each on its own engine clone or network) and spend their time inside compiled simulations,
-        where JAX releases the interpreter (torch runs one job at a time, ``self.threads`` = 1). The case study's
-        whole diagnosis on 2 cores: 229 s with one thread, 182 s with two (benchmarks/bench_diagnose.py)."""
-        if self.threads <= 1 or len(jobs) <= 1:
-            return [job(self.say) for job in jobs]
-        from concurrent.futures import ThreadPoolExecutor
-
-        bufs: list[list[str]] = [[] for _ in jobs]
-        out = []
-        with ThreadPoolExecutor(max_workers=min(self.threads, len(jobs)), thread_name_prefix="tnn-doctor") as pool:
-            futures = [pool.submit(job, buf.append) for job, buf in zip(jobs, bufs)]
-            for fut, buf in zip(futures, bufs):
-                res = fut.result()
-                for line in buf:
-                    self.say(line)
-                out.append(res)
-        return out
+        """:func:`.threads.side_by_side` on this session's threads and progress."""
+        return side_by_side(jobs, self.threads, self.say)
 
     def fit_exact(self, s_: dict, small, start_params: dict, acc_keys: list[str], max_iter: int,
                   note: str = "", say: Callable[[str], None] | None = None) -> dict:

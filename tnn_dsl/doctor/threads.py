@@ -1,0 +1,58 @@
+"""Candidate fits side by side (issue 18): how many threads, and running jobs on them with their progress lines
+kept together."""
+
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+from ..core import Diagnostic, TnnError
+
+THREADS_ENV = "TNN_DOCTOR_THREADS"
+"""Environment variable: the number of candidate fits run side by side (default: the CPUs this process may use, at
+most ``MAX_THREADS``)."""
+MAX_THREADS = 4
+
+
+def fit_threads(threads: int | None = None) -> int:
+    """How many candidate fits run side by side: ``threads`` if given, else ``$TNN_DOCTOR_THREADS``, else the CPUs
+    this process may use (at most ``MAX_THREADS``: a round fits five candidates and continues three)."""
+    if threads is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        if env:
+            try:
+                threads = int(env)
+            except ValueError:
+                raise TnnError(Diagnostic(f"{THREADS_ENV}={env!r} is not a whole number",
+                                          hint=f"set {THREADS_ENV} to 1 (one fit at a time) or more")) from None
+        else:
+            try:
+                threads = min(MAX_THREADS, len(os.sched_getaffinity(0)))
+            except AttributeError:  # not Linux
+                threads = min(MAX_THREADS, os.cpu_count() or 1)
+    if threads < 1:
+        raise TnnError(Diagnostic(f"threads must be at least 1 (got {threads})", hint="use 1 for one fit at a time"))
+    return int(threads)
+
+
+def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads: int,
+                 say: Callable[[str], None]) -> list:
+    """Run ``jobs`` (each called with its own progress function) on up to ``threads`` threads; results in job order,
+    and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are independent
+    (each on its own engine clone or network) and spend their time inside compiled simulations, where JAX releases
+    the interpreter (torch runs one job at a time: the session sets ``threads`` = 1). The case study's whole diagnosis
+    on 2 cores: 229 s with one thread, 182 s with two (benchmarks/bench_diagnose.py)."""
+    if threads <= 1 or len(jobs) <= 1:
+        return [job(say) for job in jobs]
+    from concurrent.futures import ThreadPoolExecutor
+
+    bufs: list[list[str]] = [[] for _ in jobs]
+    out = []
+    with ThreadPoolExecutor(max_workers=min(threads, len(jobs)), thread_name_prefix="tnn-doctor") as pool:
+        futures = [pool.submit(job, buf.append) for job, buf in zip(jobs, bufs)]
+        for fut, buf in zip(futures, bufs):
+            res = fut.result()
+            for line in buf:
+                say(line)
+            out.append(res)
+    return out
