@@ -12,8 +12,9 @@ apart and reported as warm-up):
   loss (mean squared error of ``T_out`` against a fixed reference) w.r.t. every trainable parameter;
 * a batch of ``--batch`` windows that tile the same number of samples (``--window`` samples each,
   default ``steps // batch``), forward and forward + gradient;
-* JAX and torch through the public model API (torch eager, and with ``torch_compile=True``: each
-  integration step through ``torch.compile``); the numpy reference backend (forward only, it has no
+* JAX and torch through the public model API (torch eager, and with ``torch_compile=True``: a forward
+  rollout is one ``torch.compile``d ``scan`` over the samples, a rollout with gradients compiles each
+  integration step); the numpy reference backend (forward only, it has no
   autodiff); a C loop of the same equations (``_c_loop.py``, ``cc -O3 -march=native``), checked against
   JAX to ``1e-9 K`` on every state before it is timed.
 
@@ -59,6 +60,9 @@ TARGET_JAX_OVER_C = 3.0
 TARGET_JAX_BATCH_US = 0.2
 TARGET_GRAD_OVER_FWD = 4.0
 TARGET_TORCH_OVER_JAX_BATCH = 5.0
+# Targets of issue 18 (torch at JAX's speed).
+TARGET_TORCH_OVER_JAX_SINGLE = 10.0
+TARGET_TORCH_OVER_JAX_BATCH_GRAD = 2.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -227,9 +231,10 @@ def bench_jax(case, args, rows, results, dtype="float64"):
 
 
 def bench_torch(case, args, rows, results, compiled=False):
-    """torch through the model API, eager or with ``torch_compile=True`` (each integration step through
-    ``torch.compile``), run with ``--torch-threads`` intra-op threads (default 1: on this workload of tiny
-    tensors, OpenMP threads cost far more than they give, most of all on a busy machine); the eager batch
+    """torch through the model API, eager or with ``torch_compile=True`` (forward: one compiled ``scan``;
+    with gradients: each integration step compiled), run with ``--torch-threads`` intra-op threads (default
+    1: on this workload of tiny tensors, OpenMP threads cost far more than they give, most of all on a busy
+    machine); the eager batch
     forward is also timed with torch's default thread count to show the difference."""
     import torch
 
@@ -628,6 +633,16 @@ def targets(rows):
         if r and r.grad:
             v = r.grad / r.fwd
             out.append((f"JAX {r.case}: forward+gradient / forward", v, "≤ 4×", v <= TARGET_GRAD_OVER_FWD))
+    tcs = find(rows, "torch (torch_compile=True)", "single")
+    if tcs and js:
+        v = ratio(tcs.us(tcs.fwd), js.us(js.fwd))
+        out.append(("torch (torch_compile=True) / JAX, single sequence forward (issue 18)", v, "≤ 10×",
+                    v <= TARGET_TORCH_OVER_JAX_SINGLE))
+    if tcb and jb:
+        v = ratio(tcb.us(tcb.grad), jb.us(jb.grad))
+        if v is not None:
+            out.append(("torch (torch_compile=True) / JAX, batch forward+gradient (issue 18)", v, "≤ 2×",
+                        v <= TARGET_TORCH_OVER_JAX_BATCH_GRAD))
     for r, how in ((tcb, "torch (torch_compile=True)"), (tb, "torch eager")):
         if r and jb:
             v = ratio(r.us(r.fwd), jb.us(jb.fwd))
@@ -723,6 +738,9 @@ def parse(argv=None):
                     help="seconds per slow measurement before it stops repeating (default 60)")
     ap.add_argument("--torch-threads", type=int, default=1,
                     help="torch intra-op threads for the torch rows (default 1; see the report)")
+    ap.add_argument("--torch-chunk", type=int, default=None,
+                    help="samples per iteration of the compiled torch scan on a single sequence (default: the "
+                         "model's TORCH_CHUNK); to compare chunk sizes")
     ap.add_argument("--dt", type=float, default=1.0, help="sample time, s (default 1, the case study's)")
     ap.add_argument("--integrator", choices=("rk4", "euler"), default="rk4")
     ap.add_argument("--seed", type=int, default=0)
@@ -750,6 +768,10 @@ def parse(argv=None):
 def main(argv=None):
     args = parse(argv)
     only = {s.strip() for s in args.only.split(",") if s.strip()}
+    if args.torch_chunk is not None:
+        import tnn_dsl.compiler.model as compiled_model
+
+        compiled_model.TORCH_CHUNK = int(args.torch_chunk)
     warnings.simplefilter("ignore", category=UserWarning)  # step-size warnings are reported via substeps
     load_before = load_average().split()[0] if load_average() != "n/a" else "n/a"
     t_start = time.perf_counter()

@@ -183,7 +183,64 @@ def test_cli_simulate_torch_compile_needs_the_torch_backend(tmp_path, capsys, mo
     assert rc != 0 and "--torch-compile applies to the torch backend only" in err and "Traceback" not in err
     out = tmp_path / "o2.csv"
     rc = main(["simulate", str(thn), "--data", str(csv), "-o", str(out), "--backend", "torch", "--torch-compile"])
-    assert rc == 0 and len(compiled) == 1
+    assert rc == 0 and compiled  # one graph per rollout kind (forward, chunked), each its own compile
     eager = tmp_path / "o3.csv"
     assert main(["simulate", str(thn), "--data", str(csv), "-o", str(eager), "--backend", "torch"]) == 0
     assert out.read_text() == eager.read_text()
+
+
+@pytest.mark.parametrize("batched, with_grad", [(False, False), (True, False),
+                                               pytest.param(False, True, marks=pytest.mark.slow),
+                                               pytest.param(True, True, marks=pytest.mark.slow)])
+def test_compiled_torch_with_many_substeps_matches_jax(batched, with_grad):
+    """More than 4 sub-steps per sample: inside the compiled scan (forward) they are a scan of their own (not
+    copies of the step); states (and, slow, gradients through the per-step compiled path) as JAX's
+    ``fori_loop``, on a single sequence and on a batch."""
+    net = tnn_dsl.loads(SMALL, "small.thn")
+    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
+    p_np = nets.random_params(mj, 5)
+    T0, U = _batch(mj, 9, B=2)
+    if not batched:
+        T0, U = T0[0], U[0]
+    import jax
+    import jax.numpy as jnp
+
+    def jax_loss(p):
+        _, y = mj.rollout(p, T0, U, 1.0, substeps=6)
+        return jnp.sum(y * jnp.linspace(-1.0, 1.0, y.size).reshape(y.shape))
+
+    pj = mj.from_numpy(p_np)
+    s_ref = np.asarray(mj.rollout(pj, T0, U, 1.0, substeps=6)[0])
+    g_ref = {k: np.asarray(v) for k, v in jax.grad(jax_loss)(pj).items()} if with_grad else {}
+    pt = {k: v.requires_grad_(True) for k, v in mc.from_numpy(p_np).items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        with torch.no_grad():
+            s_fwd = mc.rollout(pt, torch.as_tensor(T0), torch.as_tensor(U), 1.0, substeps=6)[0]
+        assert np.max(np.abs(s_fwd.numpy() - s_ref)) <= 1e-9
+        if not with_grad:
+            return
+        s, y = mc.rollout(pt, torch.as_tensor(T0), torch.as_tensor(U), 1.0, substeps=6)
+    (y * torch.linspace(-1.0, 1.0, y.numel(), dtype=y.dtype).reshape(y.shape)).sum().backward()
+    assert np.max(np.abs(s.detach().numpy() - s_ref)) <= 1e-9
+    scale = max(float(np.max(np.abs(g))) for g in g_ref.values() if g.size)
+    for k, g in g_ref.items():
+        got = np.zeros(g.shape) if pt[k].grad is None else pt[k].grad.numpy()
+        tol = 1e-6 * max(float(np.max(np.abs(g), initial=0.0)), 1e-8 * scale)
+        assert np.max(np.abs(got - g), initial=0.0) <= tol, k
+
+
+def test_forward_mode_derivatives_run_eager_and_keep_compilation_on():
+    """The burn-in fit of an initial state takes ``torch.func`` derivatives of a rollout; a compiled graph cannot be
+    called inside one, so that rollout runs eager — without a warning and without turning compilation off for
+    the rollouts after it (it used to: every later validation ran eager)."""
+    net = nets.two_node()
+    mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
+    p = mc.init_params(0)
+    U = torch.full((12, len(mc.input_names)), 2.0, dtype=torch.float64)
+    T0 = torch.tensor([300.0, 296.0], dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        J = torch.func.jacfwd(lambda T: mc.rollout(p, T, U, 1.0)[1])(T0)
+    J_eager = torch.func.jacfwd(lambda T: me.rollout(me.init_params(0), T, U, 1.0)[1])(T0)
+    assert mc.torch_compile is True and torch.allclose(J, J_eager, rtol=0, atol=1e-12)

@@ -73,6 +73,32 @@ class ParamSpec:
 # ---------------------------------------------------------------------------------------------
 
 
+TORCH_CHUNK = 4
+"""Samples per iteration of the compiled torch rollout's ``scan`` on a single sequence without gradient
+(:meth:`Model._compiled_torch_rollout`). Case study M3, RK4 (benchmarks/bench_rollout.py): 13.7 µs/step with 4,
+20.7 with 1, 13.6 with 8 (the body's own cost then dominates); compile time grows with it (7 s, 18 s, 36 s)."""
+
+
+def _needs_grad(params, T0, inputs) -> bool:
+    """Whether a torch rollout builds an autograd graph: gradients are enabled and a parameter, ``T0`` or an
+    input requires one (a rollout outside ``torch.no_grad()`` with nothing to differentiate takes the
+    forward path)."""
+    import torch
+
+    if not torch.is_grad_enabled():
+        return False
+    return any(getattr(v, "requires_grad", False) for v in (*params.values(), T0, inputs))
+
+
+def _functorch_active() -> bool:
+    """Whether a ``torch.func`` transform (``jvp``, ``vmap``, ``jacfwd``) is tracing the current call: a graph
+    compiled by ``torch.compile`` cannot be called from inside one, so such rollouts run eager (the burn-in fit
+    of an initial state takes forward-mode derivatives of a short rollout)."""
+    import torch
+
+    return bool(torch._C._are_functorch_transforms_active())
+
+
 class TorchCompileWarning(UserWarning):
     """``torch.compile`` was asked for but failed; the torch model runs eager."""
 
@@ -370,10 +396,13 @@ class Model:
             return self._jitted("rollout", dt, integrator, sub)(self._packed(params), T0, inputs)
         return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
 
-    def _stepper(self, prep, dt, integrator, sub):
+    def _stepper(self, prep, dt, integrator, sub, core=None, traced=False):
         """``step(T, ctx) -> T_next`` over one sample interval; ``ctx`` is one sample of
-        :meth:`_Core.rhs_u` (the input-only work is done once per sample, not per stage)."""
-        core, xp = self._core, self.xp
+        :meth:`_Core.rhs_u` (the input-only work is done once per sample, not per stage). ``core``: the
+        model's own unless given (the compiled torch rollout traces a core on :class:`FusedTorchXP`);
+        ``traced``: the step is traced by ``torch.compile`` (more than 4 sub-steps become a ``scan``)."""
+        core = self._core if core is None else core
+        xp = core.xp
         h = dt / sub
         if integrator == "expeuler":
             def one(T, c):
@@ -391,6 +420,17 @@ class Model:
             def many(T, c):
                 return jax.lax.fori_loop(0, sub, lambda i, x: one(x, c), T)
             return many
+        if self.backend == "torch" and sub > 4 and traced:
+            from torch._higher_order_ops import scan
+
+            def many_scan(T, c):  # traced for torch.compile: one sub-step body, not ``sub`` copies of it
+                import torch
+
+                def body(x, _):
+                    x = one(x, c)
+                    return x, x.sum()
+                return scan(body, T, torch.zeros(sub, dtype=T.dtype))[0]
+            return many_scan
 
         def many_py(T, c):
             for _ in range(sub):
@@ -398,11 +438,24 @@ class Model:
             return T
         return many_py
 
+    def _fused_core(self):
+        """The model's plan on :class:`~tnn_dsl.compiler.backends.torch_ops.FusedTorchXP` (small products as
+        multiply-and-sum), for single sequences traced by ``torch.compile``; built once."""
+        core = self._jit_cache.get("fused_core")
+        if core is None:
+            from .backends.torch_ops import FusedTorchXP
+
+            core = self._jit_cache["fused_core"] = _Core(self._plan, FusedTorchXP(self.dtype), self.sparse)
+        return core
+
     def _compiled_torch_step(self, prep, dt, integrator, sub):
         """``step(T, ctx)`` as in :meth:`_stepper`, run through ``torch.compile`` (one graph per sample
-        interval, ``prep`` an input so that new parameters reuse it). The compiled function is kept per
-        ``(dt, integrator, sub)``; torch recompiles it for new shapes (dynamic after the second). If torch
-        cannot compile here (inductor needs a C++ compiler), the model warns once and runs eager."""
+        interval, ``prep`` an input so that new parameters reuse it): how torch rollouts *with gradients* are
+        compiled. (The forward-only :meth:`_compiled_torch_rollout` is one ``scan``; torch 2.13's ``scan``
+        does not support gradients with respect to what its body closes over — here the parameters — and,
+        measured on the test networks, returned one parameter's gradient for another's.) The compiled function
+        is kept per ``(dt, integrator, sub)``; torch recompiles it for new shapes (dynamic after the second). If
+        torch cannot compile here (inductor needs a C++ compiler), the model warns once and runs eager."""
         import torch
 
         key = ("torch_step", dt, integrator, sub)
@@ -429,18 +482,84 @@ class Model:
             return eager(T, c)
         return step
 
+    def _compiled_torch_rollout(self, prep, T0, inputs, dt, integrator, sub):
+        """The states after ``T0 (..., n_states)`` (already broadcast to the rollout's batch), ``(..., M,
+        n_states)`` for the ``M`` samples of ``inputs (..., M, n_inputs)`` (all but the last of the rollout's),
+        through ``torch.compile`` of one ``scan`` over the samples (torch's ``scan`` higher-order operator): one
+        compiled graph per rollout instead of a Python loop of per-step calls, so the per-call cost of a compiled
+        graph (guards, wrapper, buffers: tens of µs) is paid once per rollout, not once per step. The input-only
+        context (:meth:`_Core.rhs_u`) is computed inside the graph from the raw inputs (no gradient flows through
+        the scanned arrays; only ``prep``, an input of the graph, carries the parameters).
+
+        On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples (the body's own per-call
+        cost spread over several steps) and the body is traced on :class:`FusedTorchXP`; with a batch axis one
+        sample per iteration and library products. Compiled graphs are kept per ``(dt, integrator, sub, chunk,
+        batched)`` and reused for new parameter values; torch recompiles for new shapes (dynamic after the
+        second). Returns ``None`` after a warning (and the model runs eager from then on) if torch cannot
+        compile here (inductor needs a C++ compiler)."""
+        import torch
+
+        unbatched = T0.ndim == 1
+        chunk = TORCH_CHUNK if unbatched else 1
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched)
+        compiled = self._jit_cache.get(key)
+        if compiled is None:
+            from torch._higher_order_ops import scan
+
+            core = self._fused_core() if unbatched else self._core
+
+            def roll(prep, T0, U):  # U (n_chunks, chunk, ..., n_inputs), time-major
+                step = self._stepper(prep, dt, integrator, sub, core, traced=True)
+                xs = core.rhs_u(prep, U)
+
+                def body(T, c):
+                    outs = []
+                    for k in range(chunk):
+                        T = step(T, {"s": {n: a[k] for n, a in c["s"].items()},
+                                     "v": {n: a[k] for n, a in c["v"].items()}, "u": c["u"][k]})
+                        outs.append(T)
+                    return T, torch.stack(outs, 0)
+                return scan(body, T0, xs)[1]
+            # torch keeps compiled code per code object, with a limit on variants: a code object of this
+            # model's own keeps models apart (and one model's shapes from exhausting another's limit)
+            code = roll.__code__.replace(co_name=f"tnn_rollout_{id(self):x}_{len(self._jit_cache)}")
+            roll = types.FunctionType(code, roll.__globals__, code.co_name, None, roll.__closure__)
+            compiled = self._jit_cache[key] = torch.compile(roll, fullgraph=True)
+        M = inputs.shape[-2]
+        n_chunks = -(-M // chunk)
+        pad = n_chunks * chunk - M
+        U = torch.movedim(inputs, -2, 0)
+        if pad:  # the last sample repeated; its states are dropped
+            U = torch.cat([U, U[-1:].expand(pad, *U.shape[1:])], 0)
+        U = U.reshape(n_chunks, chunk, *U.shape[1:]).contiguous()
+        try:
+            ys = compiled(prep, T0, U)
+        except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+            self.torch_compile = False
+            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
+                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            return None
+        ys = ys.reshape(n_chunks * chunk, *ys.shape[2:])[:M]
+        return torch.movedim(ys, 0, -2)
+
     def _rollout_impl(self, params, T0, inputs, dt, integrator, sub):
         xp = self.xp
         prep = self._prepare(params)
-        if self.torch_compile:
+        # torch with gradients: each step compiled apart (the compiled scan is forward-only); the burn-in fit's
+        # forward-mode derivatives (torch.func) run eager, since compiled graphs cannot be called inside them
+        grad = self.backend == "torch" and _needs_grad(params, T0, inputs)
+        step_compiled = self.torch_compile and grad and not _functorch_active()
+        if step_compiled:
             step = self._compiled_torch_step(prep, dt, integrator, sub)
         else:
             step = self._stepper(prep, dt, integrator, sub)
         N = xp.shape(inputs)[-2]
         batch = np.broadcast_shapes(xp.shape(T0)[:-1], xp.shape(inputs)[:-2])
         T0 = xp.broadcast_to(T0, (*batch, xp.shape(T0)[-1]))
-        # the input-only part of the right-hand side, for every sample at once (outside the time loop)
-        ctx = self._core.rhs_u(prep, inputs[..., : max(N - 1, 0), :]) if N > 1 else None
+        compiled = self.backend == "torch" and self.torch_compile and N > 1 and not grad and not _functorch_active()
+        # the input-only part of the right-hand side, for every sample at once (outside the time loop; the
+        # compiled torch rollout computes it inside its graph)
+        ctx = self._core.rhs_u(prep, inputs[..., : max(N - 1, 0), :]) if N > 1 and not compiled else None
         if self.backend == "jax":
             import jax
             import jax.numpy as jnp
@@ -463,14 +582,19 @@ class Model:
             else:
                 states = T0[None][:N]
             states = jnp.moveaxis(states, 0, -2)
+        elif compiled and (rest := self._compiled_torch_rollout(
+                prep, T0, inputs[..., : N - 1, :], dt, integrator, sub)) is not None:
+            states = xp.concat([T0[..., None, :], rest], axis=-2)
         else:
             T = T0
             states = [T]
             if N > 1:
+                if ctx is None:  # the compiled rollout gave up (warned): eager from here on
+                    ctx = self._core.rhs_u(prep, inputs[..., : N - 1, :])
                 if self.backend == "numpy":
                     def split(v, ax):
                         return [np.take(v, k, axis=ax) for k in range(N - 1)]
-                elif self.torch_compile:
+                elif step_compiled:
                     def split(v, ax):  # contiguous samples: the compiled step is specialised on strides
                         return xp.moveaxis(v, ax, 0).contiguous().unbind(0)
                 else:
@@ -623,11 +747,14 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     with 1 on a 2-core machine (benchmarks/bench_rollout.py ``--torch-threads``). ``None`` leaves torch's
     setting alone. The environment variable ``TNN_TORCH_THREADS`` overrides the default.
 
-    ``torch_compile``: for the torch backend, run each integration step of a rollout through
-    ``torch.compile`` (inductor). Measured on the case study M3 (benchmarks/bench_rollout.py, BENCHMARKS.md):
-    a single sequence 3.1× faster than eager, a batch of 256 windows 1.1× (forward) and 1.3×
-    (forward+gradient), after 13–33 s of compilation; M2's training 2.5× faster in all
-    (benchmarks/bench_train.py). Worth it for training runs of minutes, not for one short simulation.
+    ``torch_compile``: for the torch backend, compile rollouts with ``torch.compile`` (inductor). A rollout
+    without gradients (simulation, validation) is one compiled ``scan`` over the samples (several samples per
+    iteration on a single sequence); a rollout with gradients (training) compiles each integration step and
+    loops over them in Python (torch 2.13's ``scan`` cannot differentiate with respect to the parameters its
+    body reads). Measured on the case study M3 (``python benchmarks/bench_rollout.py``, BENCHMARKS.md, one run):
+    single sequence forward 13.7 µs/step (eager 297, JAX 1.86), a batch of 256 windows 1.07 µs per
+    window-step forward (eager 1.88, JAX 0.50) and 4.33 forward+gradient (eager 6.41, JAX 1.66), after 5–23 s
+    of compilation per graph. Worth it for long simulations and training runs, not for one short simulation.
     ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off). Ignored by
     the other backends (JAX is always compiled).
 

@@ -1,4 +1,11 @@
-"""The PyTorch array namespace (explicit dtype everywhere; never changes torch's global default)."""
+"""The PyTorch array namespace (explicit dtype everywhere; never changes torch's global default).
+
+:class:`FusedTorchXP` is the namespace of code traced for ``torch.compile`` (the compiled rollout in
+``model.py``): there a product of an unbatched vector by a small matrix is written as a multiply-and-sum,
+which inductor fuses with its neighbours into one C++ loop instead of calling a library ``mm`` per product
+(the same rule as :func:`~tnn_dsl.compiler.backends.jax_ops.matmul`; eager torch keeps ``torch.matmul``, one
+dispatch instead of three).
+"""
 
 from __future__ import annotations
 
@@ -97,3 +104,23 @@ class TorchXP(ArrayNamespace):
     @staticmethod
     def to_numpy(x):
         return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+SMALL_MATMUL = 256
+"""Largest ``K·N`` of a matrix that :class:`FusedTorchXP` multiplies an unbatched vector by with multiply-and-sum."""
+
+
+def fused_matmul(a, b):
+    """``a @ b``; for an unbatched vector ``a (K,)`` and a small matrix ``b (K, N)`` (``K·N ≤``
+    :data:`SMALL_MATMUL`) as ``sum(a[:, None]·b, 0)``. Same value as ``torch.matmul`` up to the order of the
+    additions."""
+    if (isinstance(a, torch.Tensor) and a.ndim == 1 and isinstance(b, torch.Tensor) and b.ndim == 2
+            and b.shape[0] == a.shape[0] and b.numel() <= SMALL_MATMUL):
+        return torch.sum(a[:, None] * b, dim=0)
+    return torch.matmul(a, b)
+
+
+class FusedTorchXP(TorchXP):
+    """:class:`TorchXP` for code traced by ``torch.compile`` on a single sequence (see the module docstring)."""
+
+    matmul = staticmethod(fused_matmul)
