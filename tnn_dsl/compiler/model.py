@@ -75,8 +75,10 @@ class ParamSpec:
 
 TORCH_CHUNK = 4
 """Samples per iteration of the compiled torch rollout's ``scan`` on a single sequence without gradient
-(:meth:`Model._compiled_torch_rollout`). Case study M3, RK4 (benchmarks/bench_rollout.py): 13.7 µs/step with 4,
-20.7 with 1, 13.6 with 8 (the body's own cost then dominates); compile time grows with it (7 s, 18 s, 36 s)."""
+(:meth:`Model._compiled_torch_rollout`). Case study M3, RK4, 2000 steps, in the development prototype of this scan
+(2026-11-26): 13.7 µs/step with 4, 20.7 with 1, 13.6 with 8 (the body's own cost then dominates); compile time
+grows with it (7 s, 18 s, 36 s). ``python benchmarks/bench_rollout.py --only jax,torchc --torch-chunk K``
+measures it with the model's own code."""
 
 
 def _needs_grad(params, T0, inputs) -> bool:
