@@ -190,3 +190,47 @@ def test_grammar_is_found_from_package_resources(monkeypatch):
 
     text = _parser._grammar_text()
     assert "start:" in text and "propagate" not in text.split("start:")[1][:0]
+
+
+def test_statement_walk_matches_lark_transformer_on_every_shipped_network():
+    """The parser's own bottom-up walk (callbacks looked up once per rule) gives exactly the statements lark's
+    ``Transformer.transform`` gives, on every network in ``networks/`` and the examples."""
+    from pathlib import Path
+
+    from lark import Transformer
+
+    from tnn_dsl.lang.statements import _parse_text, _ToStatements
+
+    root = Path(__file__).resolve().parents[1]
+    files = sorted(root.glob("networks/**/*.thn")) + sorted(root.glob("examples/**/*.thn"))
+    assert len(files) >= 10
+    for f in files:
+        tree, diags = _parse_text(f.read_text(encoding="utf-8"), str(f))
+        assert not diags, f
+        ours = _ToStatements(str(f), []).transform(tree)
+        lark_walk = Transformer.transform(_ToStatements(str(f), []), tree)
+        assert ours == lark_walk, f
+
+
+def test_collector_paused_restores_the_previous_state_even_on_errors():
+    import gc
+
+    from tnn_dsl.core.collector import collector_paused
+
+    assert gc.isenabled()
+    with collector_paused():
+        assert not gc.isenabled()
+        with collector_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()  # only the outermost exit restores
+    assert gc.isenabled()
+    with pytest.raises(tnn_dsl.TnnError):
+        tnn_dsl.loads("node a C = \n", "bad.thn")
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()  # it was off before: it stays off
+    finally:
+        gc.enable()

@@ -201,7 +201,10 @@ class Model:
 
     def init_params(self, seed: int = 0) -> dict:
         """The parameter table: constants at their SI values, learned arrays initialised (``seed``)."""
-        return self.from_numpy(self._init_numpy(seed))
+        from ..core.collector import collector_paused
+
+        with collector_paused():  # one array per constant: 40 000 on a 10 000-node plate (see core.collector)
+            return self.from_numpy(self._init_numpy(seed))
 
     def to_numpy(self, params: Mapping[str, Any]) -> dict[str, np.ndarray]:
         """Backend arrays → float64 numpy arrays (copies)."""
@@ -785,7 +788,10 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
         if env not in ("", "0", "1"):
             raise TnnError([Diagnostic(f"TNN_TORCH_COMPILE must be 0 or 1, got {env!r}")])
         torch_compile = env == "1"
-    return Model(net, backend, dtype, torch_compile=bool(torch_compile), sparse=sparse)
+    from ..core.collector import collector_paused
+
+    with collector_paused():  # compiling a large network walks every element: see core.collector
+        return Model(net, backend, dtype, torch_compile=bool(torch_compile), sparse=sparse)
 
 
 __all__ = ["compile", "Model", "ParamSpec", "TorchCompileWarning"]
