@@ -741,6 +741,9 @@ def parse(argv=None):
     ap.add_argument("--torch-chunk", type=int, default=None,
                     help="samples per iteration of the compiled torch scan on a single sequence (default: the "
                          "model's TORCH_CHUNK); to compare chunk sizes")
+    ap.add_argument("--torch-grad-chunk", type=int, default=None,
+                    help="sample intervals unrolled per compiled graph by torch rollouts with gradients (default: "
+                         "the model's TORCH_GRAD_CHUNK; 1 = one compiled call per step); to compare chunk sizes")
     ap.add_argument("--dt", type=float, default=1.0, help="sample time, s (default 1, the case study's)")
     ap.add_argument("--integrator", choices=("rk4", "euler"), default="rk4")
     ap.add_argument("--seed", type=int, default=0)
@@ -772,6 +775,10 @@ def main(argv=None):
         import tnn_dsl.compiler.model as compiled_model
 
         compiled_model.TORCH_CHUNK = int(args.torch_chunk)
+    if args.torch_grad_chunk is not None:
+        import tnn_dsl.compiler.model as compiled_model
+
+        compiled_model.TORCH_GRAD_CHUNK = int(args.torch_grad_chunk)
     warnings.simplefilter("ignore", category=UserWarning)  # step-size warnings are reported via substeps
     load_before = load_average().split()[0] if load_average() != "n/a" else "n/a"
     t_start = time.perf_counter()

@@ -273,3 +273,21 @@ def test_burn_in_jacobian_by_central_differences_matches_forward_mode(network):
             J[B.name] = B.numpy(fit.fJ(m.pack_params(m.from_numpy(p_np)), B.asarray(U), B.asarray(x)))
     assert J["torch"].shape == J["jax"].shape == (n, len(mj.output_names), len(mj.state_names))
     assert np.max(np.abs(J["torch"] - J["jax"])) <= 1e-6 * np.max(np.abs(J["jax"]))
+
+
+@pytest.mark.slow
+def test_gradient_rollout_in_compiled_chunks_matches_jax(monkeypatch):
+    """``TORCH_GRAD_CHUNK`` > 1 (several steps per compiled graph with gradients; 3 here, so 11 intervals are
+    padded to 12): the same states and gradients as JAX."""
+    import tnn_dsl.compiler.model as compiled_model
+
+    monkeypatch.setattr(compiled_model, "TORCH_GRAD_CHUNK", 3)
+    net = tnn_dsl.loads(SMALL, "small.thn")
+    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
+    p_np = nets.random_params(mj, 3)
+    T0, U = _batch(mj, 12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        got = _torch_run(mc, p_np, T0, U)
+    assert any(k[0] == "torch_chunk" for k in mc._jit_cache if isinstance(k, tuple))
+    _assert_same(_jax_run(mj, p_np, T0, U), got)

@@ -73,6 +73,15 @@ class ParamSpec:
 # ---------------------------------------------------------------------------------------------
 
 
+TORCH_GRAD_CHUNK = 1
+"""Sample intervals (divided by the sub-steps) unrolled in one compiled graph by a torch rollout with gradients
+(:meth:`Model._compiled_torch_chunks`); 1 compiles each step apart (:meth:`Model._compiled_torch_step`). Measured
+on the case study M3, RK4 (``python benchmarks/bench_rollout.py --quick --only jax,torchc --torch-grad-chunk K``,
+2026-11-26, one run per K, batch of 16 windows × 250 steps): forward+gradient 29.4 / 23.1 / 21.6 / 19.4 µs per
+window-step for K = 1 / 2 / 4 / 8 (JAX 3.1–4.1), single sequence 364 / 270 / 265 / 204 µs per step, but the
+gradient graph's compilation took 17–24 s (K = 2), 28–46 s (K = 4) and 72–108 s (K = 8). At most 1.5× faster for
+minutes of compilation per shape, and still 5× JAX: not the default."""
+
 TORCH_CHUNK = 4
 """Samples per iteration of the compiled torch rollout's ``scan`` on a single sequence without gradient
 (:meth:`Model._compiled_torch_rollout`). Case study M3, RK4, 2000 steps, in the development prototype of this scan
@@ -487,6 +496,59 @@ class Model:
             return eager(T, c)
         return step
 
+    def _compiled_torch_chunks(self, prep, T0, ctx, dt, integrator, sub, chunk):
+        """The states after ``T0 (..., n_states)`` for every sample of ``ctx`` (:meth:`_Core.rhs_u` of the
+        rollout's samples but the last, time on its last axis (``s``) or next to last (``v``, ``u``)), ``(..., M,
+        n_states)``, with gradients: ``chunk`` sample intervals unrolled in one compiled graph, called once per
+        ``chunk`` samples (the per-call cost of a compiled graph, ~60 µs, paid once per chunk instead of once per
+        step; autograd records one node per chunk). The samples are padded to a multiple of ``chunk`` with the
+        last one (those states are dropped, so they add nothing to any gradient). Kept per ``(dt, integrator,
+        sub, chunk)``; ``None`` after a warning if torch cannot compile here."""
+        import torch
+
+        key = ("torch_chunk", dt, integrator, sub, chunk)
+        compiled = self._jit_cache.get(key)
+        if compiled is None:
+            def chunk_steps(prep, T, c):  # c: every leaf with the chunk's samples on axis 0
+                step = self._stepper(prep, dt, integrator, sub)
+                outs = []
+                for k in range(chunk):
+                    T = step(T, {"s": {n: a[k] for n, a in c["s"].items()},
+                                 "v": {n: a[k] for n, a in c["v"].items()}, "u": c["u"][k]})
+                    outs.append(T)
+                return torch.stack(outs, 0)
+            code = chunk_steps.__code__.replace(co_name=f"tnn_chunk_{id(self):x}_{len(self._jit_cache)}")
+            chunk_steps = types.FunctionType(code, chunk_steps.__globals__, code.co_name, None,
+                                             chunk_steps.__closure__)
+            compiled = self._jit_cache[key] = torch.compile(chunk_steps, fullgraph=True)
+        M = ctx["u"].shape[-2]
+        n_chunks = -(-M // chunk)
+        pad = n_chunks * chunk - M
+
+        def split(v, ax):  # time-major, padded, (n_chunks, chunk, ...): each chunk a contiguous block
+            v = torch.movedim(v, ax, 0)
+            if pad:
+                v = torch.cat([v, v[-1:].expand(pad, *v.shape[1:])], 0)
+            return v.reshape(n_chunks, chunk, *v.shape[1:]).contiguous().unbind(0)
+
+        s_l = {k: split(v, -1) for k, v in ctx["s"].items()}
+        v_l = {k: split(v, -2) for k, v in ctx["v"].items()}
+        u_l = split(ctx["u"], -2)
+        T = T0
+        outs = []
+        try:
+            for i in range(n_chunks):
+                ys = compiled(prep, T, {"s": {n: a[i] for n, a in s_l.items()},
+                                        "v": {n: a[i] for n, a in v_l.items()}, "u": u_l[i]})
+                T = ys[-1]
+                outs.append(ys)
+        except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+            self.torch_compile = False
+            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
+                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            return None
+        return torch.movedim(torch.cat(outs, 0)[:M], 0, -2)
+
     def _compiled_torch_rollout(self, prep, T0, inputs, dt, integrator, sub):
         """The states after ``T0 (..., n_states)`` (already broadcast to the rollout's batch), ``(..., M,
         n_states)`` for the ``M`` samples of ``inputs (..., M, n_inputs)`` (all but the last of the rollout's),
@@ -589,6 +651,9 @@ class Model:
             states = jnp.moveaxis(states, 0, -2)
         elif compiled and (rest := self._compiled_torch_rollout(
                 prep, T0, inputs[..., : N - 1, :], dt, integrator, sub)) is not None:
+            states = xp.concat([T0[..., None, :], rest], axis=-2)
+        elif (step_compiled and N > 1 and (chunk := max(1, TORCH_GRAD_CHUNK // sub)) > 1
+              and (rest := self._compiled_torch_chunks(prep, T0, ctx, dt, integrator, sub, chunk)) is not None):
             states = xp.concat([T0[..., None, :], rest], axis=-2)
         else:
             T = T0
