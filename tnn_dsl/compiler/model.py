@@ -38,6 +38,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..core import Diagnostic, TnnError
+from ..core.collector import collector_paused
 from ..ir import POSITIVE_ROLES, Network
 from . import learned as _learned
 from .assembly import PACKED_KEY, SPARSE_MIN_STATES
@@ -197,9 +198,19 @@ class Model:
             out[f"{fn.name}.y_scale"] = np.asarray(ys, dtype=float)
         return out
 
+    def _numpy_core(self) -> "_Core":
+        """The model's plan on numpy (nominal values, time constants), assembled once: on a 10 000-node plate an
+        assembly takes about a second, and the first rollout used to build two."""
+        if self.backend == "numpy":
+            return self._core
+        core = self._jit_cache.get("numpy_core")
+        if core is None:
+            core = self._jit_cache["numpy_core"] = _Core(self._plan, get_xp("numpy"), self.sparse)
+        return core
+
     def _nominal_values(self, params_np) -> dict[str, Any]:
         """Parameter values at the nominal point (T = 298.15 K, inputs 0 or 298.15 K) with numpy."""
-        core = _Core(self._plan, get_xp("numpy"), self.sparse) if self.backend != "numpy" else self._core
+        core = self._numpy_core()
         prep = core.prepare(params_np)
         T = np.full(self._plan.ns, NOMINAL_T)
         env = core.values(prep, T, self._nominal_u())
@@ -210,8 +221,6 @@ class Model:
 
     def init_params(self, seed: int = 0) -> dict:
         """The parameter table: constants at their SI values, learned arrays initialised (``seed``)."""
-        from ..core.collector import collector_paused
-
         with collector_paused():  # one array per constant: 40 000 on a 10 000-node plate (see core.collector)
             return self.from_numpy(self._init_numpy(seed))
 
@@ -314,7 +323,7 @@ class Model:
         """``{state: τ}`` (s) = ``−1/d`` from the diagonal of the linear part at the nominal point
         (default parameters unless given as numpy-convertible ``params``); ``inf`` where d ≥ 0."""
         p_np = self._init_numpy(0) if params is None else self.to_numpy(params)
-        core = _Core(self._plan, get_xp("numpy"), self.sparse)
+        core = self._numpy_core()
         prep = core.prepare(p_np)
         T = np.full(self._plan.ns, NOMINAL_T)
         _, d = core.rhs(prep, T, self._nominal_u(), with_diag=True)
@@ -405,10 +414,11 @@ class Model:
         if len(self.xp.shape(inputs)) < 2 or self.xp.shape(inputs)[-1] != ni:
             raise TnnError(f"inputs must have shape (..., N, {ni}) (inputs: {', '.join(self.input_names)}), "
                            f"got {self.xp.shape(inputs)}")
-        if self.backend == "jax":
-            self._check(params)
-            return self._jitted("rollout", dt, integrator, sub)(self._packed(params), T0, inputs)
-        return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
+        with collector_paused():  # tracing a large network's first call walks a million live objects otherwise
+            if self.backend == "jax":
+                self._check(params)
+                return self._jitted("rollout", dt, integrator, sub)(self._packed(params), T0, inputs)
+            return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
 
     def _stepper(self, prep, dt, integrator, sub, core=None, traced=False):
         """``step(T, ctx) -> T_next`` over one sample interval; ``ctx`` is one sample of
@@ -853,8 +863,6 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
         if env not in ("", "0", "1"):
             raise TnnError([Diagnostic(f"TNN_TORCH_COMPILE must be 0 or 1, got {env!r}")])
         torch_compile = env == "1"
-    from ..core.collector import collector_paused
-
     with collector_paused():  # compiling a large network walks every element: see core.collector
         return Model(net, backend, dtype, torch_compile=bool(torch_compile), sparse=sparse)
 
