@@ -484,3 +484,23 @@ def test_trainer_stores_initial_states_by_rollout(backend):
     (p,) = tm.predict(exp, backend=backend)
     assert p["init"] == "stored" and p["burn_in"] == 0
     np.testing.assert_array_equal(p["states"][0], T0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_estimate_keeps_a_hidden_start_in_the_plausible_range_and_says_so(backend):
+    """A hidden node that really starts 60 K colder than the data's range allows (the demo's out-of-distribution
+    sets gave a node 100 K below everything measured, and the free run's check then stopped the whole study): the
+    burn-in fit holds it at the edge of :func:`start_range` and warns, instead of returning a start the free run
+    refuses; a start inside the range is not touched (the other tests)."""
+    from tnn_dsl.fit.simulation import start_range
+
+    net, model, params = _model(backend)
+    exp, T_true, _ = _simulated(backend, _step_inputs(), off=[0.0, -60.0])
+    lo, hi = start_range(model, exp)
+    assert T_true[1] < lo - 5.0  # the premise: the truth lies outside the range
+    est = initial_state(net, model, params, exp, rule="estimate")
+    assert est.T[1] == pytest.approx(lo, abs=1e-9) and lo <= est.T[0] <= hi
+    warning = [n for n in est.notes if n.startswith("warning: the burn-in fit pushed b = ")]
+    assert len(warning) == 1 and "plausible start range" in warning[0], est.notes
+    run = free_run(model, params, exp, "estimate", check=True)  # runs, and is checked
+    assert np.all(np.isfinite(run.y))

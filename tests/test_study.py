@@ -65,3 +65,27 @@ def test_demo_registered():
 
     args = build_parser().parse_args(["demo", "--quick", "--out", "x"])
     assert args.quick and args.out == "x"
+
+
+def test_out_of_distribution_reports_a_diverged_set_and_goes_on():
+    """One free run leaving the physical range on an out-of-distribution set (the quick demo's M2 at +40 %) makes
+    that widening 'diverged' with the reason, not an error that stops the study (it used to end `tnnc demo`)."""
+    import math
+
+    from tnn_dsl.core import Diagnostic, TnnError
+    from tnn_dsl.studies.thesis import _out_of_distribution, results_table
+
+    class FakeModel:
+        def evaluate(self, paths, backend=None):
+            if paths == ["/d/ood_40_1.csv"]:
+                raise TnnError(Diagnostic("the simulation left the physical range: node `ph` became NaN"))
+            return {"experiments": [{"mae": 0.01, "max_error": 0.02} for _ in paths]}
+
+    files = {"10": ["/d/ood_10_0.csv", "/d/ood_10_1.csv"], "40": ["/d/ood_40_0.csv", "/d/ood_40_1.csv"]}
+    r = _out_of_distribution(FakeModel(), files, "jax")
+    assert r["ood"]["10"] == 0.01 and r["ood_max"]["10"] == 0.02
+    assert math.isnan(r["ood"]["40"]) and math.isnan(r["ood_max"]["40"])
+    assert r["ood_diverged"] == {"40": ["ood_40_1.csv: the simulation left the physical range: node `ph` became NaN"]}
+    table = results_table({"data": {"widen": [0.1, 0.4]}, "models": {"M2": {
+        "what": "w", "validation": {"mae": 0.002, "max_error": 0.005}, **r}}})
+    assert "| 10 | diverged | – |" in table

@@ -242,12 +242,17 @@ class _BurnInFit:
             self._cache.clear()
         self._cache[key] = (model, self.fy, self.fJ)
 
+    held: list[int]
+    """The states the last :meth:`solve` left on an edge of its ``bounds`` (indices)."""
+
     def solve(self, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, prior: np.ndarray,
-              prior_std: np.ndarray) -> tuple[np.ndarray, float]:
+              prior_std: np.ndarray, bounds: tuple[float, float] | None = None) -> tuple[np.ndarray, float]:
         """The unknowns ``x`` (the initial state (n_states,) K, then the per-experiment parameters, SI) minimising
         ``Σ ((ŷ − y)/σ_y)² + Σ ((x − prior)/prior_std)²`` over the burn-in (``U`` (n, n_in), ``Y`` (n, n_out) K
         with NaN where missing; ``σ_y`` per sensor from the readings' first differences); returns ``x`` and the
-        burn-in's RMS error (K)."""
+        burn-in's RMS error (K). ``bounds`` ``(low, high)`` K: every state is kept inside (a projected step); a
+        model that cannot explain the start otherwise pushes an unsensed state there, and :attr:`held` says
+        which."""
         B = backend_of(model)
         Ub = B.asarray(np.asarray(U, dtype=np.float64))
         if self.packable and hasattr(model, "pack_params"):  # one jit argument, not one per constant
@@ -257,6 +262,9 @@ class _BurnInFit:
         W = np.broadcast_to(1.0 / sig, Y.shape)[mask]
         x = np.asarray(prior, dtype=np.float64).copy()
         P = 1.0 / np.asarray(prior_std, dtype=np.float64)
+        ns = len(model.state_names)
+        if bounds is not None:
+            x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
         rms = math.inf
         for _ in range(MAX_GN_ITER):
             y = B.numpy(self.fy(params, Ub, B.asarray(x)))
@@ -277,9 +285,13 @@ class _BurnInFit:
             if step > 50.0:  # a trust region for strongly nonlinear networks (K)
                 dx *= 50.0 / step
             x = x + dx
+            if bounds is not None:
+                x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
             decrement = float(np.sum((W * (Jm @ dx)) ** 2) + np.sum((P * dx) ** 2))
             if step < 1e-7 or decrement < GN_DECREMENT_TOL:
                 break
+        self.held = ([] if bounds is None else
+                     [i for i in range(ns) if x[i] <= bounds[0] + 1e-9 or x[i] >= bounds[1] - 1e-9])
         return x, rms
 
 
@@ -442,24 +454,32 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
         ini.params = pe
         return ini
     names = tuple(pe)
-    x, rms = _map_start(net, model, params, U[:b], Y[:b], float(exp.dt), measured, pe, integrator, substeps)
+    from .simulation import start_range  # (simulation imports this module)
+
+    bounds = start_range(model, exp)
+    x, rms, held = _map_start(net, model, params, U[:b], Y[:b], float(exp.dt), measured, pe, integrator, substeps,
+                              bounds)
     if not np.all(np.isfinite(x)):
         raise TnnError(Diagnostic("the initial state could not be estimated from the burn-in (not finite)",
                                   hint="try --init measured, or a longer --burn-in"))
     ns = len(model.state_names)
     values = {k: float(x[ns + i]) for i, k in enumerate(names)}
     also = f" with {', '.join(names)}" if names else ""
-    return InitialState(x[:ns], 0, b, "estimate",
-                        [f"note: initial state{also} estimated from the first {span}, not scored (RMS there "
-                         f"{rms:.3g} K)"], params=values)
+    notes = [f"note: initial state{also} estimated from the first {span}, not scored (RMS there {rms:.3g} K)"]
+    if held:
+        which = ", ".join(f"{model.state_names[i]} = {x[i]:.4g} K" for i in held)
+        notes.append(f"warning: the burn-in fit pushed {which} to the edge of the plausible start range "
+                     f"({bounds[0]:.4g} … {bounds[1]:.4g} K) and holds it there: the model does not explain how "
+                     f"this file starts (a missing element, or parameters far off)")
+    return InitialState(x[:ns], 0, b, "estimate", notes, params=values)
 
 
 def _map_start(net: Network, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, dt: float,
                measured: np.ndarray, pe: Mapping[str, float], integrator: str,
-               substeps: int | None) -> tuple[np.ndarray, float]:
+               substeps: int | None, bounds: tuple[float, float] | None = None) -> tuple[np.ndarray, float, list[int]]:
     """The ``estimate`` rule's fit over ``U (n, n_in)``, ``Y (n, n_out)``: the initial state (then the
-    per-experiment values ``pe``) around the ``measured`` state, tight for sensed states, weak for the others;
-    returns ``(x, rms K)``."""
+    per-experiment values ``pe``) around the ``measured`` state, tight for sensed states, weak for the others,
+    every state within ``bounds`` K; returns ``(x, rms K, the states held on a bound)``."""
     names = tuple(pe)
     fit = _BurnInFit(model, dt, len(U), integrator, substeps, names)
     sensed = np.zeros(len(model.state_names), dtype=bool)
@@ -468,7 +488,8 @@ def _map_start(net: Network, model: Any, params: Mapping[str, Any], U: np.ndarra
     prior = np.concatenate([measured, [pe[k] for k in names]])
     prior_std = np.concatenate([np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K),
                                 [_param_prior_std(net, k, pe[k]) for k in names]])
-    return fit.solve(model, params, U, Y, prior, prior_std)
+    x, rms = fit.solve(model, params, U, Y, prior, prior_std, bounds)
+    return x, rms, fit.held
 
 
 def free_run_start(net: Network, model: Any, params: Mapping[str, Any], inputs: np.ndarray, outputs: np.ndarray,
@@ -486,7 +507,7 @@ def free_run_start(net: Network, model: Any, params: Mapping[str, Any], inputs: 
     _, measured = measured_state(net, model, params, U[0], y0)
     if len(U) < 2 or not np.isfinite(Y).any():
         return measured, math.nan
-    x, rms = _map_start(net, model, params, U, Y, float(dt), measured, {}, integrator, substeps)
+    x, rms, _ = _map_start(net, model, params, U, Y, float(dt), measured, {}, integrator, substeps)
     if not np.all(np.isfinite(x)):
         raise TnnError(Diagnostic("the initial state for a free run could not be estimated (not finite)",
                                   hint="check the fitted parameters"))

@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..core import OutputKind, check_output, save_figure, write_text_atomic
+from ..core import OutputKind, TnnError, check_output, save_figure, write_text_atomic
 
 __all__ = ["StudyConfig", "run_study", "thesis_ratios", "THESIS", "results_table", "plot_study", "MODELS"]
 
@@ -135,8 +135,13 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         say(f"[3/3] out of distribution: {len(cfg.widen)} widenings × {cfg.n_ood} sets × {len(order)} models")
         for name in order:
             results["models"][name].update(_out_of_distribution(trained[name], data["ood"], cfg.backend))
-            ood = results["models"][name]["ood"]
-            say(f"      {name}: " + ", ".join(f"+{p} %: {v * 1e3:.0f} mK" for p, v in ood.items()))
+            ood, bad = results["models"][name]["ood"], results["models"][name]["ood_diverged"]
+            say(f"      {name}: " + ", ".join(f"+{p} %: " + (f"diverged on {len(bad[p])} of {len(data['ood'][p])} sets"
+                                                            if p in bad else f"{v * 1e3:.0f} mK")
+                                          for p, v in ood.items()))
+            for p, reasons in bad.items():
+                for reason in reasons:
+                    say(f"        +{p} %: {reason}")
     results["ratios"] = thesis_ratios(results)
     results["seconds"] = time.perf_counter() - t_start
     write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
@@ -181,13 +186,25 @@ def _train_model(name: str, cfg: StudyConfig, data: dict, out: Path, say: Callab
 
 
 def _out_of_distribution(tm, ood_files: dict[str, list[str]], backend: str) -> dict:
-    """Mean MAE and mean max error over the data sets of each widening: ``{"ood": {...}, "ood_max": {...}}`` (K)."""
-    ood, ood_max = {}, {}
+    """Mean MAE and mean max error over the data sets of each widening: ``{"ood": {...}, "ood_max": {...},
+    "ood_diverged": {widening: [file: reason]}}`` (K). A model whose free run leaves the physical range on a set
+    (out of distribution, a learned law far outside its training range may) has no error there: that widening's
+    means are NaN and the set is listed with the reason, so one diverged run does not stop the study."""
+    ood, ood_max, diverged = {}, {}, {}
     for p, paths in ood_files.items():
-        ev = tm.evaluate(paths, backend=backend)
-        ood[p] = float(np.mean([e["mae"] for e in ev["experiments"]]))
-        ood_max[p] = float(np.mean([e["max_error"] for e in ev["experiments"]]))
-    return {"ood": ood, "ood_max": ood_max}
+        maes, maxes = [], []
+        for path in paths:
+            try:
+                ev = tm.evaluate([path], backend=backend)
+            except TnnError as err:
+                diverged.setdefault(p, []).append(f"{Path(path).name}: {err.diagnostics[0].message}")
+                continue
+            maes += [e["mae"] for e in ev["experiments"]]
+            maxes += [e["max_error"] for e in ev["experiments"]]
+        bad = p in diverged
+        ood[p] = math.nan if bad or not maes else float(np.mean(maes))
+        ood_max[p] = math.nan if bad or not maxes else float(np.mean(maxes))
+    return {"ood": ood, "ood_max": ood_max, "ood_diverged": diverged}
 
 
 def thesis_ratios(results: dict) -> dict[str, dict[str, float]]:
@@ -235,10 +252,11 @@ def results_table(results: dict) -> str:
         ood = r.get("ood", {})
         cells = [name, r["what"], str(r.get("n_trainable", "")), _f(r["validation"]["mae"] * 1e3, ".1f"),
                  _f(r["validation"]["max_error"] * 1e3, ".0f")]
-        cells += [_f(ood.get(p, math.nan) * 1e3, ".0f") for p in widen]
+        diverged = r.get("ood_diverged", {})
+        cells += ["diverged" if p in diverged else _f(ood.get(p, math.nan) * 1e3, ".0f") for p in widen]
         if widen:
             g = ood.get(widen[-1], math.nan) / r["validation"]["mae"] if ood else math.nan
-            cells.append(_f(g, ".1f") + "×")
+            cells.append(_f(g, ".1f") + ("×" if math.isfinite(g) else ""))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
