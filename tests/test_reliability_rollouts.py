@@ -170,7 +170,7 @@ ROOT = Path(__file__).resolve().parents[1]
     ("tclab/tclab.thn", "G h1 -- h2  = 0.02 W/K", "G h1 -- h2  = 1e308 W/K", ["--integrator", "expeuler"],
      "the steady state of the first inputs could not be computed (not finite)"),
     ("peltier_heatpipe/nominal.thn", "seebeck = 0.05 V/K", "seebeck = 99999999999 V/K", [],
-     "the simulation left the physical range: node `ph` fell to or below absolute zero"),
+     "the simulation left the physical range: node `ph`"),  # below 0 K, or (the burn-in start kept in range) far above
     ("peltier_heatpipe/m4.thn", "C = 300 J/K", "C = 1e308 J/K", ["--integrator", "euler", "--init", "measured"],
      None),  # a message or a plausible file, depending on the inputs: never 0 K written
 ])

@@ -39,6 +39,7 @@ from ..compiler import backend_of
 from ..core import Diagnostic, TnnError
 from ..data import Experiment
 from ..ir import Network
+from .ranges import start_range
 
 INIT_RULES = ("estimate", "filter", "steady", "measured")
 """The rules for the initial state of a free run (see the module docstring)."""
@@ -454,8 +455,6 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
         ini.params = pe
         return ini
     names = tuple(pe)
-    from .simulation import start_range  # (simulation imports this module)
-
     bounds = start_range(model, exp)
     x, rms, held = _map_start(net, model, params, U[:b], Y[:b], float(exp.dt), measured, pe, integrator, substeps,
                               bounds)
