@@ -285,11 +285,13 @@ class _BurnInFit:
             step = float(np.max(np.abs(dx))) if dx.size else 0.0
             if step > 50.0:  # a trust region for strongly nonlinear networks (K)
                 dx *= 50.0 / step
-            x = x + dx
+            x_new = x + dx
             if bounds is not None:
-                x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
-            decrement = float(np.sum((W * (Jm @ dx)) ** 2) + np.sum((P * dx) ** 2))
-            if step < 1e-7 or decrement < GN_DECREMENT_TOL:
+                x_new[:ns] = np.clip(x_new[:ns], bounds[0], bounds[1])
+            moved = x_new - x  # the step taken (a state held on a bound does not move)
+            x = x_new
+            decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
+            if float(np.max(np.abs(moved), initial=0.0)) < 1e-7 or decrement < GN_DECREMENT_TOL:
                 break
         self.held = ([] if bounds is None else
                      [i for i in range(ns) if x[i] <= bounds[0] + 1e-9 or x[i] >= bounds[1] - 1e-9])
