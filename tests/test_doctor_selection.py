@@ -68,3 +68,50 @@ def test_a_gain_that_halves_the_held_out_error_is_confirmed_whatever_the_test_sa
     tiny["p"] = 0.3
     assert _choose([tiny], (0.5 * CONFIRM_FLOOR_K * 1e-6, 1.0), None) is None
     assert tiny["p"] >= P_ACCEPT
+
+
+def test_two_fits_at_round_off_are_equal_and_the_smaller_or_more_physical_wins():
+    """Noise-free data: a heat load linear in T(hx2) (k = 2) reached 7.2e-14 K, the planted missing link hx2–amb
+    (k = 1, the same equations to a constant ambient) 1.5e-13 K, just over twice as much; both are round-off
+    (``ROUNDOFF_MAE_K``), so the smaller one wins (suite case ``casestudy/missing_link``)."""
+    from tnn_dsl.doctor.selection import ROUNDOFF_MAE_K
+
+    rng = np.random.default_rng(1)
+    load = _fit("heat_load", "Q[hx2]", 7.2e-14 * rng.standard_normal(900))
+    load["cand"] = Candidate("heat_load", "Q[hx2]", ["T(hx2)"], [Column("h.W", 0), Column("h.b", 0)])
+    link = _fit("missing_link", "hx2--amb", 1.5e-13 * rng.standard_normal(900))
+    assert link["val_mae"] > 2 * load["val_mae"] and link["val_mae"] - load["val_mae"] < ROUNDOFF_MAE_K
+    pick = _choose([load, link], (0.052, 0.1), None)
+    assert pick is link
+    assert load["reason"] == "within noise of the chosen one, which is more physical or smaller"
+
+
+def test_a_gain_at_round_off_does_not_pay():
+    """After an exact finding the held-out MAE is round-off; a second candidate taking it from 1.6e-12 to 3.2e-13 K
+    (five-fold, and 'significant' on a handful of effective samples) is not a second finding."""
+    rng = np.random.default_rng(2)
+    more = _fit("param_dependence", "R_pc_hx1", 3.2e-13 * rng.standard_normal(900))
+    more["p"] = 1e-6
+    assert _choose([more], (1.6e-12, 1e-11), None) is None
+    assert "round-off" in more["reason"]
+
+
+def test_device_coefficients_keep_their_sign_in_the_doctors_fit():
+    """A Peltier's electrical resistance, a fluid's mass flow, c_p and UA, and the Seebeck coefficient cannot cross
+    zero: the doctor's baseline fit moves them in log space (it drove ``pe.resistance`` to −70.8 Ω to absorb a 0.3 K
+    sensor offset, suite case ``casestudy/sensor_offset``); a current can."""
+    import os
+
+    import tnn_dsl
+    from tnn_dsl.doctor.engine import _free_columns
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    net = tnn_dsl.load(os.path.join(root, "networks", "peltier_heatpipe", "nominal.thn"))
+    sign = {p.name: p.keeps_sign for p in net.params}
+    assert sign["pe.resistance"] and sign["pe.seebeck"] and sign["f2.UA"] and sign["f1.mdot"] and sign["f1.cp"]
+    assert not sign["pe.current"] and not sign["f2.inlet"]
+    assert sign["R_hp1"] and sign["C_hx1"]
+    model = tnn_dsl.compile(net, backend="numpy", dtype="float64")
+    params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
+    cols = _free_columns(net, type("NoCandidates", (), {"candidate_keys": set()})(), model.param_specs, params0)
+    assert {c.key: c.log for c in cols} == {"pe.seebeck": True, "pe.resistance": True}

@@ -159,6 +159,11 @@ ParamRole = Literal[
 
 POSITIVE_ROLES = ("resistance", "conductance", "capacitance", "time_constant")
 
+SIGN_KEEPING_SLOTS = ("resistance", "seebeck", "mdot", "cp", "UA", "area", "emissivity", "view_factor")
+"""A device's coefficients (role ``component``) that cannot change sign: an electrical resistance, a mass flow, a
+heat capacity per kg, a conductance, an area, an emissivity, and a Peltier module's Seebeck coefficient (its sign
+is fixed by which side the file calls hot). The current is not one of them."""
+
 
 class Param(_Node):
     """One entry of the flat parameter table.
@@ -192,6 +197,16 @@ class Param(_Node):
     def value(self) -> float | None:
         """The SI value of a constant parameter, else ``None``."""
         return self.expr.value if isinstance(self.expr, Num) else None
+
+    @property
+    def keeps_sign(self) -> bool:
+        """A value that cannot cross zero: a positive role (R, G, C, τ) or a device coefficient of
+        :data:`SIGN_KEEPING_SLOTS` written in the device's line (``pe.resistance``, ``f2.UA``). A fit moves such a
+        parameter as ``written·exp(θ)`` (a Peltier resistance fitted to −70.8 Ω absorbed a 0.3 K sensor offset)."""
+        if self.role in POSITIVE_ROLES:
+            return True
+        return (self.role == "component" and self.owner is not None
+                and self.name.rsplit(".", 1)[-1] in SIGN_KEEPING_SLOTS)
 
 
 class Input(_Node):
@@ -462,7 +477,8 @@ class Network(BaseModel):
 
 __all__ = [
     "Span", "Dim", "Num", "Ref", "Temp", "Unary", "Binary", "Call", "Table", "Expr", "CALL_FUNCTIONS", "walk",
-    "map_children", "ParamRole", "POSITIVE_ROLES", "Param", "Input", "ThermalNode", "Boundary", "Link", "Radiation",
+    "map_children", "ParamRole", "POSITIVE_ROLES", "SIGN_KEEPING_SLOTS", "Param", "Input", "ThermalNode", "Boundary",
+    "Link", "Radiation",
     "Peltier", "Fluid", "Source", "Sensor", "LearnTarget", "LearnInput", "LearnKind", "LearnFunction",
     "Network",
 ]
