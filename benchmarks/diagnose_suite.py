@@ -367,7 +367,10 @@ def score(case: Case, d, noise: float) -> dict:
     f = first_answer(d)
     truth = _key(*case.truth)
     eq = {truth} | {_key(*e) for e in case.equivalent}
-    got = _key(f.kind, f.target, ",".join(f.depends_on)) if f is not None else None
+    # a curved truth (``then``) may be answered by its line and square together in one finding (the doctor's
+    # look-ahead, when the line alone does not pay): the square is scored by ``shape``, the first answer by the rest
+    deps = [d for d in f.depends_on if not (case.then and d.endswith("²"))] if f is not None else []
+    got = _key(f.kind, f.target, ",".join(deps)) if f is not None else None
     before, after = d.baseline["val_mae"], d.extended["val_mae"]
     r = {
         "case": case.name, "net": case.net, "kind": case.kind, "noise": noise,

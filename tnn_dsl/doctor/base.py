@@ -81,7 +81,8 @@ class Candidate:
 
     def describe(self) -> str:
         words = {
-            "param_dependence": f"{self.target} {'depend together' if self.element.get('members') else 'depends'}"
+            "param_dependence": f"{self.target} "
+            f"{'depend together' if len({m.target for m in self.members}) > 1 else 'depends'}"
             f" on {', '.join(self.depends_on)}",
             "wrong_constant": f"{self.target} has the wrong value",
             "heat_load": f"unmodelled heat load at {self.target[2:-1]}"

@@ -4,6 +4,7 @@ the element a candidate edits, and what is left in the residual."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -174,6 +175,8 @@ def _curved_words(c: Candidate, params, ext: Extended) -> str:
 
 def _words(c: Candidate, params, ext: Extended, eng: _Engine, model) -> str:
     net = ext.network
+    if c.element.get("probe"):  # a line and its square accepted together: the square's words give the whole law
+        return _words(replace(c.members[-1], depends_on=c.depends_on), params, ext, eng, model)
     if c.element.get("members"):  # a whole learned function's dependence: each target's law
         return (f"{c.target} (one learned function) depend together on {', '.join(c.depends_on)}: "
                 + "; ".join(_words(m, params, ext, eng, model) for m in c.members))
