@@ -729,16 +729,33 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     return eng, ext_s, list(range(len(free_cols))), cols_of
 
 
+PRIOR_FACTOR = 100.0
+"""The doctor's prior range of a free constant that keeps its sign and has no bounds in the file: its written value
+divided or multiplied by this. A datasheet value off by more than a factor 100 is compensation, not a fit: a
+Peltier's 2 Ω fitted to 1e-11 Ω absorbed a 20 s sensor lag, and in log space it could not come back within the
+candidate fits' iterations (suite case ``casestudy/sensor_lag``)."""
+
+
+def prior_bounds(p: Param) -> tuple[float | None, float | None]:
+    """SI bounds of a free constant in the doctor's fits: the file's, else :data:`PRIOR_FACTOR` around the written
+    value for one that keeps its sign (:attr:`Param.keeps_sign`), else none."""
+    if p.lower is not None or p.upper is not None or not p.keeps_sign or not p.value:
+        return p.lower, p.upper
+    a, b = sorted((p.value / PRIOR_FACTOR, p.value * PRIOR_FACTOR))
+    return a, b
+
+
 def _free_columns(net: Network, ext: Extended, specs, params0) -> list[_Col]:
     """The nominal model's trainable scalars: its ``free`` constants (from the IR: in the extended network
     they may be targets of a candidate function, which keeps their value as the nominal) and the weights of
-    its own non-frozen learned functions. Those that keep their sign (:attr:`Param.keeps_sign`) move in log space."""
+    its own non-frozen learned functions. Those that keep their sign (:attr:`Param.keeps_sign`) move in log space,
+    within :func:`prior_bounds`."""
     cols: list[_Col] = []
     learned = net.learned_targets()
     for p in net.params:
         if p.free and p.is_constant and p.name not in learned and p.name in specs:
             v = float(np.asarray(params0[p.name]))
-            cols.append(_Col(p.name, 0, p.keeps_sign and v != 0, p.lower, p.upper))
+            cols.append(_Col(p.name, 0, p.keeps_sign and v != 0, *prior_bounds(p)))
     own = {fn.name for fn in net.learned}
     for name, sp in specs.items():
         fn = name.split(".", 1)[0]

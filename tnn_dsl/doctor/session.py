@@ -23,6 +23,7 @@ from .engine import (
     FIT_CONTINUE,
     FIT_ITER,
     FIT_ITER_FIRST,
+    PRIOR_FACTOR,
     X0_PREFIX,
     _cand_in,
     _Engine,
@@ -31,6 +32,7 @@ from .engine import (
     _params_from_state,
     _split_masks,
     _State,
+    prior_bounds,
 )
 from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
 from .fitting import _fit_result, _fit_structural, _train_lr_test
@@ -147,10 +149,10 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
             continue
         v0 = float(p.value)
         temp = p.role == "temperature" or p.dim == {"K": 1}
-        span = (p.upper - p.lower) if p.lower is not None and p.upper is not None else None
+        lo, hi = prior_bounds(p)
+        span = (hi - lo) if lo is not None and hi is not None else None
         tol = 1e-6 * (abs(span) if span else max(abs(v0), 1.0))
-        bound = ("lower" if p.lower is not None and v <= p.lower + tol else
-                 "upper" if p.upper is not None and v >= p.upper - tol else None)
+        bound = ("lower" if lo is not None and v <= lo + tol else "upper" if hi is not None and v >= hi - tol else None)
         change = (v - v0) / abs(v0) if v0 else math.inf
         if not (bound or (not temp and abs(change) > MOVED_SHARE)):
             continue
@@ -161,7 +163,10 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
             show = lambda x, u=unit: f"{_fmt(x)} {u}".rstrip()  # noqa: E731
         what = (f"{name} moved {100 * change:+.0f} % from {show(v0)} (written) to {show(v)}" if not temp
                 else f"{name} moved from {show(v0)} (written) to {show(v)}")
-        if bound:
+        if bound and p.lower is None and p.upper is None:
+            what += (f", onto the {bound} edge of the doctor's prior range (the written value ÷ or × "
+                     f"{PRIOR_FACTOR:g})")
+        elif bound:
             what += f", onto its {bound} bound"
         out.append({"param": name, "written": v0, "fitted": v, "change": change, "at_bound": bound,
                     "words": f"warning: the baseline fit: {what}: the nominal model absorbs something here"})
