@@ -41,7 +41,10 @@ Steps (see docs/architecture.md, "Diagnosis"):
    more physical placement wins (a parameter of an element beats a heat load at a node, a parameter the
    user already declared uncertain beats one they did not; see ``_place``); runners-up are reported. A fit
    whose simulation diverges, or whose values or temperatures are not physical (:mod:`.plausibility`), is
-   never accepted and the reason is shown.
+   never accepted and the reason is shown; the next-best candidate is fitted in its place. Before deciding, the
+   one-parameter sub-model of the best dependences and, before a heat load wins, its more physical rivals are
+   fitted to convergence; the best linear dependences are also fitted with their square term (a look-ahead: the
+   line is accepted when the pair wins, or the pair itself when the line alone does not pay).
 5. **Extend**: the accepted findings applied to the IR (``learn`` functions, links, radiation, sensor offsets and
    lags, thermal masses, capacities behind sources, with their fitted values), printed as ``.thn`` by
    :func:`tnn_dsl.lang.print_thn` and re-loaded to check it is valid; the gain on held-out data. Repeat 3–5
