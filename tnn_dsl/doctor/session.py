@@ -38,7 +38,7 @@ from .extension import _check_text, changed_lines, doctor_targets, extend_networ
 from .fitting import _fit_result, _fit_structural, _train_lr_test
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
-from .selection import MIN_GAIN, _choose, _place, refusal, unphysical_reason
+from .selection import MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
 from .structural import structural_candidates
 from .threads import fit_threads, side_by_side
 from .uncertainty import final_uncertainty
@@ -57,6 +57,11 @@ def _joint(a: Candidate, b: Candidate) -> Candidate:
     both are (its ``members``)."""
     return Candidate(a.kind, a.target, a.depends_on + b.depends_on, a.columns + b.columns, fn=a.fn,
                      vars=a.vars, element={**a.element, "probe": True, "members": [a, b]})
+
+
+def _beats(mae: float, other: float) -> bool:
+    """A held-out MAE (K) better than ``other`` by more than ``MIN_GAIN`` and by more than round-off."""
+    return mae * (1 + MIN_GAIN) < other and other - mae > ROUNDOFF_MAE_K
 
 
 def _as_in(ext: Extended, c: Candidate) -> Candidate | None:
@@ -647,7 +652,8 @@ class _Session:
         happens to fit the held-out range (a TCLab-like board's ``0.6 W·Q1²`` at h2: ``Q_src_h2`` linear in Q1,
         1.01 K, lost to heater 2's gain ``a2``, 0.78 K) or not pay at all (the case study's ``1 W/A²·I²`` at hx2:
         the line in I, 0.134 K against 0.093 K before). The two best fitted linear dependences with a square term
-        ``v²`` in their function are fitted together with it (a probe). When the best probe pays against the current
+        ``v²`` in their function, v an input (a temperature's curvature is radiation's, a candidate of its own), are
+        fitted together with it (a probe). When the best probe pays against the current
         model with its extra parameter and beats the chosen candidate by more than ``MIN_GAIN`` on held-out data:
         if its line pays alone, the line is accepted and the square is fitted next round whatever its score rank
         (``promised``: at the line's fit the score test may rank it low, the line having absorbed what it can of the
@@ -657,7 +663,8 @@ class _Session:
                   if c.element.get("shape") == "quadratic" and c.key not in done}
         mae0 = self.current_val[0]
         lines = sorted([f for f in fits if f["cand"].key in square and not f["cand"].element.get("members")
-                        and unphysical_reason(f) is None], key=lambda f: f["val_mae"])[:2]
+                        and all(kind == "input" for kind, _ in f["cand"].vars) and unphysical_reason(f) is None],
+                       key=lambda f: f["val_mae"])[:2]
         if not lines or self.spent():
             return chosen
         acc_keys = self.acc_keys()
@@ -673,7 +680,7 @@ class _Session:
             self.judge(probe, current)
             f["probe"] = {"with": sq.depends_on, "val_mae": probe["val_mae"]}
             if (refusal(probe, mae0) is None
-                    and (chosen is None or probe["val_mae"] * (1 + MIN_GAIN) < chosen["val_mae"])
+                    and (chosen is None or _beats(probe["val_mae"], chosen["val_mae"]))
                     and (best_probe is None or probe["val_mae"] < best_probe["val_mae"])):
                 line, best_probe = f, probe
         if line is None or best_probe is None:
