@@ -115,3 +115,13 @@ def test_device_coefficients_keep_their_sign_in_the_doctors_fit():
     params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
     cols = _free_columns(net, type("NoCandidates", (), {"candidate_keys": set()})(), model.param_specs, params0)
     assert {c.key: c.log for c in cols} == {"pe.seebeck": True, "pe.resistance": True}
+
+
+def test_the_curvature_probe_must_beat_by_more_than_round_off():
+    """The look-ahead prefers a line with its square only when the pair beats the chosen candidate by more than
+    ``MIN_GAIN`` and more than round-off: 0 K against 2.1e-15 K (a noise-free building run) is no reason."""
+    from tnn_dsl.doctor.session import _beats
+
+    assert not _beats(0.0, 2.1e-15)
+    assert _beats(0.0077, 0.78)
+    assert not _beats(0.95, 1.0)
