@@ -125,3 +125,20 @@ def test_the_curvature_probe_must_beat_by_more_than_round_off():
     assert not _beats(0.0, 2.1e-15)
     assert _beats(0.0077, 0.78)
     assert not _beats(0.95, 1.0)
+
+
+def test_a_users_learn_clause_as_a_whole_wins_within_noise_over_one_of_its_targets():
+    """M1 declares ``learn R_hp1, R_hp2, R_hpa`` one uncertain part: the three depending on u1 together (k = 3,
+    0.0059 K) is preferred to R_hp1 alone (k = 1, 0.0057 K, within noise); clearly worse, it is not."""
+    rng = np.random.default_rng(3)
+    one = _fit("param_dependence", "R_hp1", 0.005658 * np.sign(rng.standard_normal(900)))
+    members = [Candidate("param_dependence", t, ["u1"], [Column("hp.W", j)], element={"learned": "hp"})
+               for j, t in enumerate(("R_hp1", "R_hp2", "R_hpa"))]
+    whole = _fit("param_dependence", "R_hp1, R_hp2, R_hpa", 0.005922 * np.sign(rng.standard_normal(900)))
+    whole["cand"] = Candidate("param_dependence", "R_hp1, R_hp2, R_hpa", ["u1"], [m.columns[0] for m in members],
+                              element={"learned": "hp", "members": members})
+    one["cand"].element["learned"] = "hp"
+    assert _choose([one, whole], (0.1651, 0.4), None) is whole
+    far = _fit("param_dependence", "R_hp1, R_hp2, R_hpa", 0.02 * np.sign(rng.standard_normal(900)))
+    far["cand"] = whole["cand"]
+    assert _choose([one, far], (0.1651, 0.4), None) is one

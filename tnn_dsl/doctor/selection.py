@@ -43,6 +43,16 @@ def _place(c: Candidate) -> float:
     return _PLACEMENT.get(c.kind, 3) - (0.5 if c.element.get("learned") else 0.0)
 
 
+def _whole_learned(c: Candidate) -> bool:
+    """``c`` extends a ``learn`` clause of the input file as a whole (every target of the user's function depends on
+    the variable together). Among rivals within noise it is preferred whatever its parameter count: the file
+    declares those targets one uncertain part, and one of them standing in for the others is the compensation the
+    thesis warns about (M1 on the case study: ``R_hp1`` depending on u1 alone, 0.0057 K, within noise of the three
+    heat-pipe resistances together, 0.0059 K; accepting it, the next rounds compensated in ``R_pc_hx1``, a heat load
+    at hx1 and ``f2.mdot``)."""
+    return bool(c.element.get("learned") and c.element.get("members"))
+
+
 def unphysical_reason(f: dict) -> str | None:
     """Why a fitted candidate cannot be accepted whatever the tests say (``diverged: …``, ``not physical: …``), or
     ``None`` when its plausibility verdict is ok and its held-out simulation finite."""
@@ -77,7 +87,8 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     parameters (p < ``P_ACCEPT``, or the held-out MAE divided by ``CONFIRM_RATIO``) and a held-out MAE gain of at
     least ``MIN_GAIN``. Among those within noise
     of the best (within ``MIN_GAIN`` of its held-out MAE or not significantly worse, and never ``CLOSE_RATIO``
-    times it), fewer parameters win,
+    times it), a candidate extending a user's ``learn`` clause as a whole wins (:func:`_whole_learned`), then fewer
+    parameters,
     then the more physical placement (an exact sub-model explains the data as well as the larger candidate
     containing it: the larger one only adds a parameter to compensate).
 
@@ -107,7 +118,7 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
         f["val_mae"] <= CLOSE_RATIO * best["val_mae"]
         and (f["val_mae"] <= (1 + MIN_GAIN) * best["val_mae"]
              or _held_out_test(f["e_val"], best["e_val"], 0)[1] > 0.05))]
-    pick = min(close, key=lambda f: (f["cand"].k, _place(f["cand"]), f["val_sse"]))
+    pick = min(close, key=lambda f: (not _whole_learned(f["cand"]), f["cand"].k, _place(f["cand"]), f["val_sse"]))
     for f in paying:
         if f is not pick:
             f["reason"] = ("within noise of the chosen one, which is more physical or smaller"
