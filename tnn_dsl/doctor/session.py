@@ -38,7 +38,7 @@ from .extension import _check_text, changed_lines, doctor_targets, extend_networ
 from .fitting import _fit_result, _fit_structural, _train_lr_test
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
-from .selection import MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
+from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
 from .structural import structural_candidates
 from .threads import fit_threads, side_by_side
 from .uncertainty import final_uncertainty
@@ -657,7 +657,11 @@ class _Session:
         model with its extra parameter and beats the chosen candidate by more than ``MIN_GAIN`` on held-out data:
         if its line pays alone, the line is accepted and the square is fitted next round whatever its score rank
         (``promised``: at the line's fit the score test may rank it low, the line having absorbed what it can of the
-        curve); if not, the pair is accepted together (one finding, the line and its square)."""
+        curve); if not, the pair is accepted together (one finding, the line and its square). Either way the probe
+        must divide the held-out MAE of the chosen candidate (or of the current model) by ``CONFIRM_RATIO``: a curve in
+        one input can stand in for many things, so it only overrides the decision when it is the dominant effect
+        (on M1 a heat exchanger's UA in u1 and u1², 0.0059 → 0.0052 K, was compensating for the heat pipe's own
+        curvature in u1)."""
         done = {a.key for a in self.accepted}
         square = {c.element["parents"][0]: c for c in self.ext.candidates
                   if c.element.get("shape") == "quadratic" and c.key not in done}
@@ -679,8 +683,9 @@ class _Session:
             probe = self.fit_exact(f["score"], small, start, acc_keys, FIT_ITER, extra=sq)
             self.judge(probe, current)
             f["probe"] = {"with": sq.depends_on, "val_mae": probe["val_mae"]}
-            if (refusal(probe, mae0) is None
-                    and (chosen is None or _beats(probe["val_mae"], chosen["val_mae"]))
+            ref = chosen["val_mae"] if chosen is not None else mae0
+            if (refusal(probe, mae0) is None and _beats(probe["val_mae"], ref)
+                    and probe["val_mae"] * CONFIRM_RATIO <= ref
                     and (best_probe is None or probe["val_mae"] < best_probe["val_mae"])):
                 line, best_probe = f, probe
         if line is None or best_probe is None:
