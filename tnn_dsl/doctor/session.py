@@ -47,7 +47,8 @@ from .words import _what_is_left, _words
 __all__ = ["_Session"]
 
 REPLACEMENTS = 2
-"""Structural candidates fitted per round in place of shortlisted ones of their kind that were not physical."""
+"""Candidates fitted per round in place of shortlisted fits that diverged or are not physical
+(:meth:`_Session.fit_replacements`)."""
 RIVALS = 2
 """More physical candidates fitted before a heat load is accepted (:meth:`_Session.fit_physical_rivals`)."""
 
