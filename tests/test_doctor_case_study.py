@@ -35,19 +35,27 @@ def _close_or_said(name: str, value: float, truth: float, unsure: set[str]) -> b
 def test_m1_extension_names_the_heat_pipe_with_u1_pays_and_says_what_it_cannot_tell(length, tmp_path):
     durations = (80 * 60.0, 40 * 60.0, 60.0) if length == "short" else None
     generate_case_study(tmp_path / "cs", widen=(), n_ood=0, durations=durations)
+    # 80 min (noise σ ≈ 1e-4 K) also pin the heat pipe's temperature dependence, which the truth has (−0.02/K on
+    # R_hp1 and R_hp2): round 2 names the three resistances depending on T(hp) too. A third round then took a
+    # conduction path pc–hp (0.0014 → 0.00063 K, p = 0.054, confirmed by halving; 2026-11-26), a compensation the
+    # 4 h data do not show: the fast variant stops after two rounds, the 4 h one runs them all.
+    rounds = 2 if length == "short" else 4
     d = tnn_dsl.diagnose(M1, [str(tmp_path / "cs" / "train.csv")], [str(tmp_path / "cs" / "val.csv")],
-                         mlp_check=False, output=str(tmp_path / "m1x.thn"))
+                         mlp_check=False, output=str(tmp_path / "m1x.thn"), max_rounds=rounds)
     acc = d.accepted
     assert acc, d.summary()
     assert len({f.words for f in acc}) == len(acc), d.summary()  # no finding said twice
-    # only heat-pipe elements, depending on u1
+    # only heat-pipe elements; the first on u1, every one on what the truth's laws read (u1, the heat pipe's
+    # temperatures); the 4 h run names u1 only
+    allowed = [["u1"]] if length == "full" else [["u1"], ["T(hx1)"], ["T(hp)"], ["T(hx2)"]]
+    assert acc[0].depends_on == ["u1"], d.summary()
     for f in acc:
-        assert f.kind == "param_dependence" and f.depends_on == ["u1"], d.summary()
+        assert f.kind == "param_dependence" and f.depends_on in allowed, d.summary()
         assert set(f.target.split(", ")) <= {"R_hp1", "R_hp2", "R_hpa"}, d.summary()
     written = tnn_dsl.load(str(tmp_path / "m1x.thn"))
     for fn in written.learned:
         assert {t.name for t in fn.targets} <= {"R_hp1", "R_hp2", "R_hpa"}, fn
-        assert [i.name for i in fn.inputs] in ([], ["u1"]), fn
+        assert {i.name for i in fn.inputs} <= ({"u1"} if length == "full" else {"u1", "hx1", "hp", "hx2"}), fn
     assert d.baseline["val_mae"] / d.extended["val_mae"] >= 5, d.summary()
     u = d.extended["uncertainty"]
     assert all(e["se"] > 0 or e["status"] == "not identifiable" for e in u["estimates"]), u
