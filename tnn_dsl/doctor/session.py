@@ -577,6 +577,24 @@ class _Session:
         f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
         return f
 
+    def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
+        """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence one after the
+        other on one small network and judged; ``why`` ends the progress line ("the twin of …")."""
+        if not todo or self.spent():
+            return []
+        acc_keys = self.acc_keys()
+        small = self.small(acc_keys + [t["cand"].key for t in todo])
+        start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
+        out = []
+        for t in todo:
+            if self.spent():
+                break
+            self.say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), {why} ...")
+            f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
+            self.judge(f, current)
+            out.append(f)
+        return out
+
     def fit_twins(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> list[dict]:
         """A shortlisted candidate stands for its exact twins (the same linearised correction, ``same`` of
         :func:`_shortlist`); when its own fit is not physical or diverged, up to two of its twins are fitted in its
@@ -585,20 +603,7 @@ class _Session:
         planted ``f2.UA`` was never fitted (suite case ``casestudy/column_dependence``)."""
         twins = [t for f in fits if f.get("physical") in ("non-physical", "diverged")
                  for t in f["score"].get("same", [])[:2] if t["cand"].kind not in STRUCTURAL_KINDS]
-        if not twins or self.spent():
-            return []
-        acc_keys = self.acc_keys()
-        small = self.small(acc_keys + [t["cand"].key for t in twins])
-        start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
-        out = []
-        for t in twins:
-            if self.spent():
-                break
-            self.say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), the twin of a fit that is not physical ...")
-            f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
-            self.judge(f, current)
-            out.append(f)
-        return out
+        return self.fit_extra(twins, "the twin of a fit that is not physical", current)
 
     def fit_replacements(self, fits: list[dict], scored: list[dict], current: dict[str, tuple[float, float]]
                          ) -> list[dict]:
@@ -724,21 +729,7 @@ class _Session:
                 and s_["place"] < 3 and s_["k"] <= c.k and s_["r2"] >= 0.9 * r2
                 and not (s_["cand"].kind in BOUNDED_AT_ZERO_KINDS and len(s_["delta"]) and float(s_["delta"][0]) < 0)
                 ][:RIVALS]
-        if not todo:
-            return []
-        acc_keys = self.acc_keys()
-        small = self.small(acc_keys + [t["cand"].key for t in todo])
-        start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
-        out = []
-        for t in todo:
-            if self.spent():
-                break
-            self.say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), a more physical rival of "
-                     f"{c.describe()} ...")
-            f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
-            self.judge(f, current)
-            out.append(f)
-        return out
+        return self.fit_extra(todo, f"a more physical rival of {c.describe()}", current)
 
     def fit_nested(self, fits: list[dict], scored: list[dict], current: dict[str, tuple[float, float]]) -> list[dict]:
         """The one-parameter sub-model of the best fits, fitted to convergence when the shortlist left it out: a
@@ -765,20 +756,7 @@ class _Session:
                         and d.key not in fitted and not any(s_ is t for t in nested)):
                     nested.append(s_)
                     break
-        if not nested or self.spent():
-            return []
-        acc_keys = self.acc_keys()
-        small = self.small(acc_keys + [t["cand"].key for t in nested])
-        start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
-        out = []
-        for t in nested:
-            if self.spent():
-                break
-            self.say(f"  fitting {t['cand'].describe()} (k=1), the sub-model of a better-scoring fit ...")
-            f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
-            self.judge(f, current)
-            out.append(f)
-        return out
+        return self.fit_extra(nested, "the sub-model of a better-scoring fit", current)
 
     def continue_fits(self, fits: list[dict], x_s: Extended) -> None:
         """Successive halving: the fits still moving after ``FIT_ITER_FIRST`` iterations, best training SSE
