@@ -33,15 +33,17 @@ Steps (see docs/architecture.md, "Diagnosis"):
    ``S_c = N_eff · rᵀ Ĵ_c (Ĵ_cᵀĴ_c)⁻¹ Ĵ_cᵀ r / rᵀr`` (the LM statistic ``N·R²`` with the sample size corrected
    for residual autocorrelation), p-value from χ²(k_c); ranked on the noise's own scale (``_score_stats``).
    The Gauss–Newton step gives the initial value.
-4. **Fit the best few** distinct candidates (``_shortlist``; free + candidate columns, LM from the GN step,
-   successive halving) and measure on held-out rows. Accept the best only if it pays: a Diebold–Mariano
-   test on the held-out squared errors (Newey–West variance for the autocorrelation, an AIC charge for the
-   k extra parameters; p < 0.05) and MAE at least 10 % lower. Compensation guard (thesis §6.2.4): among
+4. **Fit the best few** distinct candidates (``_shortlist``, plus those the score test cannot order against them;
+   free + candidate columns, LM from the GN step, successive halving; a second start from the values written in
+   the file for the constants the fit moved far) and measure on held-out rows. Accept the best only if it pays: a
+   Diebold–Mariano test on the held-out squared errors (Newey–West variance for the autocorrelation, an AIC charge
+   for the k extra parameters; p < 0.05) and MAE at least 10 % lower. Compensation guard (thesis §6.2.4): among
    fitted candidates whose held-out SSE is within noise of the best, the one with fewer parameters, then the
    more physical placement wins (a parameter of an element beats a heat load at a node, a parameter the
    user already declared uncertain beats one they did not; see ``_place``); runners-up are reported. A fit
    whose simulation diverges, or whose values or temperatures are not physical (:mod:`.plausibility`), is
-   never accepted and the reason is shown; the next-best candidate is fitted in its place. Before deciding, the
+   never accepted and the reason is shown; the next-best candidate is fitted in its place (its exact twins first,
+   also when it does not pay). Before deciding, the
    one-parameter sub-model of the best dependences and, before a heat load wins, its more physical rivals are
    fitted to convergence; the best linear dependences are also fitted with their square term (a look-ahead: the
    line is accepted when the pair wins, or the pair itself when the line alone does not pay).

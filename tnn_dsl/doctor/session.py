@@ -25,6 +25,7 @@ from .engine import (
     FIT_ITER_FIRST,
     PRIOR_FACTOR,
     X0_PREFIX,
+    _alias,
     _cand_in,
     _Engine,
     _InitPlan,
@@ -51,6 +52,11 @@ REPLACEMENTS = 2
 (:meth:`_Session.fit_replacements`)."""
 RIVALS = 2
 """More physical candidates fitted before a heat load is accepted (:meth:`_Session.fit_physical_rivals`)."""
+TIE_R2 = 0.95
+"""Exactly-null candidates whose linearised fit explains at least this fraction of what the best one explains are
+tied with it: the score test cannot order them (:meth:`_Session.tied_with_shortlist`)."""
+TIED = 3
+"""At most this many tied candidates are fitted beyond the shortlist in a round."""
 
 
 def _joint(a: Candidate, b: Candidate) -> Candidate:
@@ -205,6 +211,7 @@ class _Session:
         self.deadline = None if budget_s is None else self.t_start + float(budget_s)
         self.say = progress or (lambda s: None)
         self.timings: dict[str, float] = {}
+        self.moved_names: list[str] = []  # free constants the current fit moved far (:meth:`written_start`)
         self.top, self.max_rounds, self.output, self.kinds = top, max_rounds, output, kinds
         self.mlp_check, self.mlp_time, self.backend = mlp_check, mlp_time, backend
         self.net, self.path, self.text = _load(net_or_path)
@@ -480,6 +487,7 @@ class _Session:
         holding all of them (each exactly null at zero, fitted with only its own columns moving, so the
         compiled simulation and Jacobian are shared), then successive halving."""
         self.e_base_val = e_base_val = self.final_eng.residual().ravel()[self.final_eng.val_idx]
+        self.moved_names = [m["param"] for m in _moved(self.net, self.state.physical())]
         # a lag or a mass the linearised fit wants negative is not a physical candidate: it does not take a place
         neg = [s_ for s_ in scored if s_["cand"].kind in STRUCTURAL_KINDS
                and not (len(s_["delta"]) and float(s_["delta"][0]) > 0)]
@@ -498,6 +506,7 @@ class _Session:
             if s_["r2"] < MIN_R2 and short:
                 continue  # the linearised fit explains too little of the residual to pay
             short.append(s_)
+        short += self.tied_with_shortlist(scored, short, neg)
         for s_ in scored:  # a square whose probe paid with the linear law accepted last round (curvature_look_ahead)
             if s_["cand"].key in self.promised and not any(s_ is t for t in short):
                 short.append(s_)
@@ -553,6 +562,38 @@ class _Session:
         self.continue_fits(fits, x_s)
         return fits
 
+    def tied_with_shortlist(self, scored: list[dict], short: list[dict], left_out: list[dict]) -> list[dict]:
+        """Exactly-null candidates the shortlist left out whose linearised fit explains nearly as much as the best
+        one (``r2 ≥ TIE_R2 · best``; at most ``TIED``, distinct from the shortlisted and from each other). The score
+        test is a linearisation at the current fit, and when the baseline's free parameters have absorbed part of
+        the effect, several placements explain the residual equally well to first order: only proper fits tell them
+        apart. They share the round's one small network, so each costs a few Gauss–Newton iterations. The case
+        study's load at hx2 growing with I² (``pe.resistance`` having moved +107 % to absorb it) was ranked fifth
+        with 96 % of the best score; the three fitted before it were resistances along the heat path depending on
+        I, and the load was never fitted (suite case ``casestudy/quadratic_load``)."""
+        if not short or short[0]["r2"] < MIN_R2:
+            return []
+        best = max(s_["r2"] for s_ in short)
+        taken = list(short)
+        out: list[dict] = []
+        for s_ in scored:
+            if len(out) >= TIED:
+                break
+            c: Candidate = s_["cand"]
+            if (s_["r2"] < TIE_R2 * best or c.kind in STRUCTURAL_KINDS or any(s_ is t for t in taken)
+                    or any(s_ is t for t in left_out) or any(s_ is u for t in taken for u in t.get("same", []))):
+                continue
+            if s_.get("dir") is not None and any(
+                    t.get("dir") is not None and t["k"] == s_["k"]
+                    and abs(float(np.dot(t["dir"].astype(float), s_["dir"].astype(float)))) >= 0.99999
+                    for t in taken):
+                continue  # an exact twin of one already fitted: the same linearised correction
+            out.append(s_)
+            taken.append(s_)
+        if out:
+            self.say(f"  {len(out)} more candidate(s) tied with the shortlist by the score test: fitted too")
+        return out
+
     def side_by_side(self, jobs: list[Callable[[Callable[[str], None]], object]]) -> list:
         """:func:`.threads.side_by_side` on this session's threads and progress."""
         return side_by_side(jobs, self.threads, self.say)
@@ -573,9 +614,45 @@ class _Session:
         t_f = _time.monotonic()
         info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4)
         (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations{note})")
-        f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
+        cj = c if extra is None else _joint(c, extra)
+        f = _fit_result(cj, s_, e_s, x_s, self.e_base_val)
         f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
+        written = self.written_start(e_s, start_params)
+        if written is not None and not self.spent():
+            # the same fit from the values written in the file for the constants the fit so far moved far: the
+            # compensation of the baseline is a basin the candidate's fit may not leave (lower training SSE wins)
+            e_s.params = written
+            t_f = _time.monotonic()
+            info_w = e_s.fit(act, max_iter=max_iter, deadline=self.deadline, tol=1e-4)
+            (say or self.say)(f"    fitted again from the written values in {_time.monotonic() - t_f:.1f} s "
+                              f"({info_w['iterations']} iterations; training SSE {info_w['sse']:.4g} against "
+                              f"{info['sse']:.4g} K²)")
+            if info_w["sse"] < info["sse"]:
+                f = _fit_result(cj, s_, e_s, x_s, self.e_base_val)
+                f.update(act=act, train_sse=info_w["sse"], more=info_w["iterations"] >= max_iter,
+                         start="written")
+            else:
+                e_s.params = f["params"]
         return f
+
+    def written_start(self, e_s: _Engine, start_params: dict) -> dict | None:
+        """``start_params`` with the free constants that the current fit moved far from the file
+        (:func:`_moved`: more than 30 % or onto a bound of the prior range) put back at their written values;
+        ``None`` when none moved. The baseline fit absorbs what the nominal model lacks wherever it can: a 0.3 K
+        offset of the case study's only sensor drove ``pe.resistance`` to the edge of its prior range (−99 %) and
+        ``pe.seebeck`` −41 %, and every candidate fitted from there, the offset too, stayed in that basin (offset
+        0.0134 K held-out, a heat load at the heat sink 0.0097 K, the noise 0.008 K; suite case
+        ``casestudy/sensor_offset``)."""
+        if not self.moved_names:
+            return None
+        p = {k: np.array(v, copy=True) for k, v in start_params.items()}
+        n = 0
+        for name in self.moved_names:
+            kk = _alias(name, p)
+            if kk is not None and kk in e_s.params0:
+                p[kk] = np.array(e_s.params0[kk], dtype=float, copy=True)
+                n += 1
+        return p if n else None
 
     def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
         """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence one after the
@@ -600,10 +677,20 @@ class _Session:
         :func:`_shortlist`); when its own fit is not physical or diverged, up to two of its twins are fitted in its
         place, to convergence. Twins agree only at the null point: a pump column changing a heat exchanger's
         ``f2.mdot`` (and ``f2.cp``, the same product ṁ·c_p) drove the Peltier's cold side to 661 °C, while the
-        planted ``f2.UA`` was never fitted (suite case ``casestudy/column_dependence``)."""
-        twins = [t for f in fits if f.get("physical") in ("non-physical", "diverged")
-                 for t in f["score"].get("same", [])[:2] if t["cand"].kind not in STRUCTURAL_KINDS]
-        return self.fit_extra(twins, "the twin of a fit that is not physical", current)
+        planted ``f2.UA`` was never fitted (suite case ``casestudy/column_dependence``). The same holds for a fit
+        that is physical but does not pay on held-out data: ``f2.mdot`` depending on the pump column, the best score
+        of its round, made the held-out MAE worse (0.079 → 0.093 K) while its twin ``f2.UA`` is the planted cause.
+        A fit that does not pay stands aside for its twins only when the score test ranked it with the best (its
+        linearised fit explaining ``TIE_R2`` of the best's); at most ``REPLACEMENTS`` such twins a round (on the 4 h
+        case study a second round where nothing pays fitted every twin of every fit: a minute more for nothing)."""
+        mae0 = self.current_val[0]
+        bad = [t for f in fits if f.get("physical") in ("non-physical", "diverged") or not math.isfinite(f["val_mae"])
+               for t in f["score"].get("same", [])[:2] if t["cand"].kind not in STRUCTURAL_KINDS]
+        r2_best = max((float(f["score"].get("r2", 0.0)) for f in fits), default=0.0)
+        idle = [t for f in fits if f.get("physical") not in ("non-physical", "diverged") and math.isfinite(f["val_mae"])
+                and f["val_mae"] > (1 - MIN_GAIN) * mae0 and float(f["score"].get("r2", 0.0)) >= TIE_R2 * r2_best
+                for t in f["score"].get("same", [])[:2] if t["cand"].kind not in STRUCTURAL_KINDS][:REPLACEMENTS]
+        return self.fit_extra(bad + idle, "the twin of a fit that is not physical or does not pay", current)
 
     def fit_replacements(self, fits: list[dict], scored: list[dict], current: dict[str, tuple[float, float]]
                          ) -> list[dict]:
@@ -954,8 +1041,20 @@ class _Session:
         eng = self.final_eng
         if self.ml is None and not self.spent():
             self.say("fitting the extended model to convergence ...")
+            rounds, val0 = eng.params, eng.sse(which="val")
             eng.fit(self.final_act, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
             self.second_start(eng)
+            val1 = eng.sse(which="val")
+            if not val1 <= val0:
+                # the training optimum loses on the held-out rows against the values the findings were accepted with
+                # (a noisy case study: a heat load at hx1 accepted at 0.044 K held out, 0.105 K once converged, the
+                # nominal model 0.084 K): the accepted values stay, and the summary says so
+                eng.params = rounds
+                self.notes.append(
+                    "the extended model fitted to convergence on the training rows did worse on the held-out rows "
+                    f"(SSE {val1:.4g} against {val0:.4g} K² with the values the findings were accepted with): the "
+                    "accepted values are the ones reported and written")
+                self.say("  the converged fit loses on held-out data: the accepted values are kept")
             self.state.harvest(eng, self.final_ext, [c.key for c in self.accepted])
         P = eng.params
         # a dependence found in one round and grown by a later one (R_hp1 on T(hx1), then on u1) is one learned

@@ -1,0 +1,113 @@
+"""Which candidates a round of the doctor fits, and from where (doctor/session.py): the candidates tied with the
+shortlist by the score test, the twins of a fit that does not pay, the second start from the values written in
+the file for the constants the fit moved far, and the final convergence fit that may not lose on held-out data.
+Each rule's whole-run check is a suite case (``benchmarks/diagnose_suite.py``; the slow tests of
+``test_diagnose_hidden.py``); these are their fast variants on the rules themselves."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from tnn_dsl.doctor.base import Candidate, Column
+from tnn_dsl.doctor.session import TIE_R2, TIED, _Session
+
+
+def _entry(kind: str, target: str, deps: list[str], r2: float, direction: np.ndarray, k: int = 2) -> dict:
+    """A score-test entry as :func:`tnn_dsl.doctor.scoring._score_stats` makes it (the fields the rules read)."""
+    d = direction / np.linalg.norm(direction)
+    return {"cand": Candidate(kind, target, deps, [Column(f"{target}.{j}", 0) for j in range(k)]), "r2": r2,
+            "k": k, "dir": d.astype(np.float32), "delta": np.zeros(k), "place": 0}
+
+
+def _quiet() -> SimpleNamespace:
+    return SimpleNamespace(say=lambda s: None)
+
+
+def test_candidates_the_score_test_cannot_order_are_fitted_beyond_the_shortlist():
+    """The case study's load at hx2 growing with I² ranked fifth with 96 % of the best score, behind three
+    resistances depending on I and a sensor lag: it is fitted too. A structural candidate (its own network), an
+    exact twin of a fitted one and one clearly behind are not; at most ``TIED`` are added."""
+    rng = np.random.default_rng(0)
+    dirs = [rng.standard_normal(50) for _ in range(9)]
+    short = [_entry("param_dependence", "R_hp2", ["I"], 0.4244, dirs[0]),
+             _entry("param_dependence", "R_pc_hx1", ["I"], 0.4234, dirs[1]),
+             _entry("param_dependence", "R_hp1", ["I"], 0.4163, dirs[2])]
+    lag = _entry("sensor_lag", "T_out", [], 0.4077, dirs[3], k=1)
+    load = _entry("heat_load", "Q[hx2]", ["I"], 0.4068, dirs[4])
+    twin = _entry("param_dependence", "R_hp2", ["T(hp)"], 0.4243, dirs[0])  # the same correction as R_hp2 in I
+    behind = _entry("wrong_constant", "C_pc", [], 0.39, dirs[5], k=1)
+    more = [_entry("heat_load", f"Q[n{j}]", ["I"], 0.41, dirs[6 + j]) for j in range(3)]
+    scored = short[:2] + [twin] + short[2:] + [lag, load, behind] + more
+    got = _Session.tied_with_shortlist(_quiet(), scored, short, [])
+    assert got[0] is load
+    assert lag not in got and twin not in got and behind not in got
+    assert len(got) == TIED and all(g["r2"] >= TIE_R2 * 0.4244 for g in got)
+    # left out by the round (a link the linearised fit wants negative): not fitted either
+    assert load not in _Session.tied_with_shortlist(_quiet(), scored, short, [load])
+
+
+def test_the_twin_of_a_fit_that_does_not_pay_is_fitted():
+    """``f2.mdot`` depending on the pump column (physical, but 0.079 → 0.093 K held out) stands for its exact twins;
+    ``f2.UA``, the planted cause, is fitted in its place. A twin of a fit that pays is not."""
+    mdot = _entry("param_dependence", "f2.mdot", ["pump"], 0.9958, np.ones(10))
+    ua = _entry("param_dependence", "f2.UA", ["pump"], 0.9958, np.ones(10))
+    mdot["same"] = [ua]
+    asked = []
+    ns = SimpleNamespace(current_val=(0.0786, 0.14, 5.0), fit_extra=lambda todo, why, current: asked.extend(todo))
+    _Session.fit_twins(ns, [{"score": mdot, "val_mae": 0.0931, "physical": "ok"}], {})
+    assert asked == [ua]
+    asked.clear()
+    _Session.fit_twins(ns, [{"score": mdot, "val_mae": 0.0084, "physical": "ok"}], {})
+    assert asked == []
+
+
+def test_the_second_start_puts_only_the_moved_constants_back_at_their_written_values():
+    """A 0.3 K offset on the case study's only sensor drove ``pe.resistance`` to the edge of its range: each
+    candidate is fitted again from the written resistance (the other free values and the initial states kept)."""
+    eng = SimpleNamespace(params0={"pe.resistance": np.array(2.0), "pe.seebeck": np.array(0.05),
+                                   "x0:0:ph": np.array(0.0)})
+    start = {"pe.resistance": np.array(0.02), "pe.seebeck": np.array(0.0297), "x0:0:ph": np.array(298.1)}
+    ns = SimpleNamespace(moved_names=["pe.resistance"])
+    w = _Session.written_start(ns, eng, start)
+    assert float(w["pe.resistance"]) == 2.0
+    assert float(w["pe.seebeck"]) == 0.0297 and float(w["x0:0:ph"]) == 298.1
+    assert float(start["pe.resistance"]) == 0.02  # the round's start is not touched
+    assert _Session.written_start(SimpleNamespace(moved_names=[]), eng, start) is None
+
+
+class _Eng:
+    """An engine whose convergence fit improves the training rows and worsens the held-out ones."""
+
+    def __init__(self, val_after: float):
+        self.params = {"a": np.array(1.0)}
+        self.val_after = val_after
+
+    def sse(self, which: str = "train") -> float:
+        moved = float(self.params["a"]) != 1.0
+        return (self.val_after if moved else 1.0) if which == "val" else (0.5 if moved else 1.0)
+
+    def fit(self, act, **kw) -> dict:
+        self.params = {"a": np.array(2.0)}
+        return {"sse": 0.5, "iterations": 3}
+
+
+def _polish(val_after: float) -> tuple[_Eng, list[str]]:
+    eng, notes = _Eng(val_after), []
+    ns = SimpleNamespace(accepted=[SimpleNamespace(key="Q[hx1]")], final_act=[0], final_eng=eng, ml=None,
+                         spent=lambda: False, deadline=None, say=lambda s: None, second_start=lambda e: None,
+                         notes=notes, state=SimpleNamespace(harvest=lambda *a: None), final_ext=None, acc_fits=[],
+                         acc_findings=[])
+    _Session.polish(ns)
+    return eng, notes
+
+
+def test_a_converged_fit_that_loses_on_held_out_data_keeps_the_accepted_values():
+    """A heat load at hx1 accepted at 0.044 K held out reached 0.105 K once fitted to convergence (the nominal
+    model: 0.084 K): the values it was accepted with are reported and written, and the summary says why."""
+    eng, notes = _polish(val_after=3.0)
+    assert float(eng.params["a"]) == 1.0
+    assert any("did worse on the held-out rows" in n for n in notes)
+    eng, notes = _polish(val_after=0.9)
+    assert float(eng.params["a"]) == 2.0 and not notes
