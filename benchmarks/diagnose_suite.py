@@ -387,6 +387,11 @@ def score(case: Case, d, noise: float) -> dict:
         return r
     r["first"] = got == truth
     r["first_eq"] = got in eq
+    # the cautions of an accepted first answer: candidates whose linearised correction is nearly its own and that the
+    # held-out run did not separate ("the data cannot tell them apart"); reported, not counted as first
+    caution = [tuple(t["key"].split(":", 2)) for t in (f.evidence.get("indistinguishable_from") or [])
+               if f is not None and f.accepted and not t.get("separated")] if f is not None else []
+    r["first_or_caution"] = bool(r["first_eq"] or any(_key(*k) in eq for k in caution if len(k) == 3))
     r["accepted"] = bool(f is not None and f.accepted and got in eq)
     if case.truth[2]:
         r["dep"] = bool(f is not None and case.truth[2] in f.depends_on)
@@ -454,6 +459,10 @@ def table(rows: list[dict]) -> str:
             f"| true cause accepted | {_pct(r['accepted'] for r in eff)} | |",
             f"| null runs without an accepted finding | {_pct(not r['false_accept'] for r in nul)} | ≥ 95 % |",
             f"| held-out MAE at least halved where the effect stands above the noise | {_pct(halved)} | 100 % |"]
+    if eff and all("first_or_caution" in r for r in eff):  # runs recorded before the field existed lack it
+        out.insert(out.index("| total | value | target |") + 4,
+                   f"| … or named in the first answer's caution (the data do not tell them apart) | "
+                   f"{_pct(r['first_or_caution'] for r in eff)} | (not the target) |")
     kinds_missed = sorted({r["kind"] for r in eff if not r["first_eq"]})
     if kinds_missed:
         out += ["", "Kinds with at least one miss: " + ", ".join(kinds_missed) + "."]

@@ -128,8 +128,10 @@ def test_scoring_counts_identical_equivalents_and_nulls():
         return NS(findings=findings, accepted=[f for f in findings if f.accepted],
                   baseline={"val_mae": before}, extended={"val_mae": after}, timings={"total": 1.0})
 
-    def f(kind, target, dep, accepted, rank=1):
-        return NS(kind=kind, target=target, depends_on=dep, accepted=accepted, rank=rank, round=1)
+    def f(kind, target, dep, accepted, rank=1, caution=()):
+        twins = [{"key": k, "separated": sep} for k, sep in caution]
+        return NS(kind=kind, target=target, depends_on=dep, accepted=accepted, rank=rank, round=1,
+                  evidence={"indistinguishable_from": twins})
 
     c = CASES["tclab/heat_load"]
     r = S.score(c, diag([f("param_dependence", "Q_src_h2", ["Q1"], True)]), 0.01)
@@ -141,6 +143,16 @@ def test_scoring_counts_identical_equivalents_and_nulls():
     assert r["false_accept"]
     md = S.table([r, S.score(c, diag([f("heat_load", "Q[h2]", ["Q1"], True)]), 0.0)])
     assert "false acceptance 100 %" in md and "| tclab | heat_load | 0 | 1 | 100 % (1/1)" in md
+    # a first answer whose caution names the truth (the held-out run did not separate them) is reported apart
+    cs = CASES["casestudy/dependence"]
+    r = S.score(cs, diag([f("param_dependence", "R_hp2", ["u1"], True, caution=[("param_dependence:R_hp1:u1",
+                                                                                  False)])]), 0.01)
+    assert not r["first_eq"] and r["first_or_caution"]
+    r = S.score(cs, diag([f("param_dependence", "R_hp2", ["u1"], True, caution=[("param_dependence:R_hp1:u1",
+                                                                                  True)])]), 0.01)
+    assert not r["first_or_caution"]
+    assert "named in the first answer's caution | 0 % (0/1)" in S.table([r]).replace(
+        " (the data do not tell them apart)", "")
 
 
 # ---------------------------------------------------------------------------------------------
