@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from tnn_dsl.doctor.base import Candidate, Column
+from tnn_dsl.doctor.fitting import refit_from_written, written_values
 from tnn_dsl.doctor.session import TIE_R2, TIED, _Session
 
 
@@ -69,12 +70,39 @@ def test_the_second_start_puts_only_the_moved_constants_back_at_their_written_va
     eng = SimpleNamespace(params0={"pe.resistance": np.array(2.0), "pe.seebeck": np.array(0.05),
                                    "x0:0:ph": np.array(0.0)})
     start = {"pe.resistance": np.array(0.02), "pe.seebeck": np.array(0.0297), "x0:0:ph": np.array(298.1)}
-    ns = SimpleNamespace(moved_names=["pe.resistance"])
-    w = _Session.written_start(ns, eng, start)
+    w = written_values(eng, start, ["pe.resistance"])
     assert float(w["pe.resistance"]) == 2.0
     assert float(w["pe.seebeck"]) == 0.0297 and float(w["x0:0:ph"]) == 298.1
     assert float(start["pe.resistance"]) == 0.02  # the round's start is not touched
-    assert _Session.written_start(SimpleNamespace(moved_names=[]), eng, start) is None
+    assert written_values(eng, start, ["R_hp1"]) is None
+
+
+class _Bowl:
+    """An engine with two basins: from ``pe.resistance`` near its written 2 Ω the fit reaches a lower training SSE."""
+
+    def __init__(self):
+        self.params0 = {"pe.resistance": np.array(2.0)}
+        self.params = {"pe.resistance": np.array(0.02)}
+
+    def fit(self, act, **kw) -> dict:
+        r = float(self.params["pe.resistance"])
+        self.params = {"pe.resistance": np.array(2.1 if r > 1 else 0.03)}
+        return {"sse": 0.18 if r > 1 else 0.36, "iterations": 4}
+
+
+def test_the_lower_training_error_of_the_two_starts_wins():
+    eng = _Bowl()
+    start = eng.params
+    info = refit_from_written(eng, [0], eng.fit([0]), start, ["pe.resistance"], 4, None, lambda s: None)
+    assert info["start"] == "written" and info["sse"] == 0.18 and float(eng.params["pe.resistance"]) == 2.1
+    eng = _Bowl()
+    eng.params0 = {"pe.resistance": np.array(0.02)}  # written where the fit already is: the first fit stays
+    start = eng.params
+    first = eng.fit([0])
+    kept = eng.params
+    info = refit_from_written(eng, [0], {**first, "sse": 0.1}, start, ["pe.resistance"], 4, None, lambda s: None)
+    assert "start" not in info and eng.params is kept
+    assert refit_from_written(eng, [0], first, start, [], 4, None, lambda s: None) is first
 
 
 class _Eng:

@@ -25,7 +25,6 @@ from .engine import (
     FIT_ITER_FIRST,
     PRIOR_FACTOR,
     X0_PREFIX,
-    _alias,
     _cand_in,
     _Engine,
     _InitPlan,
@@ -36,7 +35,7 @@ from .engine import (
     prior_bounds,
 )
 from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
-from .fitting import _fit_result, _fit_structural, _train_lr_test
+from .fitting import _fit_result, _fit_structural, _train_lr_test, refit_from_written
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
@@ -211,7 +210,7 @@ class _Session:
         self.deadline = None if budget_s is None else self.t_start + float(budget_s)
         self.say = progress or (lambda s: None)
         self.timings: dict[str, float] = {}
-        self.moved_names: list[str] = []  # free constants the current fit moved far (:meth:`written_start`)
+        self.moved_names: list[str] = []  # free constants the current fit moved far (``refit_from_written``)
         self.top, self.max_rounds, self.output, self.kinds = top, max_rounds, output, kinds
         self.mlp_check, self.mlp_time, self.backend = mlp_check, mlp_time, backend
         self.net, self.path, self.text = _load(net_or_path)
@@ -614,45 +613,13 @@ class _Session:
         t_f = _time.monotonic()
         info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4)
         (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations{note})")
-        cj = c if extra is None else _joint(c, extra)
-        f = _fit_result(cj, s_, e_s, x_s, self.e_base_val)
+        info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline,
+                                  say or self.say)
+        f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
         f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
-        written = self.written_start(e_s, start_params)
-        if written is not None and not self.spent():
-            # the same fit from the values written in the file for the constants the fit so far moved far: the
-            # compensation of the baseline is a basin the candidate's fit may not leave (lower training SSE wins)
-            e_s.params = written
-            t_f = _time.monotonic()
-            info_w = e_s.fit(act, max_iter=max_iter, deadline=self.deadline, tol=1e-4)
-            (say or self.say)(f"    fitted again from the written values in {_time.monotonic() - t_f:.1f} s "
-                              f"({info_w['iterations']} iterations; training SSE {info_w['sse']:.4g} against "
-                              f"{info['sse']:.4g} K²)")
-            if info_w["sse"] < info["sse"]:
-                f = _fit_result(cj, s_, e_s, x_s, self.e_base_val)
-                f.update(act=act, train_sse=info_w["sse"], more=info_w["iterations"] >= max_iter,
-                         start="written")
-            else:
-                e_s.params = f["params"]
+        if info.get("start") == "written":
+            f["start"] = "written"
         return f
-
-    def written_start(self, e_s: _Engine, start_params: dict) -> dict | None:
-        """``start_params`` with the free constants that the current fit moved far from the file
-        (:func:`_moved`: more than 30 % or onto a bound of the prior range) put back at their written values;
-        ``None`` when none moved. The baseline fit absorbs what the nominal model lacks wherever it can: a 0.3 K
-        offset of the case study's only sensor drove ``pe.resistance`` to the edge of its prior range (−99 %) and
-        ``pe.seebeck`` −41 %, and every candidate fitted from there, the offset too, stayed in that basin (offset
-        0.0134 K held-out, a heat load at the heat sink 0.0097 K, the noise 0.008 K; suite case
-        ``casestudy/sensor_offset``)."""
-        if not self.moved_names:
-            return None
-        p = {k: np.array(v, copy=True) for k, v in start_params.items()}
-        n = 0
-        for name in self.moved_names:
-            kk = _alias(name, p)
-            if kk is not None and kk in e_s.params0:
-                p[kk] = np.array(e_s.params0[kk], dtype=float, copy=True)
-                n += 1
-        return p if n else None
 
     def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
         """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence one after the
