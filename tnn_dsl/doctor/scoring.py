@@ -358,7 +358,18 @@ def _indistinguishable(chosen: dict, scored: list[dict], cos_min: float = 0.95, 
     return exact + [d for d in out if d["cos"] < EXACT_TWIN_COS][:most]
 
 
-def _shortlist(scored: list[dict], top: int, same_cos: float = 0.99999) -> list[dict]:
+SAME_COS = 0.99999
+"""Two candidates with the same number of parameters whose linearised corrections of the training outputs have
+|cos| at least this are exact twins: one answer, fitted once (:func:`_shortlist`)."""
+
+
+def same_correction(a: dict, b: dict, same_cos: float = SAME_COS) -> bool:
+    """Score-test entries ``a`` and ``b`` make the same linearised correction (exact twins, same k)."""
+    return (a.get("dir") is not None and b.get("dir") is not None and a["k"] == b["k"]
+            and abs(float(np.dot(a["dir"].astype(float), b["dir"].astype(float)))) >= same_cos)
+
+
+def _shortlist(scored: list[dict], top: int, same_cos: float = SAME_COS) -> list[dict]:
     """The ``top`` best by score among *distinct* candidates, plus (compensation guard) the best-scoring
     physical-placement candidate when only heat loads made the list, so a heat load never wins without a
     physical rival being fitted.
@@ -369,13 +380,7 @@ def _shortlist(scored: list[dict], top: int, same_cos: float = 0.99999) -> list[
     fitted, the other is listed under ``"same"`` of the one kept (reported as indistinguishable)."""
     short: list[dict] = []
     for s in scored:
-        twin = None
-        if s.get("dir") is not None:
-            for t in short:
-                if (t.get("dir") is not None and t["k"] == s["k"]
-                        and abs(float(np.dot(t["dir"].astype(float), s["dir"].astype(float)))) >= same_cos):
-                    twin = t
-                    break
+        twin = next((t for t in short if same_correction(t, s, same_cos)), None)
         if twin is not None:
             if s["place"] < twin["place"]:  # keep the more physical one in the twin's slot
                 s["same"] = twin.get("same", []) + [twin]

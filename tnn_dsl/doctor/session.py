@@ -37,7 +37,7 @@ from .engine import (
 from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
 from .fitting import _fit_result, _fit_structural, _train_lr_test, refit_from_written
 from .results import Diagnosis, Finding
-from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist
+from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist, same_correction
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
 from .structural import structural_candidates
 from .threads import fit_threads, side_by_side
@@ -582,10 +582,7 @@ class _Session:
             if (s_["r2"] < TIE_R2 * best or c.kind in STRUCTURAL_KINDS or any(s_ is t for t in taken)
                     or any(s_ is t for t in left_out) or any(s_ is u for t in taken for u in t.get("same", []))):
                 continue
-            if s_.get("dir") is not None and any(
-                    t.get("dir") is not None and t["k"] == s_["k"]
-                    and abs(float(np.dot(t["dir"].astype(float), s_["dir"].astype(float)))) >= 0.99999
-                    for t in taken):
+            if any(same_correction(t, s_) for t in taken):
                 continue  # an exact twin of one already fitted: the same linearised correction
             out.append(s_)
             taken.append(s_)
