@@ -142,3 +142,39 @@ def test_a_users_learn_clause_as_a_whole_wins_within_noise_over_one_of_its_targe
     far = _fit("param_dependence", "R_hp1, R_hp2, R_hpa", 0.02 * np.sign(rng.standard_normal(900)))
     far["cand"] = whole["cand"]
     assert _choose([one, far], (0.1651, 0.4), None) is one
+
+
+class _Eng:
+    """What ``_all_sse`` reads of a fit's engine: the training rows' indices into its flat residual."""
+
+    def __init__(self, n_train: int):
+        self.train_idx = np.arange(n_train)
+
+
+def _fit_with_training(target: str, e_train: np.ndarray, e_val: np.ndarray) -> dict:
+    f = _fit("param_dependence", target, e_val)
+    f["e_all"], f["eng"] = np.concatenate([e_train, e_val]), _Eng(e_train.size)
+    return f
+
+
+def test_rivals_alike_in_size_and_placement_are_told_apart_on_all_the_rows():
+    """``casestudy/dependence`` (0.01 K, seed 0): R_hp1(u1), the truth, at 0.180 K² on the training rows and 0.235
+    on the held-out ones, R_hp2(u1) at 0.261 and 0.183; the held-out rows alone (the smaller part) picked R_hp2.
+    Both have k = 2 on a resistance: the squared error over every row decides, and it is R_hp1's. Without the
+    training residual the held-out SSE decides as before."""
+    n_tr, n_va = 1800, 900
+    # smooth residuals, as free runs leave them: the held-out test cannot call a 20 % difference significant
+    unit_tr = np.sign(np.sin(np.linspace(0, 30, n_tr)))
+    unit_va = np.sign(np.sin(np.linspace(0, 15, n_va))) * (1 + 0.2 * np.sin(np.linspace(0, 60, n_va)))
+    other_va = unit_va * (1 + 0.8 * np.sin(np.linspace(0, 9, n_va)))  # larger in one part, smaller in another
+    unit_tr, unit_va, other_va = (v / np.sqrt(v @ v) for v in (unit_tr, unit_va, other_va))
+    assert held_out_test(np.sqrt(0.235) * other_va, np.sqrt(0.183) * unit_va, 0)[1] > 0.05  # within noise
+    hp1 = _fit_with_training("R_hp1", np.sqrt(0.180) * unit_tr, np.sqrt(0.235) * other_va)
+    hp2 = _fit_with_training("R_hp2", np.sqrt(0.261) * unit_tr, np.sqrt(0.183) * unit_va)
+    base = np.full(n_va, 0.0236)
+    pick = _choose([hp2, hp1], (0.0236, 0.08), base)
+    assert pick is hp1
+    assert hp2["reason"] == "within noise of the chosen one, which is more physical or smaller"
+    for f in (hp1, hp2):
+        del f["e_all"], f["eng"]
+    assert _choose([hp2, hp1], (0.0236, 0.08), base) is hp2
