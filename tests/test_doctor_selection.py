@@ -175,6 +175,9 @@ def test_rivals_alike_in_size_and_placement_are_told_apart_on_all_the_rows():
     pick = _choose([hp2, hp1], (0.0236, 0.08), base)
     assert pick is hp1
     assert hp2["reason"] == "within noise of the chosen one, which is more physical or smaller"
+    hp1["e_all"] = hp1["e_all"].copy()
+    hp1["e_all"][7] = np.nan  # a training simulation that was not finite never wins the tie-break
+    assert _choose([hp2, hp1], (0.0236, 0.08), base) is hp2
     for f in (hp1, hp2):
         del f["e_all"], f["eng"]
     assert _choose([hp2, hp1], (0.0236, 0.08), base) is hp2

@@ -90,13 +90,14 @@ def _all_sse(f: dict) -> float:
     held-out rows alone are the fewer half and can disagree with the training rows: ``casestudy/dependence``
     (0.01 K, seed 0), R_hp1(u1) (the truth) at 0.180 K² on training and 0.235 on held-out rows against R_hp2(u1)
     at 0.261 and 0.183. With the same k the in-sample part favours neither; the held-out SSE alone when the
-    training residual is not at hand."""
+    training residual is not at hand, inf when the training simulation was not finite (as the engine's SSE)."""
     e, eng = f.get("e_all"), f.get("eng")
     idx = getattr(eng, "train_idx", None)
     if e is None or idx is None:
         return float(f["val_sse"])
     tr = np.asarray(e).ravel()[idx]
-    tr = tr[np.isfinite(tr)]
+    if not np.all(np.isfinite(tr)):
+        return math.inf
     return float(f["val_sse"]) + float(tr @ tr)
 
 
