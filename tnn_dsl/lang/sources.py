@@ -22,6 +22,7 @@ from ..core import Diagnostic, TnnError
 from ..ir import (
     Span,
 )
+from .simple_lines import split_simple_lines
 from .statements import _parse_text, _St, _ToStatements
 
 MAX_FILE_BYTES = 4 * 1024 * 1024
@@ -191,10 +192,14 @@ def _check_nesting(text: str, filename: str) -> None:
             depth = max(0, depth - 1)
 
 
-def _statements(text: str, filename: str, sources: dict[str, str]) -> list[_St]:
+def _statements(text: str, filename: str, sources: dict[str, str], *, simple_lines: bool = True) -> list[_St]:
+    """The statements of one file, in line order. With ``simple_lines`` (the default) the plain node and link
+    lines of generated meshes are read without the parser (:mod:`.simple_lines`; same statements and errors)."""
     sources[filename] = text
     _check_nesting(text, filename)
-    tree, diags = _parse_text(text, filename)
+    fast_diags: list[Diagnostic] = []
+    fast, rest = split_simple_lines(text, filename, fast_diags) if simple_lines else ([], text)
+    tree, diags = _parse_text(rest, filename)
     if diags:
         raise TnnError(diags, sources=sources)
     tdiags: list[Diagnostic] = []
@@ -202,6 +207,22 @@ def _statements(text: str, filename: str, sources: dict[str, str]) -> list[_St]:
         stmts = _ToStatements(filename, tdiags).transform(tree)
     except VisitError as err:  # pragma: no cover - a bug in a callback
         raise err.orig_exc from None
+    if fast:
+        stmts = _merge_by_line(stmts, fast)
+        tdiags = sorted(tdiags + fast_diags, key=lambda d: d.span.line if d.span else 0)
     if tdiags:
         raise TnnError(tdiags, sources=sources)
     return stmts
+
+
+def _merge_by_line(stmts: list[_St], fast: list[tuple[int, _St]]) -> list[_St]:
+    """The parser's statements and the simple lines' (both in line order) as one list in line order."""
+    out: list[_St] = []
+    j = 0
+    for st in stmts:
+        while j < len(fast) and fast[j][0] < st.span.line:
+            out.append(fast[j][1])
+            j += 1
+        out.append(st)
+    out.extend(st for _, st in fast[j:])
+    return out

@@ -254,10 +254,11 @@ def _unclosed_bracket(lines: list[str], upto_line: int) -> tuple[int, int, str] 
     return stack[-1] if stack else None
 
 
-def _bracket_depths(lines: list[str]) -> list[int]:
-    """Bracket depth at the start of each line (strings and comments skipped)."""
+def _bracket_depths(lines: list[str], start: int = 0) -> list[int]:
+    """Bracket depth at the start of each line and after the last (strings and comments skipped), from depth
+    ``start`` before the first line."""
     depths = []
-    depth = 0
+    depth = start
     for ln in lines:
         depths.append(depth)
         for _, c in _brackets(ln):
