@@ -10,13 +10,16 @@ from scipy import stats
 from scipy.signal import lfilter
 
 from ..analysis import residuals as R
+from ..core.memory import release_free_memory
 from .base import STRUCTURAL_KINDS, Candidate
 from .engine import _Engine
 from .selection import _place
 
-FORCED_CHUNK = 32
+FORCED_CHUNK = 16
 """Candidate columns whose forcing series are built and pushed through the forced Jacobian together (the engine's
-tangent batch): memory per chunk ``FORCED_CHUNK × N × nodes`` floats."""
+tangent batch): memory per chunk ``FORCED_CHUNK × N × nodes`` floats, several times over inside the compiled
+derivative (issue 18: at 32 a chunk's call raised the resident size by 100–240 MB on the 4 h case study, at 16 by
+60–130 MB, in the same time; ``benchmarks/bench_diagnose.py``)."""
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 
@@ -75,20 +78,24 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         Fm, mass_rows = _structural_forcing(cur, mass, smass, X, U, rates, nn)
     # columns [nominal free and accepted | candidates' (forced response + direct output term) | structural forcings],
     # computed FORCED_CHUNK columns at a time: the forcing series of all candidates at once, (m, N, nodes) floats,
-    # held 1 GB on the 4 h case study (issue 18); a chunk holds a few MB
+    # held 1 GB on the 4 h case study (issue 18); a chunk holds a few MB. Between chunks the C heap's free pages go
+    # back to the system (``release_free_memory``): each chunk's arrays are the size of the last's, but the heap
+    # they were freed on is fragmented by what stays, and without it the resident size kept every chunk's peak.
     n0 = len(active_base)
-    blocks = [cur.forced_jacobian(active_base)]
+    blocks = [cur.forced_jacobian(active_base, chunk=FORCED_CHUNK)]
     for s0 in range(0, len(cand_idx), FORCED_CHUNK):
         part = cand_idx[s0: s0 + FORCED_CHUNK]
-        d_rhs, d_out = big.point_derivs(part, X, U)  # (k, N, ns), (k, N, n_out)
+        release_free_memory()  # each chunk's arrays are freed on a heap fragmented by the last: give them back
+        d_rhs, d_out = big.point_derivs(part, X, U, chunk=FORCED_CHUNK)  # (k, N, ns), (k, N, n_out)
         with np.errstate(divide="ignore", invalid="ignore"):
             F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
         del d_rhs
-        J = cur.forced_jacobian([], F)
+        release_free_memory()
+        J = cur.forced_jacobian([], F, chunk=FORCED_CHUNK)
         J += d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # the direct output term (sensor offsets)
         blocks.append(J)
     for s0 in range(0, len(Fm), FORCED_CHUNK):
-        blocks.append(cur.forced_jacobian([], np.stack(Fm[s0: s0 + FORCED_CHUNK])))
+        blocks.append(cur.forced_jacobian([], np.stack(Fm[s0: s0 + FORCED_CHUNK]), chunk=FORCED_CHUNK))
     del Fm
     J_all = np.concatenate(blocks, axis=1)
     del blocks

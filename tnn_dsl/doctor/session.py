@@ -15,6 +15,7 @@ import numpy as np
 
 from ..analysis import residuals as R
 from ..core import THN, Diagnostic, TnnError, check_output, write_text_atomic
+from ..core.memory import release_free_memory
 from ..ir import Input, Network
 from .base import BOUNDED_AT_ZERO_KINDS, STRUCTURAL_KINDS, Candidate, Extended
 from .candidates import build_extended
@@ -414,7 +415,9 @@ class _Session:
         if self.spent():
             self.say("budget spent; stopping the forward selection")
             return False
+        release_free_memory()  # last round's fits are done with: their freed arrays go back before the score test
         scored = self.score(rnd)
+        release_free_memory()  # the score test's Jacobian blocks (hundreds of MB on 4 h of data) likewise
         if not scored:
             return False
         t0 = _time.monotonic()
