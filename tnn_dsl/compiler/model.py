@@ -230,14 +230,15 @@ class Model:
 
     def from_numpy(self, arrays: Mapping[str, Any]) -> dict:
         """numpy arrays (or floats) → backend arrays in the model's dtype."""
-        out = {}
+        keys, arrs = [], []
         for k, v in arrays.items():
             a = np.asarray(v, dtype=np.float64)
             spec = self.param_specs.get(k)
             if spec is not None and tuple(a.shape) != tuple(spec.shape):
                 raise TnnError(f"parameter {k!r} has shape {a.shape}, the model expects {spec.shape}")
-            out[k] = self.xp.asarray(a)
-        return out
+            keys.append(k)
+            arrs.append(a)
+        return dict(zip(keys, self.xp.asarrays(arrs)))
 
     def _packed(self, params):
         """On a sparse model: the parameter table with its constants packed into one vector

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+from ..core.memory import release_free_memory
 from .results import Diagnosis, Finding
 from .session import _Session
 
@@ -123,6 +124,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     for rnd in range(1, max_rounds + 1):
         if not run.selection_round(rnd):
             break
+    release_free_memory()  # the rounds' engines and arrays are done with (core.memory)
     run.build_extension()
+    release_free_memory()
     run.compare_with_mlp()
     return run.result()

@@ -7,6 +7,7 @@ import os
 from typing import Callable
 
 from ..core import Diagnostic, TnnError
+from ..core.memory import release_free_memory
 
 THREADS_ENV = "TNN_DOCTOR_THREADS"
 """Environment variable: the number of candidate fits run side by side (default: the CPUs this process may use, at
@@ -42,6 +43,7 @@ def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads:
     (each on its own engine clone or network) and spend their time inside compiled simulations, where JAX releases
     the interpreter (torch runs one job at a time: the session sets ``threads`` = 1). The case study's whole diagnosis
     on 2 cores: 229 s with one thread, 182 s with two (benchmarks/bench_diagnose.py)."""
+    jobs = [_then_release(job) for job in jobs]
     if threads <= 1 or len(jobs) <= 1:
         return [job(say) for job in jobs]
     from concurrent.futures import ThreadPoolExecutor
@@ -56,3 +58,15 @@ def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads:
                 say(line)
             out.append(res)
     return out
+
+
+def _then_release(job: Callable[[Callable[[str], None]], object]) -> Callable[[Callable[[str], None]], object]:
+    """``job``, then the C heap's free pages back to the system (a fit's arrays, freed on a heap that other
+    results fragment, would otherwise keep the resident size at every fit's peak: ``core.memory``)."""
+    def run(say: Callable[[str], None]) -> object:
+        try:
+            return job(say)
+        finally:
+            release_free_memory()
+
+    return run

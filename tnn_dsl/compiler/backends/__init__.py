@@ -68,6 +68,11 @@ class ArrayNamespace:
         the ends. ``xs``, ``ys`` are numbers (not differentiated)."""
         return interp_with(self, x, *_interp_segments(xs, ys))
 
+    def asarrays(self, xs: list) -> list:
+        """``[asarray(x) for x in xs]`` in the namespace's dtype; a backend with a per-call cost (JAX's device
+        transfer) converts them in one call."""
+        return [self.asarray(x) for x in xs]
+
     @staticmethod
     def to_numpy(x):
         return np.asarray(x)

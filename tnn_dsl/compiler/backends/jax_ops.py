@@ -19,6 +19,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 from . import NumpyLike  # noqa: E402
 
@@ -51,3 +52,9 @@ class JaxXP(NumpyLike):
     relu = staticmethod(jax.nn.relu)
     matmul = staticmethod(matmul)
     stop_gradient = staticmethod(jax.lax.stop_gradient)
+
+    def asarrays(self, xs: list) -> list:
+        """One device transfer for the whole list (``jnp.asarray`` costs ~100 µs a call: 4 s for the 40 000
+        constants of a 10 000-node plate)."""
+        dt = np.dtype(self.dtype)
+        return list(jax.device_put([np.asarray(x, dtype=dt) for x in xs]))
