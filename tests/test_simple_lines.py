@@ -86,6 +86,8 @@ def test_plate_mesh_lines_all_take_the_simple_path_and_load_the_same_network():
     ("G a -- b = -1 W/K", "a sign"),
     ("G a -- b = 2 * 1 W/K", "an expression"),
     ("  node a C = (1 J/K", "an open bracket"),
+    ("node a C = 1  free", "a clause where a unit could be (found by the property test)"),
+    ("G a -- b = 2 as G_x", "a keyword where a unit could be"),
 ])
 def test_lines_in_doubt_stay_with_the_parser(line, why):
     taken, rest = split_simple_lines(f"network t\n{line}\n", "t.thn", [])

@@ -5,8 +5,8 @@ glibc keeps freed blocks on its heap for reuse; once small live objects sit betw
 heap cannot shrink from its top and the process's resident size stays at its highest. ``malloc_trim(0)`` hands
 every free page of the heap back (``MADV_DONTNEED``) without moving anything; it costs one walk of the free lists
 (milliseconds) and changes nothing about how later memory is allocated. Called between the doctor's phases, it
-lowers the floor each phase's own arrays stand on; the numbers are in BENCHMARKS.md, "Diagnosis: time and memory"
-(``python benchmarks/bench_diagnose.py``). A no-op off glibc.
+lowers the floor each phase's own arrays stand on: ``python benchmarks/trace_diagnose_memory.py`` against the same
+with ``--no-release`` (README, "Speed"). A no-op off glibc.
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ from .selection import _place
 FORCED_CHUNK = 16
 """Candidate columns whose forcing series are built and pushed through the forced Jacobian together (the engine's
 tangent batch): memory per chunk ``FORCED_CHUNK × N × nodes`` floats, several times over inside the compiled
-derivative (issue 18: at 32 a chunk's call raised the resident size by 100–240 MB on the 4 h case study, at 16 by
-60–130 MB, in the same time; ``benchmarks/bench_diagnose.py``)."""
+derivative (issue 18; ``python benchmarks/trace_diagnose_memory.py [--chunk 32]`` prints each call's resident size:
+on the 4 h case study a call of 16 takes about half the time of a call of 32)."""
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 

@@ -1,14 +1,15 @@
 """Lines that need no parser: the two statement forms generated meshes are made of, read without Lark.
 
 A 10 000-node plate is 40 000 lines of ``node NAME C = NUMBER UNIT`` and ``G NAME -- NAME = NUMBER UNIT``; the
-LALR parser spends about 10 µs per token on them (3 of the 4.6 s it took to load the plate). Such a line, when it
+LALR parser spends about 10 µs per token on them (most of the time it took to load the plate: parsing went from
+4.6–5.6 s to 2.9–3.5 s with this module, README "Large networks"). Such a line, when it
 is exactly one of these two forms (no label, clause, sign or expression; an optional trailing comment), at bracket
 depth 0 and outside any ``subnet`` block, is tokenised here with the grammar's own terminal patterns (``NAME``,
 ``NUMBER``, ``UNIT``, ``WS``, ``COMMENT`` taken from the loaded grammar, not copied) and turned into its statement by
 the very transformer callbacks the parse tree goes through (:class:`.statements._ToStatements`): same spans, same
-unit conversion, same messages. Every other line, and any line in doubt (a node named like a keyword, a token the
-lexer would cut differently), is left to the parser. ``tests/test_simple_lines.py`` checks, on generated lines,
-that the two paths give equal statements and equal errors.
+unit conversion, same messages. Every other line, and any line in doubt (a node named like a keyword, a "unit" that
+starts with a keyword such as ``1 free``, a token the lexer would cut differently), is left to the parser.
+``tests/test_simple_lines.py`` checks, on generated lines, that the two paths give equal statements and errors.
 """
 
 from __future__ import annotations
@@ -57,8 +58,8 @@ def _lexicon() -> _Lexicon:
     ident = f"(?:{pat['NAME']}|{pat['NUMBER']})"
     tail = (f"{ows}={ows}(?P<num>{pat['NUMBER']})(?:{ows}(?P<unit>{pat['UNIT']}))?"
             f"{ows}(?:{pat['COMMENT']})?")
-    node = re.compile(f"(?P<lead>{ows})(?P<kw>node){ws}(?P<a>{ident}){ws}C{tail}")
-    link = re.compile(f"(?P<lead>{ows})(?P<kw>{pat['LINK_KIND']}){ws}(?P<a>{ident}){ows}--{ows}(?P<b>{ident}){tail}")
+    node = re.compile(f"{ows}(?P<kw>node){ws}(?P<a>{ident}){ws}C{tail}")
+    link = re.compile(f"{ows}(?P<kw>{pat['LINK_KIND']}){ws}(?P<a>{ident}){ows}--{ows}(?P<b>{ident}){tail}")
     return _Lexicon(node=node, link=link, name=re.compile(pat["NAME"]), number=re.compile(pat["NUMBER"]),
                     unit=re.compile(pat["UNIT"]), keywords=keywords,
                     subnet_open=re.compile(f"{ows}subnet(?![A-Za-z0-9_.])"),
@@ -110,6 +111,8 @@ def split_simple_lines(text: str, filename: str, diags: list) -> tuple[list[tupl
                     if m.group("unit") is not None else None)
             if num is None or (m.group("unit") is not None and unit is None):
                 continue
+            if unit is not None and re.match(r"[A-Za-z_]*", str(unit)).group() in lex.keywords:
+                continue  # `1 free`: a keyword the parser reads as a clause, not a unit
             last = unit or num
             q = cb_quantity(tr, _meta(num, last), [num, unit] if unit is not None else [num])
             nids = [cb_node_id(tr, _meta(t, t), [t]) for t in ids]
