@@ -282,6 +282,7 @@ def test_gradient_rollout_in_compiled_chunks_matches_jax(monkeypatch):
     import tnn_dsl.compiler.model as compiled_model
 
     monkeypatch.setattr(compiled_model, "TORCH_GRAD_CHUNK", 3)
+    monkeypatch.setattr(compiled_model, "TORCH_ADJOINT", False)
     net = tnn_dsl.loads(SMALL, "small.thn")
     mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
     p_np = nets.random_params(mj, 3)

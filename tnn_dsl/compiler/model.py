@@ -75,13 +75,19 @@ class ParamSpec:
 
 
 TORCH_GRAD_CHUNK = 1
-"""Sample intervals (divided by the sub-steps) unrolled in one compiled graph by a torch rollout with gradients
-(:meth:`Model._compiled_torch_chunks`); 1 compiles each step apart (:meth:`Model._compiled_torch_step`). Measured
+"""Sample intervals (divided by the sub-steps) unrolled in one compiled graph by a torch rollout with gradients on
+the step-by-step path (``TORCH_ADJOINT = False``, or the packed parameters of a large network;
+:meth:`Model._compiled_torch_chunks`); 1 compiles each step apart (:meth:`Model._compiled_torch_step`). Measured
 on the case study M3, RK4 (``python benchmarks/bench_rollout.py --quick --only jax,torchc --torch-grad-chunk K``,
 2026-11-26, one run per K, batch of 16 windows × 250 steps): forward+gradient 29.4 / 23.1 / 21.6 / 19.4 µs per
 window-step for K = 1 / 2 / 4 / 8 (JAX 3.1–4.1), single sequence 364 / 270 / 265 / 204 µs per step, but the
 gradient graph's compilation took 17–24 s (K = 2), 28–46 s (K = 4) and 72–108 s (K = 8). At most 1.5× faster for
 minutes of compilation per shape, and still 5× JAX: not the default."""
+
+TORCH_ADJOINT = True
+"""A torch rollout with gradients and ``torch_compile=True`` runs as a compiled forward ``scan`` and a compiled
+adjoint ``scan`` (:meth:`Model._torch_adjoint_rollout`, :mod:`tnn_dsl.compiler.torch_adjoint`) instead of one
+compiled call and one autograd node per step. ``False``: the step-by-step path (:data:`TORCH_GRAD_CHUNK`)."""
 
 TORCH_CHUNK = 4
 """Samples per iteration of the compiled torch rollout's ``scan`` on a single sequence without gradient
@@ -475,10 +481,11 @@ class Model:
 
     def _compiled_torch_step(self, prep, dt, integrator, sub):
         """``step(T, ctx)`` as in :meth:`_stepper`, run through ``torch.compile`` (one graph per sample
-        interval, ``prep`` an input so that new parameters reuse it): how torch rollouts *with gradients* are
-        compiled. (The forward-only :meth:`_compiled_torch_rollout` is one ``scan``; torch 2.13's ``scan``
-        does not support gradients with respect to what its body closes over — here the parameters — and,
-        measured on the test networks, returned one parameter's gradient for another's.) The compiled function
+        interval, ``prep`` an input so that new parameters reuse it): the step-by-step path of torch rollouts
+        *with gradients* where :meth:`_torch_adjoint_rollout` does not run (``TORCH_ADJOINT = False``, the packed
+        parameters of large networks). (torch 2.13's own ``scan`` does not support gradients with respect to what
+        its body closes over — here the parameters — and, measured on the test networks, returned one
+        parameter's gradient for another's.) The compiled function
         is kept per ``(dt, integrator, sub)``; torch recompiles it for new shapes (dynamic after the second). If
         torch cannot compile here (inductor needs a C++ compiler), the model warns once and runs eager."""
         import torch
@@ -560,6 +567,44 @@ class Model:
             return None
         return torch.movedim(torch.cat(outs, 0)[:M], 0, -2)
 
+    def _torch_adjoint_rollout(self, prep, T0, ctx, dt, integrator, sub):
+        """The states after ``T0 (..., n_states)`` for every sample of ``ctx`` (:meth:`_Core.rhs_u` of the
+        rollout's samples but the last), ``(..., M, n_states)``, with gradients, through
+        :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`: one compiled ``scan`` forward, one compiled
+        adjoint ``scan`` backward (no per-step call, no per-step autograd node). Kept per ``(dt, integrator, sub,
+        batched)``; a single sequence is traced on :class:`FusedTorchXP`. ``None`` for the packed parameter table
+        of large networks (the step-by-step path runs), and after a warning if torch cannot compile here."""
+        import torch
+
+        from .torch_adjoint import AdjointRollout, Unsupported
+
+        unbatched = T0.ndim == 1
+        key = ("torch_adjoint", dt, integrator, sub, unbatched)
+        runner = self._jit_cache.get(key)
+        if runner is None:
+            core = self._fused_core() if unbatched else self._core
+
+            def stepper(prep, traced):
+                return self._stepper(prep, dt, integrator, sub, core, traced=traced)
+
+            def failed(e):
+                warnings.warn(f"torch.compile failed in a rollout's backward pass ({type(e).__name__}: "
+                              f"{str(e)[:200]}); its gradients are computed uncompiled", TorchCompileWarning,
+                              stacklevel=2)
+            runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed)
+        tm = {"s": {k: torch.movedim(v, -1, 0) for k, v in ctx["s"].items()},
+              "v": {k: torch.movedim(v, -2, 0) for k, v in ctx["v"].items()}, "u": torch.movedim(ctx["u"], -2, 0)}
+        try:
+            S = runner(prep, T0, tm)
+        except Unsupported:
+            return None
+        except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+            self.torch_compile = False
+            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
+                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            return None
+        return torch.movedim(S, 0, -2)
+
     def _compiled_torch_rollout(self, prep, T0, inputs, dt, integrator, sub):
         """The states after ``T0 (..., n_states)`` (already broadcast to the rollout's batch), ``(..., M,
         n_states)`` for the ``M`` samples of ``inputs (..., M, n_inputs)`` (all but the last of the rollout's),
@@ -610,6 +655,9 @@ class Model:
         if pad:  # the last sample repeated; its states are dropped
             U = torch.cat([U, U[-1:].expand(pad, *U.shape[1:])], 0)
         U = U.reshape(n_chunks, chunk, *U.shape[1:]).contiguous()
+        # the scan's length is dynamic from the first call: one compiled graph serves every rollout length (a
+        # burn-in of a few minutes, then the whole file) instead of a second compilation for the second length
+        torch._dynamo.maybe_mark_dynamic(U, 0)
         try:
             ys = compiled(prep, T0, U)
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
@@ -662,6 +710,9 @@ class Model:
             states = jnp.moveaxis(states, 0, -2)
         elif compiled and (rest := self._compiled_torch_rollout(
                 prep, T0, inputs[..., : N - 1, :], dt, integrator, sub)) is not None:
+            states = xp.concat([T0[..., None, :], rest], axis=-2)
+        elif (step_compiled and N > 1 and TORCH_ADJOINT
+              and (rest := self._torch_adjoint_rollout(prep, T0, ctx, dt, integrator, sub)) is not None):
             states = xp.concat([T0[..., None, :], rest], axis=-2)
         elif (step_compiled and N > 1 and (chunk := max(1, TORCH_GRAD_CHUNK // sub)) > 1
               and (rest := self._compiled_torch_chunks(prep, T0, ctx, dt, integrator, sub, chunk)) is not None):
