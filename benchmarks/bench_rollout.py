@@ -744,6 +744,9 @@ def parse(argv=None):
     ap.add_argument("--torch-grad-chunk", type=int, default=None,
                     help="sample intervals unrolled per compiled graph by torch rollouts with gradients (default: "
                          "the model's TORCH_GRAD_CHUNK; 1 = one compiled call per step); to compare chunk sizes")
+    ap.add_argument("--torch-step-path", action="store_true",
+                    help="torch_compile rollouts with gradients step by step (the model's TORCH_ADJOINT = False) "
+                         "instead of a forward and an adjoint scan; to compare the two")
     ap.add_argument("--dt", type=float, default=1.0, help="sample time, s (default 1, the case study's)")
     ap.add_argument("--integrator", choices=("rk4", "euler"), default="rk4")
     ap.add_argument("--seed", type=int, default=0)
@@ -779,6 +782,11 @@ def main(argv=None):
         import tnn_dsl.compiler.model as compiled_model
 
         compiled_model.TORCH_GRAD_CHUNK = int(args.torch_grad_chunk)
+        compiled_model.TORCH_ADJOINT = False  # the chunks are the step-by-step path's
+    if args.torch_step_path:
+        import tnn_dsl.compiler.model as compiled_model
+
+        compiled_model.TORCH_ADJOINT = False
     warnings.simplefilter("ignore", category=UserWarning)  # step-size warnings are reported via substeps
     load_before = load_average().split()[0] if load_average() != "n/a" else "n/a"
     t_start = time.perf_counter()
