@@ -116,8 +116,8 @@ def test_adjoint_matches_eager_and_jax(batch):
     _assert_close(_jax_grads(mj, p_np, T0b, Ub), got_b)
 
 
-@pytest.mark.parametrize("integrator,substeps", [("expeuler", None),
-                                                  pytest.param("euler", 6, marks=pytest.mark.slow)])
+@pytest.mark.slow  # the fast suite's compiled-torch tests cover RK4; the slow case-study test covers expeuler too
+@pytest.mark.parametrize("integrator,substeps", [("expeuler", None), ("euler", 6)])
 def test_adjoint_other_integrators(integrator, substeps):
     """Exponential Euler (the diagonal part in closed form) and more than 4 sub-steps (a nested ``scan`` in the
     compiled forward; a Python loop of sub-steps in the traced vector-Jacobian product)."""
@@ -225,3 +225,24 @@ def test_adjoint_matches_jax_on_every_network(path):
         got = _torch_grads(mc, p_np, T0, U)
     assert _adjoint_used(mc)
     _assert_close(_jax_grads(mj, p_np, T0, U), got)
+
+
+def test_adjoint_float32_two_samples_and_no_second_derivative():
+    """A float32 model over the shortest rollout (two samples, one step): the gradient matches eager torch to
+    float32 round-off; a backward pass that would build a graph for second derivatives raises (they would miss the
+    rollout's part) instead of giving a silently partial answer."""
+    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    mc = tnn_dsl.compile(net, "torch", dtype="float32", torch_compile=True)
+    me = tnn_dsl.compile(net, "torch", dtype="float32")
+    p_np = nets.random_params(tnn_dsl.compile(net, "numpy"), 5)
+    T0, U = _inputs(me, 2, 2)
+    T0, U = T0.astype(np.float32), U.astype(np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        got = _torch_grads(mc, p_np, T0, U)
+    assert _adjoint_used(mc)
+    _assert_close(_torch_grads(me, p_np, T0, U), got, atol=1e-3, rtol=1e-4)
+    p = {k: v.requires_grad_(True) for k, v in mc.from_numpy(p_np).items()}
+    s, _ = mc.rollout(p, torch.as_tensor(T0), torch.as_tensor(U), 1.0)
+    with pytest.raises(NotImplementedError, match="second derivatives.*torch_compile=False"):
+        torch.autograd.grad(s.sum(), [p["fn_G_ab.W0"]], create_graph=True)

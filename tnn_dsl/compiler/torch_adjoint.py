@@ -279,6 +279,10 @@ def _autograd_function():
 
         @staticmethod
         def backward(ctx, G):
+            if torch.is_grad_enabled():  # create_graph=True: a second derivative would silently miss the rollout
+                raise NotImplementedError(
+                    "second derivatives through a compiled torch rollout are not supported (received a backward "
+                    "pass with create_graph=True); compile the model with torch_compile=False, or use JAX")
             T0, S, *flat = ctx.saved_tensors
             n_p = ctx.n_p
             dT0, dp, dc = ctx.runner.backward(ctx.key, ctx.rebuild, ctx.ckeys, list(flat[:n_p]), T0, S,
