@@ -150,6 +150,8 @@ class AdjointRollout:
 
     # -- forward -------------------------------------------------------------------------------------------
     def forward(self, key, rebuild, ckeys, p, T0, cvals):
+        """The states ``(M, ..., n_states)`` K after ``T0`` without autograd: the compiled forward scan for
+        ``key`` (compiled on first use; the scan's length is dynamic, other shapes have keys of their own)."""
         import torch
         from torch._higher_order_ops import scan
 
