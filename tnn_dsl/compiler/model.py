@@ -617,9 +617,9 @@ class Model:
         On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples (the body's own per-call
         cost spread over several steps) and the body is traced on :class:`FusedTorchXP`; with a batch axis one
         sample per iteration and library products. Compiled graphs are kept per ``(dt, integrator, sub, chunk,
-        batched)`` and reused for new parameter values; torch recompiles for new shapes (dynamic after the
-        second). Returns ``None`` after a warning (and the model runs eager from then on) if torch cannot
-        compile here (inductor needs a C++ compiler)."""
+        batched)`` and reused for new parameter values; the scan's length is dynamic from the first call, other
+        new shapes recompile (dynamic after the second). Returns ``None`` after a warning (and the model runs
+        eager from then on) if torch cannot compile here (inductor needs a C++ compiler)."""
         import torch
 
         unbatched = T0.ndim == 1
