@@ -138,15 +138,12 @@ class AdjointRollout:
         """The states after ``T0 (..., n_states)`` K for every sample of ``ctx`` (time-major: samples on axis 0 of
         every array), ``(M, ..., n_states)``; differentiable with respect to the tensors of ``prep``, ``T0`` and
         the context. Raises :class:`Unsupported` for prepared values it cannot flatten."""
-        import torch
-
         p, rebuild, pkey = flatten(prep)
         ckeys, cvals = _flat_context(ctx)
         key = (pkey, ckeys, tuple((tuple(c.shape[1:]), str(c.dtype), bool(c.requires_grad)) for c in cvals),
                tuple(T0.shape), str(T0.dtype), bool(T0.requires_grad))
         return _AdjointFn.apply(self, key, rebuild, ckeys, len(p), T0, *p,
-                                *[c if c.is_contiguous() else c.contiguous() for c in cvals]) \
-            if torch.is_grad_enabled() else self.forward(key, rebuild, ckeys, p, T0, cvals)
+                                *[c if c.is_contiguous() else c.contiguous() for c in cvals])
 
     # -- forward -------------------------------------------------------------------------------------------
     def forward(self, key, rebuild, ckeys, p, T0, cvals):
