@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 import sys
 from functools import lru_cache
 
@@ -32,8 +33,13 @@ def _glibc():
     return libc
 
 
-def release_free_memory() -> bool:
+def release_free_memory(collect: bool = False) -> bool:
     """Return the free pages of the C heap to the operating system (glibc's ``malloc_trim(0)``). Returns whether
-    any memory was released (False off glibc)."""
+    any memory was released (False off glibc). ``collect``: first free the unreachable reference cycles
+    (``gc.collect()``, tens of milliseconds): a compiled model and the compiled functions it keeps, which refer
+    back to it, are such a cycle once nothing else holds the model, and Python's collector may leave it for
+    many phases."""
+    if collect:
+        gc.collect()
     libc = _glibc()
     return bool(libc.malloc_trim(0)) if libc is not None else False

@@ -80,6 +80,10 @@ class _Engine:
     parameters hold each experiment's initial state (:func:`x0_key`); a held-out file's is re-estimated
     from its burn-in whenever the parameters have changed and its rows are simulated (``x0_stale``)."""
 
+    tangent_multiple = 4
+    """The Jacobian's batch of tangents is a multiple of this (:meth:`jacobian`): 4 on a network whose fits move
+    active sets of a few sizes; 1 on a network one fit has to itself (``_Session.own_network``)."""
+
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
                  params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0,
                  init: _InitPlan | None = None):
@@ -228,6 +232,11 @@ class _Engine:
                 xs.append(st)
             return xp.concat(ys, 0), xp.concat(xs, 0)
 
+        def simulate_train(p):
+            """Outputs of the experiments holding training rows only (n_score_rows, n_out) K."""
+            return xp.concat([model.rollout(p, start(p, i, u), u, dt)[1]
+                              for i, (u, dt) in enumerate(zip(u_list[:n_sc], dts[:n_sc]))], 0)
+
         def out_flat(base, theta, idx):
             """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
             p = with_theta(base, theta)
@@ -276,6 +285,8 @@ class _Engine:
 
         jac_j, jac_forced_j = B.jit(jac_chunk), B.jit(jac_forced)
         self._sim = B.jit(B.no_grad(simulate))
+        # the training SSE of a trial step needs no held-out file (a third of the case study's rows)
+        self._sim_train = B.jit(B.no_grad(simulate_train)) if n_sc < len(exps) else lambda p: self._sim(p)[0]
         self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
         self._point = B.jit(point)
@@ -299,14 +310,16 @@ class _Engine:
 
     def jacobian(self, active: list[int], chunk: int = 32) -> np.ndarray:
         """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in one batch of
-        forward-mode tangents, their number rounded up to a multiple of 4 (a compiled shape per size; the doctor's
-        active sets vary by a few columns within a round), in batches of ``chunk`` beyond that. A tangent costs
+        forward-mode tangents, their number rounded up to a multiple of :attr:`tangent_multiple` (a compiled shape
+        per size; the doctor's active sets vary by a few columns within a round on a shared network), in batches
+        of ``chunk`` beyond that. A tangent costs
         about as much as the simulation it rides on: a fixed batch of 16 for a set of 17 columns doubled the cost of
         every Gauss–Newton iteration of a round (issue 18)."""
         base = self._to(self.params)
         n = len(self.cols)
         out = []
-        size = min(chunk, 4 * max(1, -(-len(active) // 4)))
+        m = self.tangent_multiple
+        size = min(chunk, m * max(1, -(-len(active) // m)))
         for s in range(0, len(active), size):
             part = active[s: s + size]
             tan = np.zeros((size, n))
@@ -435,8 +448,10 @@ class _Engine:
         return self._sse_of(e[self.train_idx if which == "train" else self.val_idx])
 
     def _train_sse(self, params) -> tuple[float, np.ndarray]:
-        """The training rows' SSE K² and residual (n_train,) K of ``params``: one simulation."""
-        v = self.residual(params).ravel()[self.train_idx]
+        """The training rows' SSE K² and residual (n_train,) K of ``params``: one simulation of the experiments
+        holding training rows (not of the held-out files, whose initial states ``params`` leaves as they are)."""
+        ym = np.asarray(self._np(self._sim_train(self._to(params))))
+        v = (self.y[: ym.shape[0]] - ym).ravel()[self.train_idx]
         return self._sse_of(v), v
 
     def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
