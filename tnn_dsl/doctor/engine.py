@@ -239,12 +239,7 @@ class _Engine:
 
         def out_flat(base, theta, idx):
             """Outputs at ``idx`` (training rows: only the files holding them are simulated)."""
-            p = with_theta(base, theta)
-            ys = []
-            for i, (u, dt) in enumerate(zip(u_list[:n_sc], dts[:n_sc])):
-                _, y = model.rollout(p, start(p, i, u), u, dt)
-                ys.append(y)
-            return xp.concat(ys, 0).reshape(-1)[idx]
+            return simulate_train(with_theta(base, theta)).reshape(-1)[idx]
 
         def out_forced(base, theta, F, idx):
             """Outputs with the forcing heat flows F (N_score, n_force) W added (training files only)."""
@@ -286,7 +281,7 @@ class _Engine:
         jac_j, jac_forced_j = B.jit(jac_chunk), B.jit(jac_forced)
         self._sim = B.jit(B.no_grad(simulate))
         # the training SSE of a trial step needs no held-out file (a third of the case study's rows)
-        self._sim_train = B.jit(B.no_grad(simulate_train)) if n_sc < len(exps) else lambda p: self._sim(p)[0]
+        self._sim_train = B.jit(B.no_grad(simulate_train)) if n_sc < len(exps) else (lambda p, sim=self._sim: sim(p)[0])
         self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
         self._point = B.jit(point)
