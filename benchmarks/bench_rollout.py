@@ -6,7 +6,8 @@ study's inputs (pseudo-random steps of I ∈ [0, 3] A and u1 ∈ [0, 1], hold 12
 25 °C), sample time 1 s, RK4 (the model's default integrator), float64.
 
 Measured (each the median of ``--repeats`` runs; the first call — tracing, XLA compilation — is timed
-apart and reported as warm-up):
+apart and reported as warm-up; torch compiles cold, into an empty inductor cache of the run's own, unless
+``--warm-torch-cache``):
 
 * single sequence of ``--steps`` samples, forward (``model.rollout``) and forward + gradient of a scalar
   loss (mean squared error of ``T_out`` against a fixed reference) w.r.t. every trainable parameter;
@@ -744,6 +745,12 @@ def parse(argv=None):
     ap.add_argument("--torch-grad-chunk", type=int, default=None,
                     help="sample intervals unrolled per compiled graph by torch rollouts with gradients (default: "
                          "the model's TORCH_GRAD_CHUNK; 1 = one compiled call per step); to compare chunk sizes")
+    ap.add_argument("--warm-torch-cache", action="store_true",
+                    help="let torch reuse inductor's default on-disk cache (default: an empty one for this run, so "
+                         "the compile times are a first run's)")
+    ap.add_argument("--torch-python-wrapper", action="store_true",
+                    help="compile the torch forward scan with inductor's Python wrapper (the model's "
+                         "TORCH_CPP_WRAPPER = False); combine with --torch-chunk 4, that wrapper's best")
     ap.add_argument("--torch-step-path", action="store_true",
                     help="torch_compile rollouts with gradients step by step (the model's TORCH_ADJOINT = False) "
                          "instead of a forward and an adjoint scan; to compare the two")
@@ -773,6 +780,13 @@ def parse(argv=None):
 
 def main(argv=None):
     args = parse(argv)
+    cold = None
+    if not args.warm_torch_cache and "torch" not in sys.modules:  # before torch reads its configuration
+        import os
+        import tempfile
+
+        cold = tempfile.TemporaryDirectory(prefix="tnn_bench_inductor_")
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = cold.name
     only = {s.strip() for s in args.only.split(",") if s.strip()}
     if args.torch_chunk is not None:
         import tnn_dsl.compiler.model as compiled_model
@@ -783,6 +797,10 @@ def main(argv=None):
 
         compiled_model.TORCH_GRAD_CHUNK = int(args.torch_grad_chunk)
         compiled_model.TORCH_ADJOINT = False  # the chunks are the step-by-step path's
+    if args.torch_python_wrapper:
+        import tnn_dsl.compiler.model as compiled_model
+
+        compiled_model.TORCH_CPP_WRAPPER = False
     if args.torch_step_path:
         import tnn_dsl.compiler.model as compiled_model
 

@@ -6,7 +6,10 @@ options (the ones an engineer gets from ``tnnc train``).
 The data are the case study of ``../shared/spec/case-study.md`` (4 h training, 2 h validation, no noise),
 generated once into a cache directory. Each (model, backend) pair trains in its own subprocess, one
 after the other (the timings must not compete for the cores). The clock starts when ``tnn_dsl.train`` is
-called, so it includes compilation (JIT tracing), the nominal simulation and every validation run.
+called, so it includes compilation (JIT tracing), the nominal simulation and every validation run. Each run
+compiles cold: torch's inductor gets an empty cache directory of its own (``TORCHINDUCTOR_CACHE_DIR``; inductor
+otherwise reuses the C++ kernels an earlier run built, which made compile times depend on what ran before),
+and JAX keeps no compilation cache across processes. ``--warm-torch-cache`` uses inductor's default one.
 
 "Time to within 10 %" is the first moment the best validation MAE so far is ≤ 1.1 × the final
 validation MAE of that run (the model ``train`` returns). The target of issue 4 is ≤ 60 s for M2 with JAX.
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -58,6 +62,10 @@ def _worker(args) -> int:
     fixed = {} if not args.epochs else {"epochs": args.epochs, "val_every": 10, "lbfgs_iters": 0, "patience": 0}
     if args.backend == TORCH_COMPILED:
         fixed["torch_compile"] = True
+    if args.torch_python_wrapper:  # inductor's Python wrapper, 4 samples per forward-scan iteration (before C++)
+        from tnn_dsl.compiler import model as compiled_model
+
+        compiled_model.TORCH_CPP_WRAPPER, compiled_model.TORCH_CHUNK = False, 4
     tm = tnn_dsl.train(ROOT / "networks" / "peltier_heatpipe" / f"{args.worker}.thn", cs["train"], cs["val"],
                        backend="torch" if args.backend == TORCH_COMPILED else args.backend, seed=0, callback=cb,
                        **fixed)
@@ -65,7 +73,8 @@ def _worker(args) -> int:
     final = float(tm.meta["metrics"]["validation"]["mae"])
     reach = next((t for t, b in trace if b <= 1.1 * final), total)
     adam = [r for r in tm.meta["curve"] if r["phase"] == "adam"]
-    print(json.dumps({"model": args.worker, "backend": args.backend, "final_val_mae": final, "t_reach": reach,
+    label = args.backend + (" (Python wrapper)" if args.torch_python_wrapper and args.backend != "jax" else "")
+    print(json.dumps({"model": args.worker, "backend": label, "final_val_mae": final, "t_reach": reach,
                       "t_total": total, "epochs": len(adam), "stopped": tm.meta["stopped"],
                       "rollout": tm.meta["rollout"],
                       "first_val_mae": tm.meta["curve"][0]["val_mae"] if tm.meta["curve"] else None}))
@@ -102,6 +111,18 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
                        f"{fin['torch'] / fin['jax']:.12f} (the one trainer follows the same trajectory on both "
                        "backends).")
         return "\n".join(out) + "\n"
+    for m in ("m2", "m3"):
+        j = next((r for r in rows if r.get("model") == m and r.get("backend") == "jax" and "t_reach" in r), None)
+        for r in rows:
+            if r.get("model") == m and str(r.get("backend", "")).startswith(TORCH_COMPILED) and "t_reach" in r \
+                    and j is not None:
+                mae = r["final_val_mae"] / j["final_val_mae"] - 1
+                out.append(f"Issue 18 ({m.upper()}, {r['backend']} / JAX): time to within 10 % "
+                           f"{r['t_reach'] / j['t_reach']:.1f}× (target ≤ 3×: "
+                           f"**{'met' if r['t_reach'] <= 3 * j['t_reach'] else 'not met'}**), final validation MAE "
+                           f"{100 * mae:+.1f} % (target within 5 %: **{'met' if abs(mae) <= 0.05 else 'not met'}**).")
+    if any(line.startswith("Issue 18") for line in out):
+        out.append("")
     if m2j is not None:
         ok = m2j["t_reach"] <= TARGET_M2_JAX_S
         out.append(f"Issue-4 target (M2, JAX, within 10 % of the final validation MAE in ≤ {TARGET_M2_JAX_S:.0f} s): "
@@ -127,6 +148,11 @@ def main(argv=None) -> int:
                     help="fixed schedule for a backend comparison: N Adam epochs, no L-BFGS, no early stopping "
                          "(written to the `training-backends` section)")
     ap.add_argument("--timeout", type=float, default=None, help="seconds allowed per training run (default: none)")
+    ap.add_argument("--torch-python-wrapper", action="store_true",
+                    help="torch's compiled scans with inductor's Python wrapper (the model's TORCH_CPP_WRAPPER = "
+                         "False), to compare with the C++ one")
+    ap.add_argument("--warm-torch-cache", action="store_true",
+                    help="let torch reuse inductor's default on-disk cache (default: an empty one per run)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--backend", default="jax", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -143,13 +169,21 @@ def main(argv=None) -> int:
                 continue
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", model, "--backend", backend,
                    "--cache", cache] + (["--quick"] if args.quick else []) + (
+                      ["--torch-python-wrapper"] if args.torch_python_wrapper else []) + (
                       ["--epochs", str(args.epochs)] if args.epochs else [])
             print(f"training {model} on {backend} ...", file=sys.stderr, flush=True)
+            env = dict(os.environ)
+            cold = None if args.warm_torch_cache else tempfile.TemporaryDirectory(prefix="tnn_bench_inductor_")
+            if cold is not None:
+                env["TORCHINDUCTOR_CACHE_DIR"] = cold.name
             try:
-                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT), timeout=args.timeout)
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT), timeout=args.timeout,
+                                      env=env)
             except subprocess.TimeoutExpired:
                 rows.append({"model": model, "backend": backend, "error": f"not finished within {args.timeout:.0f} s"})
                 print(f"  {rows[-1]['error']}", file=sys.stderr, flush=True)
+                if cold is not None:
+                    cold.cleanup()
                 continue
             line = next((ln for ln in reversed(proc.stdout.splitlines()) if ln.startswith("{")), None)
             if proc.returncode != 0 or line is None:
@@ -157,6 +191,8 @@ def main(argv=None) -> int:
                 rows.append({"model": model, "backend": backend, "error": tail[:200]})
             else:
                 rows.append(json.loads(line))
+            if cold is not None:  # the kernels inductor built for this run (tens of MB)
+                cold.cleanup()
             r = rows[-1]
             print("  " + (f"failed: {r['error']}" if "error" in r else
                           f"final val MAE {r['final_val_mae']:.4g} K, within 10 % after {r['t_reach']:.0f} s, "

@@ -154,6 +154,53 @@ def test_failing_compiled_backward_warns_and_stays_exact(monkeypatch):
     _assert_close(_torch_grads(me, p_np, T0, U), got)
 
 
+def test_cpp_wrapper_failure_falls_back_to_the_python_wrapper(monkeypatch):
+    """When inductor's C++ wrapper cannot build a scan (torch 2.13 declares a buffer twice in some reverse scans),
+    the scan is compiled again with the Python wrapper, without a warning: forward and backward stay compiled and
+    exact, and the scan records why (``fallback``)."""
+    from tnn_dsl.compiler.torch_adjoint import CompiledScan
+
+    real = torch.compile
+    seen: list[tuple[str, bool]] = []
+
+    def no_cpp_wrapper(fn, **kw):
+        cpp = bool((kw.get("options") or {}).get("cpp_wrapper"))
+        seen.append((fn.__name__, cpp))
+        if cpp:
+            def call(*a, **k):
+                raise RuntimeError("conflicting declaration 'auto buf35'")
+            return call
+        return real(fn, **kw)
+
+    monkeypatch.setattr(torch, "compile", no_cpp_wrapper)
+    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
+    p_np = nets.random_params(me, 2)
+    T0, U = _inputs(me, 7, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        got = _torch_grads(mc, p_np, T0, U)
+    assert mc.torch_compile is True and _adjoint_used(mc)
+    _assert_close(_torch_grads(me, p_np, T0, U), got)
+    runner = next(v for v in mc._jit_cache.values() if hasattr(v, "_bwd"))
+    scans = [*runner._fwd.values(), *(fn for _, fn in runner._bwd.values())]
+    assert len(scans) == 2 and all(isinstance(f, CompiledScan) and "buf35" in f.fallback for f in scans)
+    adjoint = [(n, cpp) for n, cpp in seen if n.startswith("tnn_adjoint_")]
+    assert [cpp for _, cpp in adjoint] == [True, False, True, False]  # each scan: C++ tried, then Python
+    assert all(n.endswith("_py") for n, cpp in adjoint if not cpp)
+
+    def always_fails(fn, **kw):
+        def call(*a, **k):
+            raise RuntimeError("no C++ compiler")
+        return call
+
+    monkeypatch.setattr(torch, "compile", always_fails)  # the Python wrapper failing too is the caller's to handle
+    scan = CompiledScan(lambda x: x, "tnn_test_scan", {"cpp_wrapper": True})
+    with pytest.raises(RuntimeError, match="no C"):
+        scan(torch.ones(1))
+    assert scan.fallback is not None
+
+
 def _example_prep():
     p = _Prep()
     p.vals = {"a": torch.ones(2, requires_grad=True), "b": 3, "c": None}

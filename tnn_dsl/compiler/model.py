@@ -89,12 +89,30 @@ TORCH_ADJOINT = True
 adjoint ``scan`` (:meth:`Model._torch_adjoint_rollout`, :mod:`tnn_dsl.compiler.torch_adjoint`) instead of one
 compiled call and one autograd node per step. ``False``: the step-by-step path (:data:`TORCH_GRAD_CHUNK`)."""
 
-TORCH_CHUNK = 4
+TORCH_CHUNK = 1
 """Samples per iteration of the compiled torch rollout's ``scan`` on a single sequence without gradient
-(:meth:`Model._compiled_torch_rollout`). Case study M3, RK4, 2000 steps, in the development prototype of this scan
-(2026-11-26): 13.7 µs/step with 4, 20.7 with 1, 13.6 with 8 (the body's own cost then dominates); compile time
-grows with it (7 s, 18 s, 36 s). ``python benchmarks/bench_rollout.py --only jax,torchc --torch-chunk K``
-measures it with the model's own code."""
+(:meth:`Model._compiled_torch_rollout`). With inductor's Python wrapper (:data:`TORCH_CPP_WRAPPER` off) 4 paid:
+case study M3, RK4, 2000 steps (2026-11-26): 13.7 µs/step with 4, 20.7 with 1, 13.6 with 8, compile time growing
+with it (7 s, 18 s, 36 s). With the C++ wrapper (2026-11-27, Intel Xeon, 5000 steps): 8.8 µs/step with 1, 8.1
+with 4, 8.1 with 8, after 8.9 s, 18.7 s and 38.9 s of compilation: 1. ``python benchmarks/bench_rollout.py
+--only jax,torchc --torch-chunk K`` measures it with the model's own code."""
+
+TORCH_CPP_WRAPPER = True
+"""torch's compiled scans (the forward one of :meth:`Model._compiled_torch_rollout`, and the forward and adjoint
+ones of :mod:`.torch_adjoint`) are built with inductor's C++ wrapper (:func:`_inductor_options`): the loop over
+the samples, the body's buffer allocations (one per intermediate result of the step, ~90 per iteration of 4 steps
+on M3) and its kernel calls run in C++ instead of a Python function per iteration; wrapper and kernels are built
+apart (``cpp_wrapper_build_separate``: as one translation unit M2's reverse scan took 31 s to build). Case study
+M3, RK4, single sequence of 5000 steps, each compiled cold (an empty inductor cache; 2026-11-27, Intel Xeon):
+8.4 against 14.8 µs/step (JAX 1.35–1.49), compiled in 15.3 against 23.9 s. Training: BENCHMARKS.md
+"Training time" (``python benchmarks/bench_train.py``, and ``python benchmarks/bench_rollout.py --only
+jax,torchc --torch-python-wrapper --torch-chunk 4`` for the Python wrapper's rollouts). ``False``: inductor's
+Python wrapper (with :data:`TORCH_CHUNK` = 4 samples per iteration then paying)."""
+
+
+def _inductor_options() -> dict:
+    """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`)."""
+    return {"cpp_wrapper": True, "cpp_wrapper_build_separate": True} if TORCH_CPP_WRAPPER else {}
 
 
 def _needs_grad(params, T0, inputs) -> bool:
@@ -579,7 +597,7 @@ class Model:
         from .torch_adjoint import AdjointRollout, Unsupported
 
         unbatched = T0.ndim == 1
-        key = ("torch_adjoint", dt, integrator, sub, unbatched)
+        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER)
         runner = self._jit_cache.get(key)
         if runner is None:
             core = self._fused_core() if unbatched else self._core
@@ -591,7 +609,8 @@ class Model:
                 warnings.warn(f"torch.compile failed in a rollout's backward pass ({type(e).__name__}: "
                               f"{str(e)[:200]}); its gradients are computed uncompiled", TorchCompileWarning,
                               stacklevel=2)
-            runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed)
+            runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed,
+                                                           options=_inductor_options())
         tm = {"s": {k: torch.movedim(v, -1, 0) for k, v in ctx["s"].items()},
               "v": {k: torch.movedim(v, -2, 0) for k, v in ctx["v"].items()}, "u": torch.movedim(ctx["u"], -2, 0)}
         try:
@@ -624,10 +643,12 @@ class Model:
 
         unbatched = T0.ndim == 1
         chunk = TORCH_CHUNK if unbatched else 1
-        key = ("torch_scan", dt, integrator, sub, chunk, unbatched)
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER)
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan
+
+            from .torch_adjoint import CompiledScan
 
             core = self._fused_core() if unbatched else self._core
 
@@ -645,9 +666,8 @@ class Model:
                 return scan(body, T0, xs)[1]
             # torch keeps compiled code per code object, with a limit on variants: a code object of this
             # model's own keeps models apart (and one model's shapes from exhausting another's limit)
-            code = roll.__code__.replace(co_name=f"tnn_rollout_{id(self):x}_{len(self._jit_cache)}")
-            roll = types.FunctionType(code, roll.__globals__, code.co_name, None, roll.__closure__)
-            compiled = self._jit_cache[key] = torch.compile(roll, fullgraph=True)
+            compiled = self._jit_cache[key] = CompiledScan(roll, f"tnn_rollout_{id(self):x}_{len(self._jit_cache)}",
+                                                           _inductor_options())
         M = inputs.shape[-2]
         n_chunks = -(-M // chunk)
         pad = n_chunks * chunk - M

@@ -123,12 +123,15 @@ class AdjointRollout:
     values ``prep`` (``traced``: for ``torch.compile``, where many sub-steps become a ``scan``); ``name``: a label
     unique to the model (torch keeps compiled code per code object; one per model keeps models apart);
     ``on_failure(exc)``: called when the compiled backward fails (torch cannot compile here), after which this
-    rollout's gradients are computed by running the traced vector-Jacobian product step by step, uncompiled."""
+    rollout's gradients are computed by running the traced vector-Jacobian product step by step, uncompiled;
+    ``options``: inductor's options for both scans (``torch.compile(options=...)``)."""
 
-    def __init__(self, stepper: Callable, name: str, on_failure: Callable[[Exception], None] | None = None):
+    def __init__(self, stepper: Callable, name: str, on_failure: Callable[[Exception], None] | None = None,
+                 options: dict | None = None):
         self.stepper = stepper
         self.name = name
         self.on_failure = on_failure
+        self.options = dict(options or {})
         self.compiled_backward = True
         self._fwd: dict = {}
         self._bwd: dict = {}
@@ -163,8 +166,7 @@ class AdjointRollout:
                     Tn = step(T, _context(ckeys, cv))
                     return Tn, Tn.clone()
                 return scan(body, T0, list(cvals))[1]
-            fn = self._fwd[key] = torch.compile(_named(roll, f"tnn_adjoint_fwd_{self.name}_{len(self._fwd)}"),
-                                                fullgraph=True)
+            fn = self._fwd[key] = CompiledScan(roll, f"tnn_adjoint_fwd_{self.name}_{len(self._fwd)}", self.options)
         cvals = [c.detach() for c in cvals]
         for c in cvals:  # one compiled graph for every rollout length
             torch._dynamo.maybe_mark_dynamic(c, 0)
@@ -217,8 +219,8 @@ class AdjointRollout:
                     return (dT, [s + d for s, d in zip(acc, dp)]), list(dc)
                 init = (torch.zeros_like(Sprev[0]), [torch.zeros_like(p[i]) for i in ip])
                 return scan(body, init, (Sprev, list(cvals), G), reverse=True)
-            entry = self._bwd[key] = (gm, torch.compile(
-                _named(rev, f"tnn_adjoint_bwd_{self.name}_{len(self._bwd)}"), fullgraph=True))
+            entry = self._bwd[key] = (gm, CompiledScan(rev, f"tnn_adjoint_bwd_{self.name}_{len(self._bwd)}",
+                                                       self.options))
         gm, fn = entry
         with torch.no_grad():
             Sprev = torch.cat([T0.detach()[None], S[:-1]], 0)
@@ -256,6 +258,34 @@ def _reverse_loop(gm, p, Sprev, cvals, G, ip):
         dcs.append(dc)
     stacked = [torch.stack([d[j] for d in reversed(dcs)], 0) for j in range(len(dcs[0]))] if dcs else []
     return (a, acc), stacked
+
+
+class CompiledScan:
+    """``torch.compile(fn, fullgraph=True, options=options)`` under a code object of its own called ``name``,
+    falling back to inductor's Python wrapper when a compilation with the C++ wrapper (``options`` holding
+    ``cpp_wrapper``) fails: torch 2.13's C++ wrapper declares one buffer twice in some reverse scans (a float32
+    chain network's: ``conflicting declaration 'auto buf35'``), which the Python wrapper compiles. Compilation
+    happens on the first call, so that is where the fallback is taken (once); ``fallback`` then holds the C++
+    wrapper's error. Any other failure, or a failure of the Python wrapper, is raised to the caller."""
+
+    def __init__(self, fn, name: str, options: dict | None = None):
+        import torch
+
+        self.fn, self.name, self.options = fn, name, dict(options or {})
+        self.fallback: str | None = None
+        self._compiled = torch.compile(_named(fn, name), fullgraph=True, options=dict(self.options))
+
+    def __call__(self, *args):
+        try:
+            return self._compiled(*args)
+        except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+            if not self.options.get("cpp_wrapper") or self.fallback is not None:
+                raise
+            import torch
+
+            self.fallback = f"{type(e).__name__}: {str(e)[:300]}"
+            self._compiled = torch.compile(_named(self.fn, self.name + "_py"), fullgraph=True)
+            return self._compiled(*args)
 
 
 def _named(fn, name: str):
