@@ -53,7 +53,7 @@ class _Core(_Assembly):
             arrs = {k: xp.asarray(params[f"{fn.name}.{k}"]) for k in _learned.array_shapes(
                 fn, len(fn.inputs), len(fn.targets))}
             prep.arrays[fn.name] = arrs
-            prep.yscale[fn.name] = [arrs["y_scale"][i] for i in range(len(fn.targets))]
+            prep.yscale[fn.name] = arrs["y_scale"]  # indexed where used: views of it would be aliasing graph inputs
         packed = params.get(PACKED_KEY)
         if packed is not None:  # constants packed into one vector (large networks, see Model._packed)
             vals = _PackedVals(xp.asarray(packed), self.const_index)

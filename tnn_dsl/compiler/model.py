@@ -94,8 +94,8 @@ TORCH_CHUNK = 1
 (:meth:`Model._compiled_torch_rollout`). With inductor's Python wrapper (:data:`TORCH_CPP_WRAPPER` off) 4 paid:
 case study M3, RK4, 2000 steps (2026-11-26): 13.7 µs/step with 4, 20.7 with 1, 13.6 with 8, compile time growing
 with it (7 s, 18 s, 36 s). With the C++ wrapper (2026-11-27, Intel Xeon, 5000 steps): 8.8 µs/step with 1, 8.1
-with 4, 8.1 with 8, after 8.9 s, 18.7 s and 38.9 s of compilation: 1. ``python benchmarks/bench_rollout.py
---only jax,torchc --torch-chunk K`` measures it with the model's own code."""
+with 4, 8.1 with 8, after 8.9 s, 18.7 s and 38.9 s of compilation (inductor's cache warm): 1. ``python
+benchmarks/bench_rollout.py --only jax,torchc --torch-chunk K`` measures it with the model's own code."""
 
 TORCH_CPP_WRAPPER = True
 """torch's compiled scans (the forward one of :meth:`Model._compiled_torch_rollout`, and the forward and adjoint
