@@ -14,8 +14,8 @@ apart and reported as warm-up; torch compiles cold, into an empty inductor cache
 * a batch of ``--batch`` windows that tile the same number of samples (``--window`` samples each,
   default ``steps // batch``), forward and forward + gradient;
 * JAX and torch through the public model API (torch eager, and with ``torch_compile=True``: a forward
-  rollout is one ``torch.compile``d ``scan`` over the samples, a rollout with gradients compiles each
-  integration step); the numpy reference backend (forward only, it has no
+  rollout is one ``torch.compile``d ``scan`` over the samples, a rollout with gradients a forward and an
+  adjoint scan, both with inductor's C++ wrapper); the numpy reference backend (forward only, it has no
   autodiff); a C loop of the same equations (``_c_loop.py``, ``cc -O3 -march=native``), checked against
   JAX to ``1e-9 K`` on every state before it is timed.
 
@@ -233,7 +233,7 @@ def bench_jax(case, args, rows, results, dtype="float64"):
 
 def bench_torch(case, args, rows, results, compiled=False):
     """torch through the model API, eager or with ``torch_compile=True`` (forward: one compiled ``scan``;
-    with gradients: each integration step compiled), run with ``--torch-threads`` intra-op threads (default
+    with gradients: a forward and an adjoint scan), run with ``--torch-threads`` intra-op threads (default
     1: on this workload of tiny tensors, OpenMP threads cost far more than they give, most of all on a busy
     machine); the eager batch
     forward is also timed with torch's default thread count to show the difference."""

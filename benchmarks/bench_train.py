@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 TARGET_M2_JAX_S = 60.0
 TORCH_COMPILED = "torch-compiled"
-"""The ``--backends`` name of torch with ``torch_compile=True`` (each integration step through torch.compile)."""
+"""The ``--backends`` name of torch with ``torch_compile=True`` (compiled forward and adjoint scans)."""
 
 
 def _worker(args) -> int:

@@ -44,7 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="where to write the simulated sensors")
     add_backend(p)
     p.add_argument("--torch-compile", action="store_true",
-                   help="torch backend: compile each integration step with torch.compile (pays off on long runs)")
+                   help="torch backend: compile the rollout with torch.compile (pays off on long runs)")
     add_integration(p)
     add_time_columns(p)
     add_init(p)

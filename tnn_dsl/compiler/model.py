@@ -153,7 +153,7 @@ class Model:
         self.backend = backend
         self.dtype = dtype
         self.torch_compile = bool(torch_compile) and backend == "torch"
-        """Whether torch rollouts run each integration step through ``torch.compile`` (see :func:`compile`)."""
+        """Whether torch rollouts run through ``torch.compile`` (see :func:`compile`)."""
         self.xp = get_xp(backend, dtype)
         self._plan = _Plan(net)
         self.sparse = self._plan.ns >= SPARSE_MIN_STATES if sparse is None else bool(sparse)
@@ -633,12 +633,13 @@ class Model:
         context (:meth:`_Core.rhs_u`) is computed inside the graph from the raw inputs (no gradient flows through
         the scanned arrays; only ``prep``, an input of the graph, carries the parameters).
 
-        On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples (the body's own per-call
-        cost spread over several steps) and the body is traced on :class:`FusedTorchXP`; with a batch axis one
-        sample per iteration and library products. Compiled graphs are kept per ``(dt, integrator, sub, chunk,
-        batched)`` and reused for new parameter values; the scan's length is dynamic from the first call, other
-        new shapes recompile (dynamic after the second). Returns ``None`` after a warning (and the model runs
-        eager from then on) if torch cannot compile here (inductor needs a C++ compiler)."""
+        On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples and the body is traced on
+        :class:`FusedTorchXP`; with a batch axis one sample per iteration and library products. Compiled graphs
+        (:class:`~.torch_adjoint.CompiledScan`, inductor's C++ wrapper unless it fails to build) are kept per
+        ``(dt, integrator, sub, chunk, batched, C++ wrapper)`` and reused for new parameter values; the scan's
+        length is dynamic from the first call, other new shapes recompile (dynamic after the second). Returns ``None``
+        after a warning (and the model runs eager from then on) if torch cannot compile here (inductor needs a C++
+        compiler)."""
         import torch
 
         unbatched = T0.ndim == 1
@@ -899,14 +900,15 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     with 1 on a 2-core machine (benchmarks/bench_rollout.py ``--torch-threads``). ``None`` leaves torch's
     setting alone. The environment variable ``TNN_TORCH_THREADS`` overrides the default.
 
-    ``torch_compile``: for the torch backend, compile rollouts with ``torch.compile`` (inductor). A rollout
-    without gradients (simulation, validation) is one compiled ``scan`` over the samples (several samples per
-    iteration on a single sequence); a rollout with gradients (training) compiles each integration step and
-    loops over them in Python (torch 2.13's ``scan`` cannot differentiate with respect to the parameters its
-    body reads). Measured on the case study M3 (``python benchmarks/bench_rollout.py``, BENCHMARKS.md, one run):
-    single sequence forward 13.7 µs/step (eager 297, JAX 1.86), a batch of 256 windows 1.07 µs per
-    window-step forward (eager 1.88, JAX 0.50) and 4.33 forward+gradient (eager 6.41, JAX 1.66), after 5–23 s
-    of compilation per graph. Worth it for long simulations and training runs, not for one short simulation.
+    ``torch_compile``: for the torch backend, compile rollouts with ``torch.compile`` (inductor, with its C++
+    wrapper: :data:`TORCH_CPP_WRAPPER`). A rollout without gradients (simulation, validation) is one compiled
+    ``scan`` over the samples; a rollout with gradients (training) is a compiled forward scan and a compiled
+    adjoint scan backward in time (:mod:`.torch_adjoint`; torch 2.13's ``scan`` cannot differentiate with respect
+    to the parameters its body reads). Measured on the case study M3 (``python benchmarks/bench_rollout.py``,
+    BENCHMARKS.md, 2026-11-27 09:35, Intel Xeon): single sequence forward 9.58 µs/step (eager 230, JAX 1.37), a
+    batch of 256 windows 0.75 µs per window-step forward (eager 1.5, JAX 0.58) and 2.60 forward+gradient (eager
+    5.59, JAX 1.61), after 4–19 s of compilation per graph (cold). Worth it for long simulations and training
+    runs, not for one short simulation.
     ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off). Ignored by
     the other backends (JAX is always compiled).
 
