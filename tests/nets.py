@@ -253,3 +253,22 @@ def random_params(model, seed=0):
         if spec.kind == "weights":
             p[k] = 0.3 * rng.standard_normal(spec.shape)
     return p
+
+
+def assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U, atol=1e-9):
+    """A ``torch_compile=True`` model's forward rollout (no gradient) on the batch ``T0 (B, n), U (B, N, m)`` and
+    on its first sequence alone gives the JAX model's states to ``atol`` K, compiled (a ``TorchCompileWarning``,
+    the fallback to eager, fails)."""
+    import warnings
+
+    import numpy as np
+    import torch
+
+    import tnn_dsl
+
+    for t0, u in ((T0, U), (T0[0], U[0])):
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+            s, _ = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(t0), torch.as_tensor(u), 1.0)
+        s_ref, _ = mj.rollout(mj.from_numpy(p_np), t0, u, 1.0)
+        assert np.max(np.abs(s.numpy() - np.asarray(s_ref))) <= atol

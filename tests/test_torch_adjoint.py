@@ -273,12 +273,7 @@ def test_adjoint_matches_jax_on_every_network(path):
         got = _torch_grads(mc, p_np, T0, U)
     assert _adjoint_used(mc)
     _assert_close(_jax_grads(mj, p_np, T0, U), got)
-    for t0, u in ((T0, U), (T0[0], U[0])):
-        with warnings.catch_warnings(), torch.no_grad():
-            warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
-            s, _ = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(t0), torch.as_tensor(u), 1.0)
-        s_ref, _ = mj.rollout(mj.from_numpy(p_np), t0, u, 1.0)
-        assert np.max(np.abs(s.numpy() - np.asarray(s_ref))) <= 1e-9
+    nets.assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U)
 
 
 def test_adjoint_float32_two_samples_and_no_second_derivative():

@@ -153,12 +153,7 @@ def test_forward_scan_with_a_learned_function_of_two_heat_flows_matches_jax():
     mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
     p_np = nets.random_params(mj, 6)
     T0, U = _batch(mj, 9, B=2)
-    for t0, u in ((T0, U), (T0[0], U[0])):
-        with warnings.catch_warnings(), torch.no_grad():
-            warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
-            s, _ = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(t0), torch.as_tensor(u), 1.0)
-        s_ref, _ = mj.rollout(mj.from_numpy(p_np), t0, u, 1.0)
-        assert np.max(np.abs(s.numpy() - np.asarray(s_ref))) <= 1e-9
+    nets.assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U)
     assert mc.torch_compile
 
 
