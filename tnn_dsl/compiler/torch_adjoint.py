@@ -265,8 +265,9 @@ class CompiledScan:
     falling back to inductor's Python wrapper when a compilation with the C++ wrapper (``options`` holding
     ``cpp_wrapper``) fails: torch 2.13's C++ wrapper declares one buffer twice in some reverse scans (a float32
     chain network's: ``conflicting declaration 'auto buf35'``), which the Python wrapper compiles. Compilation
-    happens on the first call, so that is where the fallback is taken (once); ``fallback`` then holds the C++
-    wrapper's error. Any other failure, or a failure of the Python wrapper, is raised to the caller."""
+    happens on a call (the first, or one with new shapes), so that is where the fallback is taken: whatever the
+    C++ attempt raised, the call is run once more through the Python wrapper, which serves every later call;
+    ``fallback`` holds the C++ attempt's error. A failure after that is raised to the caller."""
 
     def __init__(self, fn, name: str, options: dict | None = None):
         import torch
