@@ -80,9 +80,6 @@ class _Engine:
     parameters hold each experiment's initial state (:func:`x0_key`); a held-out file's is re-estimated
     from its burn-in whenever the parameters have changed and its rows are simulated (``x0_stale``)."""
 
-    tangent_multiple = 4
-    """The Jacobian's batch of tangents is a multiple of this (:meth:`jacobian`): 4 on a network whose fits move
-    active sets of a few sizes; 1 on a network one fit has to itself (``_Session.own_network``)."""
 
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
                  params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0,
@@ -305,16 +302,14 @@ class _Engine:
 
     def jacobian(self, active: list[int], chunk: int = 32) -> np.ndarray:
         """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in one batch of
-        forward-mode tangents, their number rounded up to a multiple of :attr:`tangent_multiple` (a compiled shape
-        per size; the doctor's active sets vary by a few columns within a round on a shared network), in batches
-        of ``chunk`` beyond that. A tangent costs
+        forward-mode tangents, their number rounded up to a multiple of 4 (a compiled shape per size; the doctor's
+        active sets vary by a few columns within a round), in batches of ``chunk`` beyond that. A tangent costs
         about as much as the simulation it rides on: a fixed batch of 16 for a set of 17 columns doubled the cost of
         every Gauss–Newton iteration of a round (issue 18)."""
         base = self._to(self.params)
         n = len(self.cols)
         out = []
-        m = self.tangent_multiple
-        size = min(chunk, m * max(1, -(-len(active) // m)))
+        size = min(chunk, 4 * max(1, -(-len(active) // 4)))
         for s in range(0, len(active), size):
             part = active[s: s + size]
             tan = np.zeros((size, n))

@@ -57,12 +57,6 @@ TIE_R2 = 0.95
 tied with it: the score test cannot order them (:meth:`_Session.tied_with_shortlist`)."""
 TIED = 3
 """At most this many tied candidates are fitted beyond the shortlist in a round."""
-OWN_NETWORK_RATIO = math.inf
-"""A fit still moving after ``FIT_ITER_FIRST`` iterations goes on on a network of its own when the round's shared
-network holds at least this many times its candidate columns (:meth:`_Session.own_network`); ``math.inf``: never.
-Off: on the case study (``python benchmarks/bench_diagnose.py --threads 1``, 2026-11-27) 1.5 cut the diagnosis
-from 332 s to 289–292 s but raised its peak from 946 MB to 1177 MB (every continued fit's compiled network stays
-alive until the round's decision); issue 18 asks for both less time and less memory."""
 
 
 def _joint(a: Candidate, b: Candidate) -> Candidate:
@@ -822,84 +816,27 @@ class _Session:
 
     def continue_fits(self, fits: list[dict], x_s: Extended) -> None:
         """Successive halving: the fits still moving after ``FIT_ITER_FIRST`` iterations, best training SSE
-        first, go on to convergence (the held-out rows never decide who continues), side by side."""
+        first, go on to convergence (the held-out rows never decide who continues), side by side. (Continuing
+        each on a network of its own cut the case study's diagnosis from 332 s to 289–292 s but raised its peak
+        memory from 946 to 1177 MB; tried in commit 2edc05b, off by default and then removed: BENCHMARKS.md.)"""
         going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
-        acc_keys = self.acc_keys()
 
         def go_on(f: dict):
             def run(say) -> dict | None:
                 if self.spent():
                     return None
-                c = f["cand"]
+                c, e = f["cand"], f["eng"]
                 say(f"  continuing {c.describe()} ...")
+                e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
                 t_f = _time.monotonic()
-                e, x, act = self.own_network(f, x_s, acc_keys)
-                note = f", on its own network compiled in {_time.monotonic() - t_f:.1f} s" if e is not f["eng"] else ""
-                t_f = _time.monotonic()
-                info = e.fit(act, max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
-                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations{note})")
-                return {**_fit_result(c, f["score"], e, x, self.e_base_val), "train_sse": info["sse"], "act": act}
+                info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
+                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
+                return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
             return run
 
         for f, new in zip(going, self.side_by_side([go_on(f) for f in going])):
             if new is not None:
                 f.update(new)
-
-    def own_network(self, f: dict, x_s: Extended, acc_keys: list[str]) -> tuple[_Engine, Extended, list[int]]:
-        """The engine, extension and active columns to continue the exactly-null candidate fit ``f`` on, at its
-        current values: a network holding only the accepted candidates and its own (one compiled simulation and
-        Jacobian for it alone) when the round's shared network holds :data:`OWN_NETWORK_RATIO` times as many
-        candidate columns; else the shared one. Every forward-mode tangent of the Jacobian runs through every
-        candidate's term of the network it rides on, at zero or not: on the case study's second round the
-        shared network's Jacobian cost twice the nominal one's per direction (issue 18).
-
-        Values move over column by column: the free ones by name and index (the nominal network's), a candidate's
-        in the order of its columns. Names and indices alone do not carry over: a learned function's weight matrix
-        has one row per input its candidates read, so the same ``W`` index is another input in another network."""
-        e: _Engine = f["eng"]
-        c: Candidate = f["cand"]
-
-        def shared() -> tuple[_Engine, Extended, list[int]]:
-            e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
-            return e, x_s, list(f["act"])
-
-        # a probe (a law and its square, :func:`_joint`) is two candidates; a group's members are its own columns
-        keys = acc_keys + [m.key for m in (c.element["members"] if c.element.get("probe") else [c])]
-        own_cols = {(col.key, col.index) for k in keys if (cd := _cand_in(x_s, k)) is not None for col in cd.columns}
-        if (c.kind in STRUCTURAL_KINDS or not own_cols
-                or len(e.cols) - e.n_free < OWN_NETWORK_RATIO * len(own_cols)):
-            return shared()
-        e2, x2, _, _ = self.small(keys)
-        pairs: dict[int, int] = {}  # column of e -> column of e2
-        for j in range(e.n_free):
-            j2 = e2.col_index.get((e.cols[j].key, e.cols[j].index))
-            if j2 is None or j2 >= e2.n_free:
-                return shared()
-            pairs[j] = j2
-        for k in keys:
-            a, b = _cand_in(x_s, k), _cand_in(x2, k)
-            if a is None or b is None or len(a.columns) != len(b.columns):
-                return shared()
-            for ca, cb in zip(a.columns, b.columns):
-                pairs[e.col_index[(ca.key, ca.index)]] = e2.col_index[(cb.key, cb.index)]
-        if any(j not in pairs for j in f["act"]):
-            return shared()
-        p2 = {k: np.array(v, copy=True) for k, v in e2.params.items()}
-        for j, j2 in pairs.items():
-            src, dst = e.cols[j], e2.cols[j2]
-            flat = p2[dst.key].reshape(-1)
-            flat[dst.index] = float(np.asarray(f["params"][src.key]).reshape(-1)[src.index])
-            p2[dst.key] = flat.reshape(p2[dst.key].shape)
-        for k in p2:  # every experiment's initial state (the held-out files' are estimated again when stale)
-            if k.startswith(X0_PREFIX) and k in f["params"]:
-                p2[k] = np.array(f["params"][k], copy=True)
-        # the same model: the same training SSE to round-off (one simulation each), else the shared network
-        sse, sse2 = e._train_sse(f["params"])[0], e2._train_sse(p2)[0]
-        if not abs(sse2 - sse) <= 1e-9 * max(abs(sse), 1e-300):
-            return shared()
-        e2.params = p2
-        e2.tangent_multiple = 1  # one active set: its own compiled size, no padding tangent
-        return e2, x2, [pairs[j] for j in f["act"]]
 
     def ml_choose(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> dict | None:
         """The likelihood objective's decision (:mod:`.likelihood`): each candidate whose output-error fit did not
