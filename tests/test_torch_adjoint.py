@@ -131,19 +131,26 @@ def test_adjoint_other_integrators(integrator, substeps):
     _assert_close(_jax_grads(mj, p_np, T0, U, integrator, substeps), got)
 
 
+def _compile_failing_when(fails, message: str):
+    """A stand-in for ``torch.compile``: the graphs for which ``fails(fn, kwargs)`` holds raise
+    ``RuntimeError(message)`` when called (as a compilation failing on the first call does); the rest compile."""
+    real = torch.compile
+
+    def fake(fn, **kw):
+        if fails(fn, kw):
+            def call(*a, **k):
+                raise RuntimeError(message)
+            return call
+        return real(fn, **kw)
+    return fake
+
+
 def test_failing_compiled_backward_warns_and_stays_exact(monkeypatch):
     """If inductor cannot compile the adjoint scan, the gradients come from the traced step run uncompiled, after
     one warning; the forward stays compiled."""
-    real = torch.compile
-
-    def compile_but_not_backward(fn, **kw):
-        if fn.__name__.startswith("tnn_adjoint_bwd"):
-            def call(*a, **k):
-                raise RuntimeError("no C++ compiler for this one")
-            return call
-        return real(fn, **kw)
-
-    monkeypatch.setattr(torch, "compile", compile_but_not_backward)
+    backward = _compile_failing_when(lambda fn, kw: fn.__name__.startswith("tnn_adjoint_bwd"),
+                                     "no C++ compiler for this one")
+    monkeypatch.setattr(torch, "compile", backward)
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
     p_np = nets.random_params(me, 1)
@@ -160,19 +167,13 @@ def test_cpp_wrapper_failure_falls_back_to_the_python_wrapper(monkeypatch):
     exact, and the scan records why (``fallback``)."""
     from tnn_dsl.compiler.torch_adjoint import CompiledScan
 
-    real = torch.compile
     seen: list[tuple[str, bool]] = []
 
-    def no_cpp_wrapper(fn, **kw):
-        cpp = bool((kw.get("options") or {}).get("cpp_wrapper"))
-        seen.append((fn.__name__, cpp))
-        if cpp:
-            def call(*a, **k):
-                raise RuntimeError("conflicting declaration 'auto buf35'")
-            return call
-        return real(fn, **kw)
+    def cpp(fn, kw) -> bool:
+        seen.append((fn.__name__, bool((kw.get("options") or {}).get("cpp_wrapper"))))
+        return seen[-1][1]
 
-    monkeypatch.setattr(torch, "compile", no_cpp_wrapper)
+    monkeypatch.setattr(torch, "compile", _compile_failing_when(cpp, "conflicting declaration 'auto buf35'"))
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
     p_np = nets.random_params(me, 2)
