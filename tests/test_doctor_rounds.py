@@ -87,7 +87,7 @@ class _Bowl:
     def fit(self, act, **kw) -> dict:
         r = float(self.params["pe.resistance"])
         self.params = {"pe.resistance": np.array(2.1 if r > 1 else 0.03)}
-        return {"sse": 0.18 if r > 1 else 0.36, "iterations": 4}
+        return {"sse": 0.18 if r > 1 else 0.36, "iterations": 4, "jacobians": 4, "capped": True}
 
 
 def test_the_lower_training_error_of_the_two_starts_wins():
@@ -118,7 +118,7 @@ class _Eng:
 
     def fit(self, act, **kw) -> dict:
         self.params = {"a": np.array(2.0)}
-        return {"sse": 0.5, "iterations": 3}
+        return {"sse": 0.5, "iterations": 3, "jacobians": 3, "capped": False}
 
 
 def _polish(val_after: float) -> tuple[_Eng, list[str]]:

@@ -18,7 +18,8 @@ Steps (see docs/architecture.md, "Diagnosis"):
    fitted values); its held-out MAE is that of the least-squares fit of the nominal structure, which is
    not the trainer's number (the trainer validates the tail from its measured state and keeps its
    best-*validation* iterate). Candidate fits (step 4) run until the SSE drops by less than 1e-4
-   relatively, at most ``FIT_ITER`` iterations.
+   relatively, at most ``FIT_ITER`` Jacobians (a fresh Jacobian every ``JACOBIAN_EVERY`` iterations, Broyden's
+   secant update in between: :meth:`tnn_dsl.doctor.engine._Engine.fit`).
 2. **Residuals** on the held-out rows (``val`` files after their burn-in, else the last 30 % of each training
    file, simulated as a free run from the file's start): per-sensor MAE/max/bias, binned residual against inputs, states
    and time, whiteness (Ljung–Box, cumulated periodogram), noise σ (:mod:`tnn_dsl.analysis.residuals`).

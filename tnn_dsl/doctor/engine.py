@@ -16,7 +16,7 @@ from ..compiler import backend_of
 from ..ir import Input, Network, Param
 from .base import Candidate, Extended
 
-# Levenberg–Marquardt iterations (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
+# Levenberg–Marquardt Jacobians (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 POINT_BLOCK = 512
 """Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`): the extended network's
 right-hand side holds a (tangents, samples) array per candidate term, 392 × 16 × 512 doubles (26 MB) on the case
@@ -24,7 +24,11 @@ study."""
 FIT_ITER = 80
 
 
-FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many first; the FIT_CONTINUE best go on
+JACOBIAN_EVERY = 4
+"""Levenberg–Marquardt iterations per fresh forward-mode Jacobian (:meth:`_Engine.fit`); Broyden's secant update
+carries it in between."""
+
+FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many Jacobians first; the FIT_CONTINUE best go on
 
 
 FIT_CONTINUE = 6
@@ -444,9 +448,34 @@ class _Engine:
         v = (self.y[: ym.shape[0]] - ym).ravel()[self.train_idx]
         return self._sse_of(v), v
 
+    def step_between(self, p0: dict[str, np.ndarray], p1: dict[str, np.ndarray], active: list[int]) -> np.ndarray:
+        """The step (len(active),) in the columns' coordinates (log of the ratio for a log column, the difference
+        otherwise) that took ``p0`` to ``p1``: the step :meth:`apply` made, bounds clipping included."""
+        h = np.zeros(len(active))
+        for r, j in enumerate(active):
+            c = self.cols[j]
+            a, b = float(p0[c.key].reshape(-1)[c.index]), float(p1[c.key].reshape(-1)[c.index])
+            if c.log:
+                h[r] = math.log(b / a) if a > 0 and b > 0 else 0.0
+            else:
+                h[r] = b - a
+        return h
+
     def fit(self, active: list[int], max_iter: int = 25, init_delta: np.ndarray | None = None,
-            deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True) -> dict:
-        """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``)."""
+            deadline: float | None = None, tol: float = 1e-7, extrapolate: bool = True,
+            jacobian_every: int | None = None) -> dict:
+        """Levenberg–Marquardt on the training rows over columns ``active`` (updates ``self.params``), with at
+        most ``max_iter`` forward-mode Jacobians.
+
+        A Jacobian (about three quarters of a diagnosis's time before this) is computed afresh every
+        ``jacobian_every`` iterations (default :data:`JACOBIAN_EVERY`; 1: every iteration, as before); in between it
+        is carried by Broyden's rank-one secant update from each simulated trial step (Madsen, Nielsen & Tingleff
+        2004, §3.4): ``J += ((y(θ+h) − y(θ)) − J·h)·hᵀ / hᵀh``, at the price of the simulation the trial needs
+        anyway (trials whose SSE is more than 1.5 × the current one, far outside the linear range, are left out).
+        The fit only stops on a fresh Jacobian: a step that fails or a decrease below ``tol`` on a carried one
+        recomputes it and tries again. Returns ``{"sse", "iterations", "jacobians", "capped"}`` (``capped``: it
+        stopped at ``max_iter`` Jacobians, still moving)."""
+        every = JACOBIAN_EVERY if jacobian_every is None else max(1, int(jacobian_every))
         params = self.params
         if init_delta is not None and np.any(init_delta):
             # the score test's Gauss–Newton step, whole (it is exact for a candidate linear in its
@@ -463,14 +492,33 @@ class _Engine:
         it = 0
         if not active:
             self.params = params
-            return {"sse": cur, "iterations": 0}
-        for it in range(1, max_iter + 1):
+            return {"sse": cur, "iterations": 0, "jacobians": 0, "capped": False}
+        J: np.ndarray | None = None
+        fresh, age, n_jac = False, 0, 0
+
+        def secant(J: np.ndarray, p_to: dict, r_to: np.ndarray) -> np.ndarray:
+            """Broyden's update of ``J`` (at ``params``) by the trial ``p_to`` with residual ``r_to``."""
+            h = self.step_between(params, p_to, active)
+            hh = float(h @ h)
+            if not (hh > 0 and np.all(np.isfinite(r_to))):
+                return J
+            return J + np.outer((r - r_to) - J @ h, h / hh)  # y_model = y − r
+
+        it, capped = 0, True
+        while it < every * max_iter:
+            it += 1
             self.params = params
-            J = self.jacobian(active)
+            if J is None or age >= every:
+                if n_jac >= max_iter:
+                    it -= 1
+                    break
+                J, fresh, age = self.jacobian(active), True, 0
+                n_jac += 1
+            age += 1
             A = J.T @ J
             g = J.T @ r
-            d = np.sqrt(np.maximum(np.diag(A), 1e-300))
             improved = False
+            tries = 0
             for _ in range(12):
                 M = A + lam * np.diag(np.diag(A)) + 1e-12 * np.trace(A) / max(len(active), 1) * np.eye(len(active))
                 try:
@@ -480,8 +528,8 @@ class _Engine:
                 delta = self.trusted(active, delta)
                 trial = self.apply(params, active, delta, trust=False)
                 new, r_new = self._train_sse(trial)
+                tries += 1
                 if new < cur:
-                    rel = (cur - new) / max(cur, 1e-300)
                     # flat valleys (free constants that are not identifiable as written, a conductance
                     # drifting towards 0 in log space) and steps cut by the trust region (a heat load's weight
                     # 40 units away moved 1 per iteration): the step is right in direction but short, so go on
@@ -494,16 +542,29 @@ class _Engine:
                             break
                         trial, new, r_new, mult = t2, n2, r2, 2 * mult
                     rel = (cur - new) / max(cur, 1e-300)
+                    J = secant(J, trial, r_new)
                     params, cur, r = trial, new, r_new  # the accepted step's residual: no second simulation
                     lam = max(lam / 4, 1e-9)
                     improved = True
                     break
+                if new < 1.5 * cur:  # a trial far outside the linear range would spoil J
+                    J = secant(J, trial, r_new)
                 lam *= 6
-            del d
-            if not improved or rel < tol or (deadline is not None and _time.monotonic() > deadline):
+                if not fresh and tries >= 2:
+                    break  # a carried Jacobian that leads nowhere: a fresh one decides
+            done = (not improved or rel < tol) if fresh else False
+            if not fresh and (not improved or rel < tol):
+                age = every  # a fresh Jacobian next, and the fit may stop only on it
+                if not improved:
+                    lam = lam / 36 if tries >= 2 else lam
+            fresh = False
+            if done:
+                capped = False
+                break
+            if deadline is not None and _time.monotonic() > deadline:
                 break
         self.params = params
-        return {"sse": cur, "iterations": it}
+        return {"sse": cur, "iterations": it, "jacobians": n_jac, "capped": capped}
 
     def fitted_start(self) -> None:
         """Starting values of the training files' initial states (``estimate``): each fitted to its burn-in at the

@@ -48,7 +48,7 @@ def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, na
     t_f = _time.monotonic()
     info_w = eng.fit(act, max_iter=max_iter, deadline=deadline, tol=1e-4)
     say(f"    fitted again from the written values in {_time.monotonic() - t_f:.1f} s ({info_w['iterations']} "
-        f"iterations; training SSE {info_w['sse']:.4g} against {info['sse']:.4g} K²)")
+        f"iterations, {info_w['jacobians']} Jacobians; training SSE {info_w['sse']:.4g} against {info['sse']:.4g} K²)")
     if info_w["sse"] < info["sse"]:
         return {**info_w, "start": "written"}
     eng.params = first
@@ -129,7 +129,8 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     act = list(f_s) + [j for k in acc_keys for j in c_s.get(k, [])]
     t_f = _time.monotonic()
     info = eng.fit(act, max_iter=15, deadline=deadline, tol=1e-4)
-    say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, own network)")
+    say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, {info['jacobians']} "
+        "Jacobians, own network)")
     e_after = eng.residual()
     ev = np.where(eng.val_mask, e_after, np.nan)
     e1 = e_after.ravel()[eng.val_idx]

@@ -614,11 +614,12 @@ class _Session:
             init[act.index(j)] = d
         t_f = _time.monotonic()
         info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4)
-        (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations{note})")
+        (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, "
+                          f"{info['jacobians']} Jacobians{note})")
         info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline,
                                   say or self.say)
         f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
-        f.update(act=act, train_sse=info["sse"], more=info["iterations"] >= max_iter)
+        f.update(act=act, train_sse=info["sse"], more=bool(info["capped"]))
         if info.get("start") == "written":
             f["start"] = "written"
         return f
@@ -830,7 +831,8 @@ class _Session:
                 e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
                 t_f = _time.monotonic()
                 info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
-                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations)")
+                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations, "
+                    f"{info['jacobians']} Jacobians)")
                 return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
             return run
 

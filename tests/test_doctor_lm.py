@@ -1,0 +1,58 @@
+"""The doctor's Levenberg–Marquardt (``_Engine.fit``): a fresh forward-mode Jacobian every ``jacobian_every``
+iterations and Broyden's secant update in between reach the optimum that a fresh Jacobian every iteration
+reaches, with fewer Jacobians; the caps count Jacobians (issue 18)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+import tnn_dsl
+import tnn_dsl.doctor.engine as E
+from tnn_dsl.doctor.candidates import build_extended
+from tnn_dsl.studies.planted import plant
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TCLAB = os.path.join(ROOT, "networks", "tclab", "tclab.thn")
+BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}
+
+
+def _nominal_engine(backend: str):
+    """The nominal TCLab network's engine on data with a planted heat load (the nominal model cannot fit it
+    exactly: a least-squares problem with a non-zero residual), and its free columns."""
+    net = tnn_dsl.load(TCLAB)
+    pl = plant(net, BOUNDS, "heat_load", "Q[h2]", "Q1", 0.3, noise=0.0, seed=2, n_train=300, n_val=10,
+               backend=backend, hold=(20, 60))
+    exps, tm, vm = E._split_masks(pl.train, pl.val)
+    ext0 = build_extended(net, ["Q1", "Q2"], kinds=("sensor_offset",), only=set())
+    eng, _, free, _ = E._make_engine(ext0, net, exps, tm, vm, backend, E._State(), {}, [])
+    return eng, [j for j in free if not eng.cols[j].key.startswith(E.X0_PREFIX)]
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_secant_updates_reach_the_same_optimum_with_fewer_jacobians(backend):
+    eng, free = _nominal_engine(backend)
+    assert free, "the TCLab network has free constants"
+    start = eng.apply(eng.params, free, np.full(len(free), 0.4), trust=False)  # every log-constant × e^0.4
+    out = {}
+    for every in (1, 4):
+        eng.params = start
+        info = eng.fit(free, max_iter=200, tol=1e-12, jacobian_every=every)
+        out[every] = (info, eng.sse())
+    (exact, sse_exact), (secant, sse_secant) = out[1], out[4]
+    assert not exact["capped"] and not secant["capped"], (exact, secant)
+    assert exact["iterations"] == exact["jacobians"]
+    assert sse_secant == pytest.approx(sse_exact, rel=1e-6, abs=1e-12)
+    assert secant["jacobians"] < exact["jacobians"], (exact, secant)
+    assert secant["iterations"] > secant["jacobians"]  # the secant update did carry some iterations
+
+
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
+def test_the_cap_counts_jacobians(backend):
+    eng, free = _nominal_engine(backend)
+    eng.params = eng.apply(eng.params, free, np.full(len(free), 0.8), trust=False)
+    info = eng.fit(free, max_iter=2, tol=1e-12, jacobian_every=3)
+    assert info["jacobians"] <= 2 and info["iterations"] <= 6
+    assert info["capped"] is True
