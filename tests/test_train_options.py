@@ -66,3 +66,47 @@ def test_stored_metrics_use_the_training_integrator(tmp_path, backend):
     err = np.asarray(p_rk4["y"]) - np.asarray(p_rk4["measured"])
     rk4_mae = float(np.nanmean(np.abs(err[p_rk4["burn_in"]:])))
     assert abs(rk4_mae - stored) > 1e-4 * stored
+
+
+def test_torch_compile_is_chosen_by_the_training_length(monkeypatch):
+    """``torch_compile`` unset: a torch training compiles its rollouts when samples × epochs reach
+    ``TORCH_COMPILE_MIN_WORK``; an explicit value and ``TNN_TORCH_COMPILE`` win; JAX is not concerned."""
+    from tnn_dsl.fit.config import TORCH_COMPILE_MIN_WORK, TrainConfig, torch_compile_pays
+
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+    torch_cfg = TrainConfig(backend="torch", epochs=300)
+    case_study = 14401 + 7201  # M2: 4 h training + 2 h validation at 1 s
+    assert torch_compile_pays(torch_cfg, case_study) is True
+    assert torch_compile_pays(torch_cfg, 600) is False
+    least = -(-TORCH_COMPILE_MIN_WORK // 300)  # samples from which 300 epochs compile
+    assert torch_compile_pays(torch_cfg, least) is True
+    assert torch_compile_pays(torch_cfg, least - 1) is False
+    assert torch_compile_pays(TrainConfig(backend="torch", torch_compile=False), case_study) is False
+    assert torch_compile_pays(TrainConfig(backend="torch", torch_compile=True), 10) is True
+    assert not torch_compile_pays(TrainConfig(backend="jax"), case_study)
+    monkeypatch.setenv("TNN_TORCH_COMPILE", "0")
+    assert torch_compile_pays(torch_cfg, case_study) is None  # tnn_dsl.compile reads the variable
+
+
+def test_train_passes_the_chosen_torch_compile_to_the_compiler(tmp_path, monkeypatch):
+    """The rule above is what ``train`` compiles with (the compilation itself stubbed out: eager here)."""
+    import tnn_dsl.compiler as C
+    import tnn_dsl.fit.config as cfgmod
+
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+    seen: list = []
+    real = C.compile
+
+    def spy(net, *a, torch_compile=None, **kw):
+        seen.append(torch_compile)
+        return real(net, *a, torch_compile=False, **kw)
+
+    monkeypatch.setattr(C, "compile", spy)
+    net = tnn_dsl.loads(RC, "rc.thn")
+    monkeypatch.setattr(cfgmod, "TORCH_COMPILE_MIN_WORK", 10)
+    tm = tnn_dsl.train(net, _record(tmp_path), backend="torch", epochs=2, lbfgs_iters=0)
+    assert seen and seen[0] is True and tm.meta["config"]["torch_compile"] is True
+    seen.clear()
+    monkeypatch.setattr(cfgmod, "TORCH_COMPILE_MIN_WORK", 10**12)
+    tnn_dsl.train(net, _record(tmp_path), backend="torch", epochs=2, lbfgs_iters=0)
+    assert seen and seen[0] is False

@@ -68,7 +68,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model directory to write")
     add_backend(p, default=None, shown="jax")
     p.add_argument("--torch-compile", dest="opt_torch_compile", action="store_true", default=None,
-                   help="torch backend: compile the rollouts with torch.compile (pays off after ~30-60 s)")
+                   help="torch backend: compile the rollouts with torch.compile (default: when samples x epochs "
+                        ">= 2e6; TNN_TORCH_COMPILE=0/1 forces it)")
     p.add_argument("--seed", type=int, default=None, help="seed (initial weights, minibatches; default 0)")
     p.add_argument("--config", default=None, metavar="train.yaml", help="training options in YAML")
     p.add_argument("--json", default=None, metavar="metrics.json", help="write metrics as JSON ('-' for stdout)")

@@ -909,8 +909,9 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
     batch of 256 windows 0.75 µs per window-step forward (eager 1.5, JAX 0.58) and 2.60 forward+gradient (eager
     5.59, JAX 1.61), after 4–19 s of compilation per graph (cold). Worth it for long simulations and training
     runs, not for one short simulation.
-    ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off). Ignored by
-    the other backends (JAX is always compiled).
+    ``None`` reads the environment variable ``TNN_TORCH_COMPILE`` (``1``/``0``, default off; a training decides
+    by its length when neither is set: ``tnn_dsl.fit.config.torch_compile_pays``). Ignored by the other backends
+    (JAX is always compiled).
 
     ``sparse``: keep the network's constant matrices as their non-zeros and apply them by gather and
     scatter-add, so that one step costs O(nodes + links) instead of O(n²) (:mod:`tnn_dsl.compiler.sparse`).

@@ -19,6 +19,26 @@ INITS = ("estimate", "filter", "steady", "measured", "auto")
 OBJECTIVES = ("output-error", "ml")
 
 
+TORCH_COMPILE_MIN_WORK = 2_000_000
+"""Sample-epochs (samples of the training and validation files × ``epochs``) from which a torch training compiles
+its rollouts when ``torch_compile`` is not set (:func:`torch_compile_pays`). Compiling costs 20–35 s (five graphs,
+cold, Intel Xeon); it then saves about 3 µs per window-step of training (batched forward + gradient: 2.60 against
+5.59 µs, eager) and 220 µs per step of each validation run (9.6 against 230 µs) — BENCHMARKS.md, the `rollout`
+section. The case study's M2 (4 h + 2 h at 1 s, 300 epochs: 6.5·10⁶) is over it; the test suite's short trainings
+are far under it."""
+
+
+def torch_compile_pays(cfg: "TrainConfig", n_samples: int) -> bool | None:
+    """``cfg.torch_compile`` where it is set; otherwise, for the torch backend, ``None`` when the environment
+    variable ``TNN_TORCH_COMPILE`` is set (``tnn_dsl.compile`` reads it), else whether ``n_samples`` (training and
+    validation samples, all files) × ``cfg.epochs`` reaches :data:`TORCH_COMPILE_MIN_WORK`."""
+    if cfg.torch_compile is not None or cfg.backend != "torch":
+        return cfg.torch_compile
+    if os.environ.get("TNN_TORCH_COMPILE", "").strip():
+        return None
+    return int(n_samples) * max(int(cfg.epochs), 1) >= TORCH_COMPILE_MIN_WORK
+
+
 @dataclass
 class TrainConfig:
     """Every training option (all also ``tnnc train`` flags and YAML keys). Defaults work without
@@ -38,7 +58,8 @@ class TrainConfig:
     an adjoint scan for the gradients). The case study's M2 reached within 10 % of its final MAE in 51 s
     compiled, compilation included, against 197–389 s eager in earlier runs (benchmarks/bench_train.py,
     BENCHMARKS.md "Training time"); a short run spends most of it compiling. ``None``: the ``TNN_TORCH_COMPILE``
-    environment variable (default off)."""
+    environment variable (``1``/``0``) if set, else compiled when the training is long enough to pay for it
+    (:func:`torch_compile_pays`)."""
     dtype: str = "float64"
     seed: int = 0
     integrator: str = "rk4"

@@ -14,7 +14,7 @@ import numpy as np
 from ..core import Diagnostic, TnnError
 from ..data import as_experiments
 from ..ir import Network
-from .config import TrainConfig, load_config
+from .config import TrainConfig, load_config, torch_compile_pays
 from .estimates import check_objective, estimation_meta, ml_refit, output_error_summary
 from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
 from .trainer import _net_of, _Trainer
@@ -74,6 +74,12 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
             raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
                                       hint="check the sensor columns named in the network"))
     check_objective(net, cfg.objective, cfg.backend)
+    auto = torch_compile_pays(cfg, sum(e.n_steps for e in exps + vals))
+    if auto is not None and auto != cfg.torch_compile:
+        cfg = dataclasses.replace(cfg, torch_compile=auto)
+        if auto and log is not None:
+            log(f"torch: compiling the rollouts ({sum(e.n_steps for e in exps + vals)} samples × {cfg.epochs} "
+                "epochs; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
     tr, z, strategy = _best_route(net, exps, vals, cfg, model, callback, log)
