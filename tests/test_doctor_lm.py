@@ -24,14 +24,14 @@ def _nominal_engine(backend: str):
     exactly: a least-squares problem with a non-zero residual), and its free columns."""
     net = tnn_dsl.load(TCLAB)
     pl = plant(net, BOUNDS, "heat_load", "Q[h2]", "Q1", 0.3, noise=0.0, seed=2, n_train=300, n_val=10,
-               backend=backend, hold=(20, 60))
+               backend="jax", hold=(20, 60))  # the data; the engine below runs on ``backend``
     exps, tm, vm = E._split_masks(pl.train, pl.val)
     ext0 = build_extended(net, ["Q1", "Q2"], kinds=("sensor_offset",), only=set())
     eng, _, free, _ = E._make_engine(ext0, net, exps, tm, vm, backend, E._State(), {}, [])
     return eng, [j for j in free if not eng.cols[j].key.startswith(E.X0_PREFIX)]
 
 
-@pytest.mark.parametrize("backend", ["jax", "torch"])
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])  # torch eager: 11 s
 def test_secant_updates_reach_the_same_optimum_with_fewer_jacobians(backend):
     eng, free = _nominal_engine(backend)
     assert free, "the TCLab network has free constants"
@@ -49,10 +49,13 @@ def test_secant_updates_reach_the_same_optimum_with_fewer_jacobians(backend):
     assert secant["iterations"] > secant["jacobians"]  # the secant update did carry some iterations
 
 
-@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("backend", ["jax", "torch"])  # torch's fast check of the secant path (2 s)
 def test_the_cap_counts_jacobians(backend):
     eng, free = _nominal_engine(backend)
     eng.params = eng.apply(eng.params, free, np.full(len(free), 0.8), trust=False)
     info = eng.fit(free, max_iter=2, tol=1e-12, jacobian_every=3)
-    assert info["jacobians"] <= 2 and info["iterations"] <= 6
+    assert info["jacobians"] == 2 and 2 < info["iterations"] <= 6  # iterations carried by the secant update
     assert info["capped"] is True
+    first = info["sse"]
+    info = eng.fit(free, max_iter=200, tol=1e-12, jacobian_every=3)  # it was still moving: going on helps
+    assert info["sse"] <= first and info["capped"] is False

@@ -972,6 +972,12 @@ class _Session:
                  f"{chosen['val_mae']:.4g} K)")
         self.accepted.extend(c.members if c.element.get("probe") else [c])  # a line and its square: both
         chosen["base_net"] = self.net_x
+        for old in self.acc_fits:
+            # an earlier round's accepted fit: its engine (that round's compiled simulation and Jacobians, 60–150 MB
+            # on the case study) and residual arrays are no longer read — polish reads its candidate, extension and
+            # networks only
+            for key in ("eng", "e_all", "e_val", "params"):
+                old.pop(key, None)
         self.acc_fits.append(chosen)
         self.final_act = list(chosen.get("act") or [])
         chosen["eng"].params = chosen["params"]
