@@ -489,7 +489,6 @@ class _Engine:
                     break
         cur, r = self._train_sse(params)
         lam = 1e-3
-        it = 0
         if not active:
             self.params = params
             return {"sse": cur, "iterations": 0, "jacobians": 0, "capped": False}
@@ -556,7 +555,7 @@ class _Engine:
             if not fresh and (not improved or rel < tol):
                 age = every  # a fresh Jacobian next, and the fit may stop only on it
                 if not improved:
-                    lam = lam / 36 if tries >= 2 else lam
+                    lam /= 36  # the two failed tries' ×6 undone: the carried Jacobian was at fault, not λ
             fresh = False
             if done:
                 capped = False
