@@ -105,8 +105,10 @@ def objectives(be: str) -> int:
     for a, b in PATHS:
         ea, eb = fits[a, "ml"][0], fits[b, "ml"][0]
         lr, df = 2.0 * (eb["loglik"] - ea["loglik"]), eb["n_params"] - ea["n_params"]
+        p = float(chi2.sf(max(lr, 0.0), df))
+        p_text = "< 1e-300" if p < 1e-300 else f"{p:.3g}"  # underflow: a p-value printed as 0 is not one
         print(f"| {LABEL[a]} → {LABEL[b]} | {ea['loglik']:.2f} | {eb['loglik']:.2f} | {lr:.1f} | {df} | "
-              f"{chi2.sf(max(lr, 0.0), df):.3g} | {eb['aic'] - ea['aic']:.1f} | {eb['bic'] - ea['bic']:.1f} |")
+              f"{p_text} | {eb['aic'] - ea['aic']:.1f} | {eb['bic'] - ea['bic']:.1f} |")
     for name in MODELS:
         for obj in ("ml", "output-error"):
             print("\n```\n" + estimation_summary(fits[name, obj][0]) + "\n```")
