@@ -16,17 +16,27 @@ from ..compiler import backend_of
 from ..ir import Input, Network, Param
 from .base import Candidate, Extended
 
-# Levenberg–Marquardt Jacobians (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 POINT_BLOCK = 512
 """Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`): the extended network's
 right-hand side holds a (tangents, samples) array per candidate term, 392 × 16 × 512 doubles (26 MB) on the case
 study."""
+
+# Levenberg–Marquardt Jacobians (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 FIT_ITER = 80
 
-
 JACOBIAN_EVERY = 4
-"""Levenberg–Marquardt iterations per fresh forward-mode Jacobian (:meth:`_Engine.fit`); Broyden's secant update
-carries it in between."""
+"""Levenberg–Marquardt iterations per fresh Jacobian (:meth:`_Engine.fit`); Broyden's secant update carries it in
+between."""
+
+LM_JACOBIAN = "difference"
+"""How :meth:`_Engine.fit` takes its fresh Jacobians (:meth:`_Engine.jacobian`'s ``method``): forward differences
+of batched simulations, which only steer the steps (the score test and the standard errors take exact forward-mode
+ones)."""
+
+DIFF_STEP = 1e-6
+"""The forward-difference step of :meth:`_Engine.jacobian` (``method="difference"``): in a log column (a relative
+change of 1e-6), else times max(1, |value|). The truncation error (step × curvature) and the round-off of outputs
+near 300 K (2e-16 · 300 K / step) are both about 1e-6 relative."""
 
 FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many Jacobians first; the FIT_CONTINUE best go on
 
@@ -260,6 +270,14 @@ class _Engine:
             """∂outputs[idx]/∂θ along each row of ``tangents`` (m, n_θ) → (m, len(idx))."""
             return B.batched_jvp(lambda th: out_flat(base, th, idx), (zeros(tangents.shape[1]),), (tangents,))
 
+        def jac_diff(base, steps, idx):
+            """Forward differences ``(y(θ = s) − y(0)) / h`` along each row ``s`` of ``steps`` (m, n_θ), one
+            coordinate ``h`` ≠ 0 per row (a zero row gives zeros) → (m, len(idx)); the unperturbed simulation rides
+            in the same batch, so both come from one compiled program."""
+            ys = B.batched(lambda th: out_flat(base, th, idx))(xp.concat([steps[:1] * 0.0, steps], 0))
+            h = steps.sum(1)
+            return (ys[1:] - ys[:1]) / B.where(h == 0, h + 1.0, h)[:, None]
+
         def jac_forced(base, tan_theta, tan_F, idx):
             F0 = B.xp.zeros(tuple(tan_F.shape[1:]), dtype=B.dtype)
             return B.batched_jvp(lambda th, F: out_forced(base, th, F, idx), (zeros(tan_theta.shape[1]), F0),
@@ -279,15 +297,20 @@ class _Engine:
                             B.xp.ones(tuple(U.shape[:-1]) + (nf,), dtype=B.dtype)], -1)
             return B.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
 
-        jac_j, jac_forced_j = B.jit(jac_chunk), B.jit(jac_forced)
+        jac_j, jac_forced_j, jac_diff_j = B.jit(jac_chunk), B.jit(jac_forced), B.jit(B.no_grad(jac_diff))
         self._sim = B.jit(B.no_grad(simulate))
         # the training SSE of a trial step needs no held-out file (a third of the case study's rows)
         self._sim_train = B.jit(B.no_grad(simulate_train)) if n_sc < len(exps) else (lambda p, sim=self._sim: sim(p)[0])
         self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
+        self._jac_diff = lambda base, steps, idx: jac_diff_j(base, steps, B.asarray(idx))  # noqa: E731
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
         self._point = B.jit(point)
         self._inv_cap = B.jit(inv_cap)
         self._to = B.tree
+        # what goes straight into a compiled JAX program: float64 numpy arrays, which the call transfers itself
+        # (``B.tree``'s per-array ``jnp.asarray`` took 2.4 ms for the nominal case study's 43 parameters, as long as
+        # the simulation it fed: issue 18); torch needs its tensors
+        self._arg = _numpy_tree if B.name == "jax" else B.tree
         self._np = B.numpy
 
     # -- evaluation -----------------------------------------------------------------------------
@@ -297,20 +320,27 @@ class _Engine:
         files' initial states brought up to date)."""
         if params is None:
             self._fresh()
-        y, x = self._sim(self._to(self.params if params is None else params))
+        y, x = self._sim(self._arg(self.params if params is None else params))
         return np.asarray(self._np(y)), np.asarray(self._np(x))
 
     def residual(self, params=None):
         ym, _ = self.simulate(params)
         return self.y - ym  # (N, n_out), NaN where unmeasured
 
-    def jacobian(self, active: list[int], chunk: int = 32) -> np.ndarray:
-        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). Directions go in one batch of
-        forward-mode tangents, their number rounded up to a multiple of 4 (a compiled shape per size; the doctor's
-        active sets vary by a few columns within a round), in batches of ``chunk`` beyond that. A tangent costs
-        about as much as the simulation it rides on: a fixed batch of 16 for a set of 17 columns doubled the cost of
-        every Gauss–Newton iteration of a round (issue 18)."""
-        base = self._to(self.params)
+    def jacobian(self, active: list[int], chunk: int = 32, method: str = "forward") -> np.ndarray:
+        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)).
+
+        ``method="forward"`` (exact): directions go in one batch of forward-mode tangents, their number rounded up
+        to a multiple of 4 (a compiled shape per size; the doctor's active sets vary by a few columns within a
+        round), in batches of ``chunk`` beyond that. A tangent costs about as much as the simulation it rides on: a
+        fixed batch of 16 for a set of 17 columns doubled the cost of every Gauss–Newton iteration of a round
+        (issue 18). ``method="difference"``: forward differences of simulations batched the same way (steps
+        :data:`DIFF_STEP` in a log column, :data:`DIFF_STEP`·max(1, |value|) in another): about 1e-6 relative,
+        and on JAX on a CPU a third of the cost (3 ms a column against 8.5 ms a tangent on the case study's 4 h;
+        the Levenberg–Marquardt directions of :meth:`fit`)."""
+        if method not in ("forward", "difference"):
+            raise ValueError(f"method must be 'forward' or 'difference', got {method!r}")
+        base = self._arg(self.params)
         n = len(self.cols)
         out = []
         size = min(chunk, 4 * max(1, -(-len(active) // 4)))
@@ -318,9 +348,12 @@ class _Engine:
             part = active[s: s + size]
             tan = np.zeros((size, n))
             for r, j in enumerate(part):
-                tan[r, j] = 1.0
-            tan_b = self._to({"t": tan})["t"]
-            jc = np.asarray(self._np(self._jac(base, tan_b, self.train_idx)))
+                c = self.cols[j]
+                tan[r, j] = 1.0 if method == "forward" else (
+                    DIFF_STEP if c.log else DIFF_STEP * max(1.0, abs(float(self.params[c.key].reshape(-1)[c.index]))))
+            tan_b = self._arg({"t": tan})["t"]
+            jac = self._jac if method == "forward" else self._jac_diff
+            jc = np.asarray(self._np(jac(base, tan_b, self.train_idx)))
             out.append(jc[: len(part)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
 
@@ -333,7 +366,7 @@ class _Engine:
         """∂ y_model[train rows] w.r.t. the columns ``active`` (first block) and w.r.t. the forcing heat-flow
         time series ``forcing (m, N_score, n_force)`` W (second block): shape (n_train, len(active) + m).
         One compiled shape: ``chunk`` tangents per call."""
-        base = self._to(self.params)
+        base = self._arg(self.params)
         n = len(self.cols)
         nsr, nf = self.n_score_rows, self.n_force
         m = 0 if forcing is None else forcing.shape[0]
@@ -350,7 +383,7 @@ class _Engine:
                     ta[r, active[j]] = 1.0
                 else:
                     tf_[r] = forcing[j - len(active)]
-            t = self._to({"a": ta, "f": tf_})
+            t = self._arg({"a": ta, "f": tf_})
             jc = np.asarray(self._np(self._jac_forced(base, t["a"], t["f"], self.train_idx)))
             out.append(jc[: min(chunk, total - s0)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
@@ -358,7 +391,7 @@ class _Engine:
     def point_derivs(self, active: list[int], X: np.ndarray, U: np.ndarray, chunk: int = 32):
         """(∂rhs/∂θ (m, N, ns), ∂outputs/∂θ (m, N, n_out)) for the columns ``active`` at states ``X (N, ns)`` K
         and inputs ``U (N, n_in)`` SI (vectorised over time, no simulation)."""
-        base = self._to(self.params)
+        base = self._arg(self.params)
         n = len(self.cols)
         N = X.shape[0]
         # time in blocks of POINT_BLOCK samples (the last padded: one compiled shape): the extended network's
@@ -368,7 +401,7 @@ class _Engine:
         Xp = np.concatenate([X, np.repeat(X[-1:], n_blocks * block - N, 0)]) if n_blocks * block > N else X
         Up = _pad(U, self.n_force)
         Up = np.concatenate([Up, np.repeat(Up[-1:], n_blocks * block - N, 0)]) if n_blocks * block > N else Up
-        blocks = [self._to({"X": Xp[b * block: (b + 1) * block], "U": Up[b * block: (b + 1) * block]})
+        blocks = [self._arg({"X": Xp[b * block: (b + 1) * block], "U": Up[b * block: (b + 1) * block]})
                   for b in range(n_blocks)]
         ns, no = X.shape[1], len(self.model.output_names)
         d_rhs, d_out = np.zeros((len(active), N, ns)), np.zeros((len(active), N, no))
@@ -377,7 +410,7 @@ class _Engine:
             part = active[s0: s0 + chunk]
             for r, j in enumerate(part):
                 ta[r, j] = 1.0
-            tan = self._to({"a": ta})["a"]
+            tan = self._arg({"a": ta})["a"]
             for b, t in enumerate(blocks):
                 a, o = self._point(base, tan, t["X"], t["U"])
                 stop = min(block, N - b * block)
@@ -393,8 +426,8 @@ class _Engine:
     def inv_capacity(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
         """``∂(dT/dt)/∂Q`` for a heat flow into each node's own forcing input: ``1/C`` (N, ns) 1/(J/K); 0 for
         lag states."""
-        t = self._to({"X": X, "U": _pad(U, self.n_force)})
-        return np.asarray(self._np(self._inv_cap(self._to(self.params), t["X"], t["U"])))
+        t = self._arg({"X": X, "U": _pad(U, self.n_force)})
+        return np.asarray(self._np(self._inv_cap(self._arg(self.params), t["X"], t["U"])))
 
     def trusted(self, active: list[int], delta: np.ndarray) -> np.ndarray:
         """``delta`` inside the trust region of one step: log-parameters move by at most ±2 (a factor e²), learned
@@ -444,7 +477,7 @@ class _Engine:
     def _train_sse(self, params) -> tuple[float, np.ndarray]:
         """The training rows' SSE K² and residual (n_train,) K of ``params``: one simulation of the experiments
         holding training rows (not of the held-out files, whose initial states ``params`` leaves as they are)."""
-        ym = np.asarray(self._np(self._sim_train(self._to(params))))
+        ym = np.asarray(self._np(self._sim_train(self._arg(params))))
         v = (self.y[: ym.shape[0]] - ym).ravel()[self.train_idx]
         return self._sse_of(v), v
 
@@ -511,7 +544,7 @@ class _Engine:
                 if n_jac >= max_iter:
                     it -= 1
                     break
-                J, fresh, age = self.jacobian(active), True, 0
+                J, fresh, age = self.jacobian(active, method=LM_JACOBIAN), True, 0
                 n_jac += 1
             age += 1
             A = J.T @ J
@@ -570,6 +603,17 @@ class _Engine:
         current parameters (the proper fit then moves them with the parameters)."""
         if self.init.rule == "estimate":
             self.initial_states([i for i in range(len(self.exps)) if i not in self.val_only])
+
+
+def _numpy_tree(d):
+    """``d`` (nested dicts, lists and tuples of arrays or numbers) with float64 numpy arrays at its leaves (other
+    numeric kinds kept): the arguments of a compiled JAX program."""
+    if isinstance(d, dict):
+        return {k: _numpy_tree(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_numpy_tree(v) for v in d]
+    a = np.asarray(d)
+    return a.astype(np.float64, copy=False) if a.dtype.kind == "f" else a
 
 
 def _pad(u: np.ndarray, n: int) -> np.ndarray:

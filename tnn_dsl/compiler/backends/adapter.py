@@ -14,6 +14,7 @@ operation              JAX                                           torch
 ``value_and_grad``     ``jax.jit(jax.value_and_grad)``               ``torch.autograd.grad``
 ``jvp``                ``jax.jvp``                                   ``torch.func.jvp``
 ``batched_jvp``        ``jax.vmap`` of ``jax.jvp``                   ``torch.func.vmap`` of ``jvp``, else a loop
+``batched``            ``jax.vmap``                                  ``torch.func.vmap``, else a loop
 ``jacobian``           ``jax.jacfwd``                                ``torch.func.jacfwd``, else jvp columns,
                                                                      else reverse mode
 ``jacobian_fn``        ``jax.jacfwd``                                reverse mode, one pass for a batch of rows
@@ -202,6 +203,21 @@ class Backend:
             if isinstance(outs[0], tuple):
                 return tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
             return torch.stack(outs)
+
+    def batched(self, f: Callable) -> Callable:
+        """``f`` over a leading batch axis of every argument (outputs stacked likewise). torch falls back to one
+        call per batch element where ``f`` cannot be vmapped."""
+        if self.name == "jax":
+            return self.jax.vmap(f)
+        torch = self.torch
+
+        def call(*args):
+            try:
+                return torch.func.vmap(f)(*args)
+            except Exception:  # noqa: BLE001 - an op without a batching rule: one element at a time
+                return torch.stack([f(*a) for a in zip(*args)])
+
+        return call
 
     def jacobian(self, fn: Callable, x: Any) -> np.ndarray:
         """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector): numpy
