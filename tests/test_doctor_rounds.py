@@ -105,6 +105,41 @@ def test_the_lower_training_error_of_the_two_starts_wins():
     assert refit_from_written(eng, [0], first, start, [], 4, None, lambda s: None) is first
 
 
+class _Crawl:
+    """An engine whose fit from the written start reaches ``sse_after_first`` after its first Jacobians, still
+    moving, and 0.05 K² when it goes on; the calls' Jacobian caps are recorded."""
+
+    def __init__(self, sse_after_first: float):
+        self.params0 = {"pe.resistance": np.array(2.0)}
+        self.params = {"pe.resistance": np.array(0.02)}
+        self.sse_after_first, self.caps = sse_after_first, []
+
+    def fit(self, act, max_iter, **kw) -> dict:
+        self.caps.append(max_iter)
+        sse = self.sse_after_first if len(self.caps) == 1 else 0.05
+        return {"sse": sse, "iterations": 3 * max_iter, "jacobians": max_iter, "capped": len(self.caps) == 1}
+
+
+def test_the_second_start_goes_on_only_while_it_is_ahead():
+    """Successive halving between the two starts (``FIT_ITER_FIRST`` Jacobians first): behind the first start's
+    training SSE it stops there; ahead and still moving it goes on to the cap, its counts summed."""
+    from tnn_dsl.doctor.engine import FIT_ITER, FIT_ITER_FIRST
+
+    first = {"sse": 0.2, "iterations": 30, "jacobians": 12, "capped": False}
+    eng = _Crawl(sse_after_first=0.3)
+    kept = eng.params
+    info = refit_from_written(eng, [0], first, kept, ["pe.resistance"], FIT_ITER, None, lambda s: None)
+    assert eng.caps == [FIT_ITER_FIRST] and info is first and eng.params is kept
+    eng = _Crawl(sse_after_first=0.15)
+    info = refit_from_written(eng, [0], first, eng.params, ["pe.resistance"], FIT_ITER, None, lambda s: None)
+    assert eng.caps == [FIT_ITER_FIRST, FIT_ITER - FIT_ITER_FIRST]
+    assert info["start"] == "written" and info["sse"] == 0.05 and info["jacobians"] == FIT_ITER
+    assert info["iterations"] == 3 * FIT_ITER and info["capped"] is False
+    eng = _Crawl(sse_after_first=0.15)  # a shortlist fit's cap is FIT_ITER_FIRST itself: one call
+    refit_from_written(eng, [0], first, eng.params, ["pe.resistance"], FIT_ITER_FIRST, None, lambda s: None)
+    assert eng.caps == [FIT_ITER_FIRST]
+
+
 class _Eng:
     """An engine whose convergence fit improves the training rows and worsens the held-out ones."""
 
