@@ -77,6 +77,16 @@ def test_difference_jacobian_matches_forward_mode_and_fits_reach_the_same_optimu
     assert np.all(np.abs(diff - exact).max(0) <= 1e-4 * scale), np.abs(diff - exact).max(0) / scale
     with pytest.raises(ValueError, match="method must be"):
         eng.jacobian(every, method="central")
+    # a column on its upper bound steps backwards, and its column still agrees
+    import dataclasses
+
+    j = free[0]
+    c = eng.cols[j]
+    eng.cols[j] = dataclasses.replace(c, upper=float(eng.params[c.key].reshape(-1)[c.index]))
+    assert eng._diff_step(j) < 0
+    back = eng.jacobian([j], method="difference")[:, 0]
+    assert np.abs(back - exact[:, 0]).max() <= 1e-4 * scale[0]
+    eng.cols[j] = c
     start = eng.apply(eng.params, free, np.full(len(free), 0.4), trust=False)
     sse = {}
     for method in ("forward", "difference"):
