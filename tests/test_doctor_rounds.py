@@ -159,7 +159,7 @@ class _Eng:
 def _polish(val_after: float) -> tuple[_Eng, list[str]]:
     eng, notes = _Eng(val_after), []
     ns = SimpleNamespace(accepted=[SimpleNamespace(key="Q[hx1]")], final_act=[0], final_eng=eng, ml=None,
-                         spent=lambda: False, deadline=None, say=lambda s: None, second_start=lambda e: None,
+                         spent=lambda: False, deadline=None, say=lambda s: None, second_start=lambda e, info: None,
                          notes=notes, state=SimpleNamespace(harvest=lambda *a: None), final_ext=None, acc_fits=[],
                          acc_findings=[])
     _Session.polish(ns)
@@ -174,3 +174,62 @@ def test_a_converged_fit_that_loses_on_held_out_data_keeps_the_accepted_values()
     assert any("did worse on the held-out rows" in n for n in notes)
     eng, notes = _polish(val_after=0.9)
     assert float(eng.params["a"]) == 2.0 and not notes
+
+
+class _TwoStarts:
+    """The extended model's engine: ``pe.resistance`` at 0.02 after the first start's first Jacobians (training
+    SSE 1.0), written as 2.0. From the written value the fit reaches ``written_first`` after its first Jacobians and
+    ``written_final`` (held out ``written_val``) when it goes on; the first start goes on to 0.9. Every fit is
+    recorded as (start value, Jacobian cap)."""
+
+    def __init__(self, written_first: float, written_final: float = 0.3, written_val: float = 0.5):
+        self.params = {"pe.resistance": np.array(0.02)}
+        self.cols = [Column("pe.resistance", 0)]
+        self.model = SimpleNamespace(init_params=lambda seed: {"pe.resistance": np.array(2.0)}, to_numpy=lambda p: p)
+        self.train = {0.02: 1.0, 0.01: 0.9, 1.5: written_first, 1.0: written_final}
+        self.val = {0.02: 1.0, 0.01: 0.95, 1.5: 2.0, 1.0: written_val}
+        self.calls: list[tuple[float, int]] = []
+
+    def _at(self) -> float:
+        return float(self.params["pe.resistance"])
+
+    def fit(self, act, max_iter, **kw) -> dict:
+        x = self._at()
+        self.calls.append((x, max_iter))
+        nxt = {2.0: 1.5, 1.5: 1.0, 0.02: 0.01}[x]
+        self.params = {"pe.resistance": np.array(nxt)}
+        return {"sse": self.train[nxt], "iterations": 3 * max_iter, "jacobians": max_iter, "capped": nxt == 1.5}
+
+    def sse(self, which: str = "train") -> float:
+        return (self.val if which == "val" else self.train)[self._at()]
+
+
+def _second_start(eng: _TwoStarts) -> list[str]:
+    from tnn_dsl.doctor.engine import FIT_ITER_FIRST
+
+    notes: list[str] = []
+    free = SimpleNamespace(params=[SimpleNamespace(name="pe.resistance", free=True)])
+    ns = SimpleNamespace(final_act=[0], net=free, net_x=SimpleNamespace(learned=[]),
+                         final_ext=SimpleNamespace(network=SimpleNamespace(learned=[])),
+                         spent=lambda: False, deadline=None, say=lambda s: None, notes=notes)
+    _Session.second_start(ns, eng, {"sse": 1.0, "iterations": 9, "jacobians": FIT_ITER_FIRST, "capped": True})
+    return notes
+
+
+def test_of_the_extended_models_two_starts_only_the_one_ahead_goes_on():
+    """Successive halving in the final convergence fit: the written start gets ``FIT_ITER_FIRST`` Jacobians; behind
+    the first start it stops there and the first start goes on; ahead it goes on alone and wins; ahead but losing on
+    the held-out rows once converged, the first start goes on after all."""
+    from tnn_dsl.doctor.engine import FIT_ITER, FIT_ITER_FIRST
+
+    rest = FIT_ITER - FIT_ITER_FIRST
+    eng = _TwoStarts(written_first=1.2)
+    assert not _second_start(eng)
+    assert eng.calls == [(2.0, FIT_ITER_FIRST), (0.02, rest)] and eng._at() == 0.01
+    eng = _TwoStarts(written_first=0.8)
+    notes = _second_start(eng)
+    assert eng.calls == [(2.0, FIT_ITER_FIRST), (1.5, rest)] and eng._at() == 1.0
+    assert len(notes) == 1 and "written in the file" in notes[0]
+    eng = _TwoStarts(written_first=0.8, written_val=1.5)
+    assert not _second_start(eng)
+    assert eng.calls == [(2.0, FIT_ITER_FIRST), (1.5, rest), (0.02, rest)] and eng._at() == 0.01
