@@ -31,6 +31,17 @@ def written_values(eng: _Engine, params: dict, names: list[str]) -> dict | None:
     return p if n else None
 
 
+def continue_fit(eng: _Engine, act: list[int], info: dict, max_iter: int, deadline, tol: float) -> dict:
+    """A fit (``info``) that stopped at its Jacobian cap still moving, continued from ``eng.params`` to ``max_iter``
+    Jacobians in all, its counts summed; ``info`` itself when it converged or had them all (successive halving's
+    second stage: :func:`refit_from_written`, the extended model's two starts in ``session.second_start``)."""
+    if not (info["capped"] and max_iter > info["jacobians"]):
+        return info
+    more = eng.fit(act, max_iter=max_iter - info["jacobians"], deadline=deadline, tol=tol)
+    return {**more, "iterations": info["iterations"] + more["iterations"],
+            "jacobians": info["jacobians"] + more["jacobians"]}
+
+
 def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, names: list[str], max_iter: int,
                        deadline, say) -> dict:
     """After a fit from ``start`` (``info``, ``eng.params`` its result): the same fit again from ``start`` with the
@@ -51,10 +62,8 @@ def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, na
     eng.params = start
     t_f = _time.monotonic()
     info_w = eng.fit(act, max_iter=min(max_iter, FIT_ITER_FIRST), deadline=deadline, tol=1e-4)
-    if info_w["capped"] and max_iter > FIT_ITER_FIRST and info_w["sse"] < info["sse"]:
-        more = eng.fit(act, max_iter=max_iter - info_w["jacobians"], deadline=deadline, tol=1e-4)
-        info_w = {**more, "iterations": info_w["iterations"] + more["iterations"],
-                  "jacobians": info_w["jacobians"] + more["jacobians"]}
+    if info_w["sse"] < info["sse"]:
+        info_w = continue_fit(eng, act, info_w, max_iter, deadline, 1e-4)
     say(f"    fitted again from the written values in {_time.monotonic() - t_f:.1f} s ({info_w['iterations']} "
         f"iterations, {info_w['jacobians']} Jacobians; training SSE {info_w['sse']:.4g} against {info['sse']:.4g} K²)")
     if info_w["sse"] < info["sse"]:

@@ -36,7 +36,7 @@ from .engine import (
     prior_bounds,
 )
 from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
-from .fitting import _fit_result, _fit_structural, _train_lr_test, refit_from_written
+from .fitting import _fit_result, _fit_structural, _train_lr_test, continue_fit, refit_from_written
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist, same_correction
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
@@ -1072,8 +1072,8 @@ class _Session:
         act = self.final_act
 
         def go_on(inf: dict) -> None:
-            if inf["capped"] and FIT_ITER > inf["jacobians"] and not self.spent():
-                eng.fit(act, max_iter=FIT_ITER - inf["jacobians"], deadline=self.deadline, tol=1e-6)
+            if not self.spent():
+                continue_fit(eng, act, inf, FIT_ITER, self.deadline, 1e-6)
 
         first = eng.params
         init = eng.model.to_numpy(eng.model.init_params(seed=0))
