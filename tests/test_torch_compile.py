@@ -332,3 +332,36 @@ def test_gradient_rollout_in_compiled_chunks_matches_jax(monkeypatch):
         got = _torch_run(mc, p_np, T0, U)
     assert any(k[0] == "torch_chunk" for k in mc._jit_cache if isinstance(k, tuple))
     _assert_same(_jax_run(mj, p_np, T0, U), got)
+
+
+_VEC_PROBE = """
+import sys, numpy as np, torch, tnn_dsl
+from torch._inductor import cpu_vec_isa
+net = tnn_dsl.loads(sys.stdin.read(), "small.thn")
+m = tnn_dsl.compile(net, "torch", torch_compile=True)
+p = m.init_params(seed=0)
+with torch.no_grad():
+    m.rollout(p, torch.full((len(m.state_names),), 300.0, dtype=torch.float64),
+              torch.zeros((20, len(m.input_names)), dtype=torch.float64) + 300.0, 1.0)
+assert any(isinstance(k, tuple) and k[0] == "torch_scan" for k in m._jit_cache), "no compiled scan ran"
+got = [str(i) for i in cpu_vec_isa.valid_vec_isa_list()]
+cpu_vec_isa.valid_vec_isa_list.cache_clear()
+print(got == [str(i) for i in cpu_vec_isa.valid_vec_isa_list()], got)
+"""
+
+
+def test_compiled_scans_leave_the_process_vectorisation_as_it_was(tmp_path):
+    """The compiled scans are built without SIMD kernels (``cpp.vec_isa_ok = False``, the model's
+    ``TORCH_VECTORIZE``), but torch 2.13 caches the machine's vector instruction sets per process under the first
+    value it sees: in a fresh process, after a compiled scan, that list is the one a default compilation makes
+    (else a user's own vectorised graph, loaded from inductor's on-disk cache, fails to build: 'at::vec' has not
+    been declared)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
+    res = subprocess.run([sys.executable, "-c", _VEC_PROBE], input=SMALL, capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.startswith("True"), res.stdout

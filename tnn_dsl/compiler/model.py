@@ -110,9 +110,24 @@ jax,torchc --torch-python-wrapper --torch-chunk 4`` for the Python wrapper's rol
 Python wrapper (with :data:`TORCH_CHUNK` = 4 samples per iteration then paying)."""
 
 
+TORCH_VECTORIZE = False
+"""Whether inductor may generate SIMD (``at::vec``) kernels for the compiled scans. Off: the scans' tensors are
+small (7 states, 24–256 windows), and vectorised code generation (each kernel written twice, scalar and vector,
+and the machine's vector instruction sets probed with test compilations on a cold cache) costs more compilation
+than it saves. Cold compiles, one run each, Intel Xeon, 2026-11-27 (``TORCHINDUCTOR_VEC_ISA_OK=0`` for off):
+``python benchmarks/bench_train.py --only m3 --backends jax torch-compiled --no-write`` — M3 within 10 % of its
+final MAE after 165 s with vectorised kernels (39.9 s compiling), 138 s without (28.8 s; 125 → 110 s less
+compilation); M2 53 → 46 s (36.1 → 29.2 s compiling); ``python benchmarks/bench_rollout.py --only jax,torchc``:
+batched forward + gradient 2.75 → 2.84 µs per window-step (1.70× → 1.79× JAX), batched forward 0.79 → 0.96, single
+sequence 9.6 → 9.2 µs/step. ``True``: inductor's default (vectorised where the machine allows)."""
+
+
 def _inductor_options() -> dict:
-    """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`)."""
-    return {"cpp_wrapper": True, "cpp_wrapper_build_separate": True} if TORCH_CPP_WRAPPER else {}
+    """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`, :data:`TORCH_VECTORIZE`)."""
+    opts: dict = {"cpp_wrapper": True, "cpp_wrapper_build_separate": True} if TORCH_CPP_WRAPPER else {}
+    if not TORCH_VECTORIZE:
+        opts["cpp.vec_isa_ok"] = False  # part of inductor's cache key; see torch_adjoint.CompiledScan for its probe
+    return opts
 
 
 def _needs_grad(params, T0, inputs) -> bool:
@@ -597,7 +612,7 @@ class Model:
         from .torch_adjoint import AdjointRollout, Unsupported
 
         unbatched = T0.ndim == 1
-        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER)
+        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
         runner = self._jit_cache.get(key)
         if runner is None:
             core = self._fused_core() if unbatched else self._core
@@ -644,7 +659,7 @@ class Model:
 
         unbatched = T0.ndim == 1
         chunk = TORCH_CHUNK if unbatched else 1
-        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER)
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan

@@ -285,8 +285,31 @@ class CompiledScan:
             import torch
 
             self.fallback = f"{type(e).__name__}: {str(e)[:300]}"
-            self._compiled = torch.compile(_named(self.fn, self.name + "_py"), fullgraph=True)
+            py_options = {k: v for k, v in self.options.items() if not k.startswith("cpp_wrapper")}
+            self._compiled = torch.compile(_named(self.fn, self.name + "_py"), fullgraph=True, options=py_options)
             return self._compiled(*args)
+        finally:
+            _forget_vec_isa_probe(self.options)
+
+
+def _forget_vec_isa_probe(options: dict) -> None:
+    """After a call that may have compiled with ``cpp.vec_isa_ok = False`` (the model's ``TORCH_VECTORIZE`` off):
+    forget inductor's per-process list of the machine's vector instruction sets if it was made under that option
+    (empty). torch 2.13 caches the list (``cpu_vec_isa.valid_vec_isa_list``) under whatever ``vec_isa_ok`` the
+    first compilation of the process had; left empty, a later vectorised graph of the same process (the user's own
+    ``torch.compile``) that inductor loads from its on-disk cache is built without its instruction set's flags and
+    fails (``'at::vec' has not been declared``). An empty list is cheap to make again; a full one is kept."""
+    if options.get("cpp.vec_isa_ok") is not False:
+        return
+    try:
+        from torch._inductor import cpu_vec_isa
+    except ImportError:  # pragma: no cover - another torch layout
+        return
+    probe = getattr(cpu_vec_isa, "valid_vec_isa_list", None)
+    if probe is None or not hasattr(probe, "cache_clear") or probe.cache_info().currsize == 0:
+        return
+    if not probe():
+        probe.cache_clear()
 
 
 def _named(fn, name: str):
