@@ -111,15 +111,14 @@ Python wrapper (with :data:`TORCH_CHUNK` = 4 samples per iteration then paying).
 
 
 TORCH_VECTORIZE = False
-"""Whether inductor may generate SIMD (``at::vec``) kernels for the compiled scans. Off: the scans' tensors are
-small (7 states, 24–256 windows), and vectorised code generation (each kernel written twice, scalar and vector,
-and the machine's vector instruction sets probed with test compilations on a cold cache) costs more compilation
-than it saves. Cold compiles, one run each, Intel Xeon, 2026-11-27 (``TORCHINDUCTOR_VEC_ISA_OK=0`` for off):
-``python benchmarks/bench_train.py --only m3 --backends jax torch-compiled --no-write`` — M3 within 10 % of its
-final MAE after 165 s with vectorised kernels (39.9 s compiling), 138 s without (28.8 s; 125 → 110 s less
-compilation); M2 53 → 46 s (36.1 → 29.2 s compiling); ``python benchmarks/bench_rollout.py --only jax,torchc``:
-batched forward + gradient 2.75 → 2.84 µs per window-step (1.70× → 1.79× JAX), batched forward 0.79 → 0.96, single
-sequence 9.6 → 9.2 µs/step. ``True``: inductor's default (vectorised where the machine allows)."""
+"""Whether inductor may generate SIMD (``at::vec``) kernels for the compiled scans. Off (``cpp.vec_isa_ok = False``
+for these graphs only): their tensors are small (a handful of states, 24–256 windows), and writing each kernel
+twice, scalar and vectorised, was most of inductor's code generation. Cold compiles, Intel Xeon, 2026-11-27
+(BENCHMARKS.md, "Rollout cost: reading and proposals"): M2's five graphs 36.1 → 23.0 s, M2 within 10 % of its
+final MAE after 53 → 39 s, M3 169 → 131 s (``python benchmarks/bench_train.py``); batched forward + gradient 2.75
+→ 2.84 µs per window-step, batched forward 0.79 → 0.96, single sequence 9.6 → 9.2 µs/step (``python
+benchmarks/bench_rollout.py --only jax,torchc``, one after the other). :class:`~.torch_adjoint.CompiledScan` keeps
+the option from leaking into the process's other graphs. ``True``: inductor's default."""
 
 
 def _inductor_options() -> dict:
