@@ -334,10 +334,20 @@ def test_gradient_rollout_in_compiled_chunks_matches_jax(monkeypatch):
     _assert_same(_jax_run(mj, p_np, T0, U), got)
 
 
+_TINY = """\
+network tiny "one node and its loss to ambient: the smallest scan to compile"
+units temperature = degC
+input Ta : temperature
+node a  C = 10 J/K
+boundary amb = Ta
+R a -- amb = 1 K/W
+sensor T_a = a
+"""
+
 _VEC_PROBE = """
 import sys, numpy as np, torch, tnn_dsl
 from torch._inductor import cpu_vec_isa
-net = tnn_dsl.loads(sys.stdin.read(), "small.thn")
+net = tnn_dsl.loads(sys.stdin.read(), "tiny.thn")
 m = tnn_dsl.compile(net, "torch", torch_compile=True)
 p = m.init_params(seed=0)
 with torch.no_grad():
@@ -361,7 +371,7 @@ def test_compiled_scans_leave_the_process_vectorisation_as_it_was(tmp_path):
     import sys
 
     env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
-    res = subprocess.run([sys.executable, "-c", _VEC_PROBE], input=SMALL, capture_output=True, text=True, env=env,
+    res = subprocess.run([sys.executable, "-c", _VEC_PROBE], input=_TINY, capture_output=True, text=True, env=env,
                          timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.startswith("True"), res.stdout
