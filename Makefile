@@ -35,14 +35,14 @@ browser:
 	  else echo "note: install chromium (sudo apt-get install chromium) to run the browser tests"; fi; }
 
 test: $(STAMP) lint browser
-	$(PY) -m pytest -q -n $(JOBS) --dist worksteal -m "not slow" --durations=25 tests
+	$(PY) -m pytest -q -n $(JOBS) -m "not slow" --durations=25 tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check tnn_dsl tests benchmarks examples
 	$(VENV)/bin/lint-imports
 
 test-all: $(STAMP) browser
-	$(PY) -m pytest -q -n $(JOBS) --dist worksteal tests
+	$(PY) -m pytest -q -n $(JOBS) tests
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
