@@ -278,20 +278,38 @@ def test_adjoint_matches_jax_on_every_network(path):
 
 
 def test_adjoint_float32_two_samples_and_no_second_derivative():
-    """A float32 model over the shortest rollout (two samples, one step): the gradient matches eager torch to
-    float32 round-off; a backward pass that would build a graph for second derivatives raises (they would miss the
-    rollout's part) instead of giving a silently partial answer."""
+    """A float32 model over the shortest rollout (two samples, one step): the gradient is as accurate as eager
+    torch's in float32 — both within float32 round-off of the float64 gradient at the same (float32) values; a
+    backward pass that would build a graph for second derivatives raises (they would miss the rollout's part)
+    instead of giving a silently partial answer.
+
+    The reference is float64, not eager float32: the two float32 computations sum in different orders, and a small
+    gradient that is a sum of large terms carries an error of order ``eps32 × the largest gradient`` in either
+    (measured 2026-11-27: ``R_b_amb``'s, 5.7e-4, is off by 8.3e-8 eager and 1.0e-8 compiled, so eager against
+    compiled missed a 1e-4 relative bound)."""
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc = tnn_dsl.compile(net, "torch", dtype="float32", torch_compile=True)
     me = tnn_dsl.compile(net, "torch", dtype="float32")
-    p_np = nets.random_params(tnn_dsl.compile(net, "numpy"), 5)
+    p_np = {k: np.asarray(v, np.float32).astype(np.float64)
+            for k, v in nets.random_params(tnn_dsl.compile(net, "numpy"), 5).items()}
     T0, U = _inputs(me, 2, 2)
     T0, U = T0.astype(np.float32), U.astype(np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
         got = _torch_grads(mc, p_np, T0, U)
     assert _adjoint_used(mc)
-    _assert_close(_torch_grads(me, p_np, T0, U), got, atol=1e-3, rtol=1e-4)
+    exact = _torch_grads(tnn_dsl.compile(net, "torch"), p_np, T0.astype(np.float64), U.astype(np.float64))
+    eager = _torch_grads(me, p_np, T0, U)
+    scale = max(float(np.max(np.abs(v))) for k, v in exact.items() if k != "states" and v.size)
+    for k, v in exact.items():
+        if not v.size:
+            continue
+        # float32 round-off: 1e-3 K on the states; a gradient within 1e-4 of itself plus 4 eps32 times the largest
+        tol = 1e-3 if k == "states" else (1e-4 * float(np.max(np.abs(v)))
+                                          + 4 * float(np.finfo(np.float32).eps) * scale)
+        for name, res in (("compiled", got), ("eager", eager)):
+            err = float(np.max(np.abs(res[k] - v)))
+            assert err <= tol, (name, k, err, tol)
     p = {k: v.requires_grad_(True) for k, v in mc.from_numpy(p_np).items()}
     s, _ = mc.rollout(p, torch.as_tensor(T0), torch.as_tensor(U), 1.0)
     with pytest.raises(NotImplementedError, match="second derivatives.*torch_compile=False"):
