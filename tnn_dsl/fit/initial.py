@@ -292,7 +292,8 @@ class _BurnInFit:
                 x_new[:ns] = np.clip(x_new[:ns], bounds[0], bounds[1])
             moved = x_new - x  # the step taken (a state held on a bound does not move)
             x = x_new
-            decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
+            with np.errstate(over="ignore", invalid="ignore"):  # huge sensitivities: inf, the loop goes on
+                decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
             if float(np.max(np.abs(moved), initial=0.0)) < 1e-7 or decrement < GN_DECREMENT_TOL:
                 break
         self.held = ([] if bounds is None else
