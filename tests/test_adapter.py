@@ -108,3 +108,38 @@ def test_compiled_models_satisfy_the_protocol(backend):
     model = tnn_dsl.compile(net, backend=backend)
     assert isinstance(model, CompiledModel)
     assert backend_of(model).name == backend
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_lean_programs_give_the_default_programs_numbers(backend):
+    """``jit(..., lean=True)`` (XLA's loop emitters on a CPU, issue 18) changes how a program is compiled, not what it
+    computes: case-study M3's rollout (an MLP heat pipe, RK4) and its forward-mode Jacobian agree with the default
+    program's to round-off, and the installed XLA knows the lean options (else they would be silently dropped)."""
+    import tnn_dsl
+    from tnn_dsl.compiler.backends.adapter import _lean_options_accepted
+    from tnn_dsl.studies.casestudy import network_path
+
+    model = tnn_dsl.compile(tnn_dsl.load(network_path("peltier_heatpipe/m3.thn")), backend=backend)
+    B = backend_of(model)
+    p = model.init_params(seed=1)
+    u = B.asarray(np.random.default_rng(0).uniform(0.0, 1.0, (300, len(model.input_names))) + 0.5)
+    T0 = B.asarray(np.full(len(model.state_names), 300.0))
+
+    def run(T):
+        return model.rollout(p, T, u, 1.0)[1]
+
+    eye = B.asarray(np.eye(len(model.state_names)))
+
+    def jac(T):
+        return B.batched_jvp(run, (T,), (eye,))
+
+    for f in (run, jac):
+        ref = B.numpy(B.jit(B.no_grad(f) if f is run else f)(T0))
+        lean = B.numpy(B.jit(B.no_grad(f) if f is run else f, lean=True)(T0))
+        assert np.all(np.isfinite(ref))
+        np.testing.assert_allclose(lean, ref, rtol=1e-11, atol=1e-11 * np.abs(ref).max())
+    if backend == "jax":
+        assert _lean_options_accepted()
+        assert B.lean_options() == {"xla_cpu_use_fusion_emitters": False}
+    else:
+        assert B.lean_options() is None

@@ -297,15 +297,18 @@ class _Engine:
                             B.xp.ones(tuple(U.shape[:-1]) + (nf,), dtype=B.dtype)], -1)
             return B.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
 
-        jac_j, jac_forced_j, jac_diff_j = B.jit(jac_chunk), B.jit(jac_forced), B.jit(B.no_grad(jac_diff))
-        self._sim = B.jit(B.no_grad(simulate))
+        # every program here is compiled for one network of one diagnosis and called a few hundred times at most:
+        # XLA's lean options (``Backend.jit``), half the compilation time and a fraction of its memory (issue 18)
+        jit = lambda f: B.jit(f, lean=True)  # noqa: E731
+        jac_j, jac_forced_j, jac_diff_j = jit(jac_chunk), jit(jac_forced), jit(B.no_grad(jac_diff))
+        self._sim = jit(B.no_grad(simulate))
         # the training SSE of a trial step needs no held-out file (a third of the case study's rows)
-        self._sim_train = B.jit(B.no_grad(simulate_train)) if n_sc < len(exps) else (lambda p, sim=self._sim: sim(p)[0])
+        self._sim_train = jit(B.no_grad(simulate_train)) if n_sc < len(exps) else (lambda p, sim=self._sim: sim(p)[0])
         self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
         self._jac_diff = lambda base, steps, idx: jac_diff_j(base, steps, B.asarray(idx))  # noqa: E731
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
-        self._point = B.jit(point)
-        self._inv_cap = B.jit(inv_cap)
+        self._point = jit(point)
+        self._inv_cap = jit(inv_cap)
         self._to = B.tree
         # what goes straight into a compiled JAX program: float64 numpy arrays, which the call transfers itself
         # (``B.tree``'s per-array ``jnp.asarray`` took 2.4 ms for the nominal case study's 43 parameters, as long as

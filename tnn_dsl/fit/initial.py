@@ -228,13 +228,14 @@ class _BurnInFit:
                 p[k] = x[ns + i] + 0.0 * params[k]
             return model.rollout(p, x[:ns], U, float(dt), integrator=integrator, substeps=substeps)[1]
 
+        # the burn-in's programs run a few Gauss–Newton iterations per estimate: XLA's lean options (``Backend.jit``)
         if n_unknowns > n_readings:  # a large network: one reverse pass per reading, not a tangent per state
-            self.fy = B.jit(B.no_grad(outputs)) if B.name == "jax" else B.no_grad(outputs)
+            self.fy = B.jit(B.no_grad(outputs), lean=True) if B.name == "jax" else B.no_grad(outputs)
             self.fJ = _reverse_jacobian(B, outputs, n_readings)
         elif B.name == "jax":
             jax = B.jax
-            self.fy = jax.jit(outputs)
-            self.fJ = jax.jit(lambda p, U, T0: jax.jacfwd(lambda T: outputs(p, U, T))(T0))
+            self.fy = B.jit(outputs, lean=True)
+            self.fJ = B.jit(lambda p, U, T0: jax.jacfwd(lambda T: outputs(p, U, T))(T0), lean=True)
         elif not pe_names and getattr(model, "torch_compile", False):
             # compiled torch: forward mode (torch.func) cannot call the compiled rollout and runs eager, about
             # 300 µs a step; central differences over one batched compiled rollout cost about 1 µs a sequence-step
@@ -363,10 +364,11 @@ def _reverse_jacobian(B: Any, outputs: Any, n_readings: int) -> Any:
     if B.name == "jax":
         jax, jnp = B.jax, B.xp
 
-        @jax.jit
         def chunk_rows(p, U, x, E):
             _, vjp = jax.vjp(lambda T: outputs(p, U, T), x)
             return jax.vmap(lambda e: vjp(e)[0])(E)
+
+        chunk_rows = B.jit(chunk_rows, lean=True)
 
         def J(p, U, x):
             y_shape = jax.eval_shape(lambda T: outputs(p, U, T), x).shape
