@@ -504,6 +504,7 @@ def main(argv=None) -> int:
     cache = os.path.join(tempfile.gettempdir(), f"tnn_diagnose_suite_jax_cache_{os.getuid()}")
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_compilation_cache_max_size", 2**31)  # a limit turns on the file lock
 
     noises = tuple(float(x) for x in a.noise.split(",")) if a.noise else ((0.01,) if a.quick else NOISES)
     seeds = range(a.seeds if a.seeds is not None else (1 if a.quick else 2))

@@ -38,6 +38,7 @@ def main(argv=None) -> int:
     if a.cache:
         jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="tnn_small_diag_cache_"))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_compilation_cache_max_size", 2**31)  # a limit turns on the file lock
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     counts: collections.Counter = collections.Counter()
     seconds: dict[str, float] = collections.defaultdict(float)

@@ -10,6 +10,13 @@ NO_SHARED_JAX_CACHE_ENV = "TNN_TEST_NO_JAX_CACHE"
 """Set to 1 to run the tests without the session's shared JAX compilation cache."""
 
 
+JAX_CACHE_MAX_BYTES = 2**31
+"""A size limit for the tests' JAX compilation caches. Any limit turns on JAX's file lock around each entry's read
+and write; without one an entry is written in place, and a worker or doctor thread reading it meanwhile got a
+truncated program ("Error reading persistent compilation cache entry for 'jit__lambda': … truncated stream", clean
+clone of 2026-11-28; XLA then compiled it again)."""
+
+
 def _jax_cache_dir(config) -> str:
     """One JAX persistent compilation cache for the whole test session, shared by the xdist workers (their parent is
     the controlling pytest process): the same networks are compiled in many tests, and a program read back from the
@@ -24,6 +31,7 @@ def pytest_configure(config):
 
         jax.config.update("jax_compilation_cache_dir", _jax_cache_dir(config))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_compilation_cache_max_size", JAX_CACHE_MAX_BYTES)
     # The networks are small: torch's intra-op threads only add synchronisation (measured 47× slower per
     # batched step with 2 threads than with 1 on the 2-core CI machine, benchmarks/bench_rollout.py
     # --torch-threads), and pytest-xdist already runs one worker per core.

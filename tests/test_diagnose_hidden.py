@@ -26,6 +26,7 @@ import re
 import sys
 
 import pytest
+from conftest import JAX_CACHE_MAX_BYTES
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -48,10 +49,12 @@ CASES = {c.name: c for c in S.CASES}
 def _jax_compilation_cache(tmp_path_factory):
     import jax
 
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_compilation_cache_max_size")
     old = {n: getattr(jax.config, n) for n in names}
     jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_compilation_cache_max_size", JAX_CACHE_MAX_BYTES)  # the file lock (conftest.py)
     yield
     for n, v in old.items():
         jax.config.update(n, v)
