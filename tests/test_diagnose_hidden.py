@@ -204,9 +204,11 @@ def test_fast_planted_effect_is_found(name):
 def test_a_pump_column_changing_a_heat_exchanger_is_found_on_the_case_study():
     """A pump column changing the heat exchanger's UA (noise-free quick run). ``f2.mdot``, ``f2.cp`` and ``f2.UA``
     depending on it have the same linearised correction, so one of them is fitted for all (the others are fitted in
-    its place when its fit is not physical: ``fit_twins``); before the start-up transient of a fitted initial state
-    was left out of the plausibility ranges, every one was rejected (the Peltier's cold side at 661 °C in the first
-    seconds) and nothing was accepted. The answer names the heat exchanger f2 depending on the pump, and pays."""
+    its place when its fit is not physical, and beside it when it leads its round: ``fit_twins``); before the start-up
+    transient of a fitted initial state was left out of the plausibility ranges, every one was rejected (the
+    Peltier's cold side at 661 °C in the first seconds) and nothing was accepted; while only the twin round-off put
+    first was fitted, ``f2.mdot`` was accepted at ÷1.47. The answer names the heat exchanger f2 depending on the
+    pump, and pays."""
     r = S.run_case(CASES["casestudy/column_dependence"], noise=0.0, seed=0, quick=True)
     first = r["first_answer"] or ""
     named = {f"param_dependence:f2.{p}:pump" for p in ("UA", "mdot", "cp")}

@@ -1,7 +1,7 @@
 """Which candidates a round of the doctor fits, and from where (doctor/session.py): the candidates tied with the
-shortlist by the score test, the twins of a fit that does not pay, the second start from the values written in
-the file for the constants the fit moved far, and the final convergence fit that may not lose on held-out data.
-Each rule's whole-run check is a suite case (``benchmarks/diagnose_suite.py``; the slow tests of
+shortlist by the score test, the twins of a fit that does not pay and of the round's best fit, the second start from
+the values written in the file for the constants the fit moved far, and the final convergence fit that may not lose
+on held-out data. Each rule's whole-run check is a suite case (``benchmarks/diagnose_suite.py``; the slow tests of
 ``test_diagnose_hidden.py``); these are their fast variants on the rules themselves."""
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def test_candidates_the_score_test_cannot_order_are_fitted_beyond_the_shortlist(
 
 def test_the_twin_of_a_fit_that_does_not_pay_is_fitted():
     """``f2.mdot`` depending on the pump column (physical, but 0.079 → 0.093 K held out) stands for its exact twins;
-    ``f2.UA``, the planted cause, is fitted in its place. A twin of a fit that pays is not."""
+    ``f2.UA``, the planted cause, is fitted in its place."""
     mdot = _entry("param_dependence", "f2.mdot", ["pump"], 0.9958, np.ones(10))
     ua = _entry("param_dependence", "f2.UA", ["pump"], 0.9958, np.ones(10))
     mdot["same"] = [ua]
@@ -59,8 +59,31 @@ def test_the_twin_of_a_fit_that_does_not_pay_is_fitted():
     ns = SimpleNamespace(current_val=(0.0786, 0.14, 5.0), fit_extra=lambda todo, why, current: asked.extend(todo))
     _Session.fit_twins(ns, [{"score": mdot, "val_mae": 0.0931, "physical": "ok"}], {})
     assert asked == [ua]
+
+
+def test_the_equally_physical_twins_of_the_rounds_best_fit_are_fitted_beside_it():
+    """``f2.UA``, ``f2.mdot`` and ``f2.cp`` depending on the pump column score the same to eight digits; when round-off
+    put ``f2.mdot`` first it paid (÷1.47) and was accepted while the planted ``f2.UA`` pays ÷2.82. The round's best
+    paying fit has its equally physical twins fitted beside it (two at most); a less physical twin (a heat load with
+    the same linearised correction) and the twins of a fit that pays less are not."""
+    mdot = _entry("param_dependence", "f2.mdot", ["pump"], 0.9958, np.ones(10))
+    cp = _entry("param_dependence", "f2.cp", ["pump"], 0.9958, np.ones(10))
+    ua = _entry("param_dependence", "f2.UA", ["pump"], 0.9958, np.ones(10))
+    r_hp = _entry("param_dependence", "R_hp1", ["pump"], 0.9958, np.ones(10))
+    load = _entry("heat_load", "Q[hx2]", ["pump"], 0.9958, np.ones(10))
+    load["place"] = 3
+    mdot["same"] = [load, cp, ua, r_hp]
+    other = _entry("param_dependence", "R_hp2", ["T(hp)"], 0.90, np.arange(10.0))
+    other_twin = _entry("param_dependence", "R_hp3", ["T(hp)"], 0.90, np.arange(10.0))
+    other["same"] = [other_twin]
+    asked = []
+    ns = SimpleNamespace(current_val=(0.0355, 0.14, 5.0), fit_extra=lambda todo, why, current: asked.extend(todo))
+    _Session.fit_twins(ns, [{"score": other, "val_mae": 0.030, "physical": "ok"},
+                            {"score": mdot, "val_mae": 0.0241, "physical": "ok"}], {})
+    assert asked == [cp, ua]
     asked.clear()
-    _Session.fit_twins(ns, [{"score": mdot, "val_mae": 0.0084, "physical": "ok"}], {})
+    mdot["same"] = [load]
+    _Session.fit_twins(ns, [{"score": mdot, "val_mae": 0.0241, "physical": "ok"}], {})
     assert asked == []
 
 
