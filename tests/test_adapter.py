@@ -143,3 +143,30 @@ def test_lean_programs_give_the_default_programs_numbers(backend):
         assert B.lean_options() == {"xla_cpu_use_fusion_emitters": False}
     else:
         assert B.lean_options() is None
+
+
+def test_the_models_point_programs_and_steady_state_are_lean_from_python_and_nested_in_a_program():
+    """The model's steady state and point evaluations (``LEAN_PROGRAMS``) are compiled with the lean options when
+    called from Python, with the default inside another program (JAX refuses compiler options on a nested ``jit``:
+    the doctor's Jacobians call ``model.rhs`` inside theirs): both give the eager numbers to round-off."""
+    import jax
+
+    import tnn_dsl
+    from tnn_dsl.compiler.model import LEAN_PROGRAMS
+    from tnn_dsl.studies.casestudy import network_path
+
+    assert {"steady", "rhs", "outputs", "heat_flows"} <= set(LEAN_PROGRAMS) and "rollout" not in LEAN_PROGRAMS
+    model = tnn_dsl.compile(tnn_dsl.load(network_path("peltier_heatpipe/m3.thn")), backend="jax")
+    p = model.init_params(seed=1)
+    u = np.full(len(model.input_names), 1.0)
+    T = np.full(len(model.state_names), 300.0)
+    top = {"rhs": model.rhs(p, T, u), "outputs": model.outputs(p, T, u), "steady": model.steady_state(p, u)}
+    assert {k[0] for k in model._jit_cache if isinstance(k, tuple) and k[-1] is True} >= {"rhs", "outputs", "steady"}
+    nested = jax.jit(lambda T, u: (model.rhs(p, T, u), model.outputs(p, T, u), model.steady_state(p, u)))(T, u)
+    batched = jax.vmap(lambda T: model.rhs(p, T, u))(np.stack([T, T + 1.0]))
+    eager = model._core.rhs(model._prepare(p), jax.numpy.asarray(T), jax.numpy.asarray(u))
+    for a, b in zip((top["rhs"], top["outputs"], top["steady"]), nested):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(top["rhs"]), np.asarray(eager), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(batched[0]), np.asarray(top["rhs"]), rtol=1e-12, atol=1e-15)
+    assert np.all(np.isfinite(np.asarray(top["steady"])))
