@@ -79,3 +79,46 @@ def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
                 time_limit=20.0)
     assert r["choice"] == "linear", r
     assert "learn U as linear(Q)" in print_thn(r["network"])
+
+
+class _Trained:
+    """What ``compare`` reads of a trained model: held-out predictions, how the training stopped, the parameters."""
+
+    def __init__(self, err: np.ndarray, stopped: str, k: int):
+        self.err, self.meta, self.k = err, {"stopped": stopped}, k
+
+    def predict(self, vals, check=False):
+        return [{"measured": self.err, "y": np.zeros_like(self.err)}]
+
+    def compiled(self):
+        spec = type("Spec", (), {"shape": (self.k,), "trainable": True})
+        return type("M", (), {"param_specs": {"w": spec}})
+
+
+@pytest.mark.parametrize("mlp_pays", [False, True])
+@pytest.mark.parametrize("cut", [None, "linear", "mlp"])
+def test_a_training_cut_by_the_time_limit_leaves_the_answer_undecided_only_where_it_could_change_it(
+        monkeypatch, mlp_pays, cut):
+    """The check's trainings run a fixed schedule and the time limit only caps them; on the case study, two
+    trainings side by side on a contended host cut the MLP at 60 s (p = 0.29) where one at a time it finished
+    (p = 0.062). An MLP cut short that does not pay, or a linear law cut short against an MLP that pays, is not an
+    answer: ``decided`` is False, the linear law is kept and the reason names the cut and the limit. A cut that
+    cannot change the answer (the MLP pays though cut, the linear law loses though cut) leaves it decided."""
+    rng = np.random.default_rng(0)
+    e_lin = rng.normal(0.0, 0.05, 2000)
+    e_mlp = e_lin * (0.3 if mlp_pays else 0.99)
+
+    def fake_train(variant, train, val, **kw):
+        is_mlp = any(fn.kind == "mlp" for fn in variant.learned)
+        form = "mlp" if is_mlp else "linear"
+        return _Trained(e_mlp if is_mlp else e_lin, "time_limit" if form == cut else "completed", 45 if is_mlp else 8)
+
+    monkeypatch.setattr("tnn_dsl.fit.train", fake_train)
+    r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0)
+    undecided = (cut == "mlp" and not mlp_pays) or (cut == "linear" and mlp_pays)
+    assert r["decided"] is (not undecided), r["reason"]
+    if undecided:
+        assert r["choice"] == "linear" and "not decided" in r["reason"] and "60 s" in r["reason"], r["reason"]
+        assert f"the {cut} variant" in r["reason"] and "--mlp-time" in r["reason"]
+    else:
+        assert r["choice"] == ("mlp" if mlp_pays else "linear"), r["reason"]

@@ -13,6 +13,15 @@ at least ``MIN_GAIN``).
 
 Both variants start from the same nominal values and go through the same trainer, so neither is favoured by
 the doctor's own Levenberg–Marquardt fit.
+
+Each training runs the trainer's fixed schedule (its default epochs, early stopping and L-BFGS iterations), so the
+answer does not depend on the machine — unless the time limit (``mlp_time``, 60 s by default) cuts a training
+short. A cut only matters when it could change the answer: an MLP stopped early that does not pay might with its
+whole schedule, a linear law stopped early makes an MLP look better than it is. Then the check says it did not
+decide (``decided: False``, the linear law kept, the reason naming the cut training and the limit to raise).
+Measured on the case study (``python benchmarks/bench_diagnose.py --threads 1,2`` on a contended host,
+2026-11-28): one training at a time the MLP finished its schedule in 54 s (p = 0.062); two side by side it was
+stopped at 60 s (p = 0.29) — the same data, two answers, both reported as decided before this.
 """
 
 from __future__ import annotations
@@ -63,9 +72,10 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     """Train the extension ``net`` as it is (the doctor's linear functions, of ``targets``) and with those as MLPs
     (:func:`mlp_variant`) on ``train`` (Experiments), measure both on ``val`` (Experiments; free runs). Returns
     None when there is no linear function to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max,
-    K; trainable parameter count), ``dm_stat``, ``p_value``, ``mae_gain``, ``choice`` ("mlp" or "linear"),
-    ``reason``, ``network`` (the chosen variant), ``n_clauses``. With ``threads`` ≥ 2 the two trainings run side by
-    side (their progress lines are said in order when both are done)."""
+    K; trainable parameter count; seconds; how its training stopped), ``dm_stat``, ``p_value``, ``mae_gain``,
+    ``choice`` ("mlp" or "linear"), ``decided`` (False: a training cut by ``time_limit`` s could have changed the
+    answer, the linear law is kept), ``reason``, ``network`` (the chosen variant), ``n_clauses``. With ``threads``
+    ≥ 2 the two trainings run side by side (their progress lines are said in order when both are done)."""
     from ..fit import train as train_model
 
     net_mlp, n = mlp_variant(net, targets)
@@ -93,7 +103,18 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     stat, p, n_eff = held_out_test(errors["linear"], errors["mlp"], k_extra)
     gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
     out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
-    if p < P_ACCEPT and gain >= MIN_GAIN:
+    pays = p < P_ACCEPT and gain >= MIN_GAIN
+    # a training the time limit cut short that could have changed the answer: the MLP's when it did not pay, the
+    # linear law's when the MLP did
+    cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") == "time_limit"]
+    out["decided"] = not cut
+    if cut:
+        out.update(choice="linear", network=net,
+                   reason=(f"not decided: the {cut[0]} variant's training was stopped at the {time_limit:.0f} s limit "
+                           f"before its schedule ended (so far the MLP {'pays' if pays else 'does not pay'}, p = "
+                           f"{p:.2g}); the linear law is kept — a faster machine or a longer limit (mlp_time, "
+                           f"tnnc diagnose --mlp-time S) decides"))
+    elif pays:
         out.update(choice="mlp", network=net_mlp,
                    reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")
     else:
