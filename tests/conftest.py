@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 
 NO_SHARED_JAX_CACHE_ENV = "TNN_TEST_NO_JAX_CACHE"
@@ -15,6 +16,14 @@ JAX_CACHE_MAX_BYTES = 2**31
 and write; without one an entry is written in place, and a worker or doctor thread reading it meanwhile got a
 truncated program ("Error reading persistent compilation cache entry for 'jit__lambda': … truncated stream", clean
 clone of 2026-11-28; XLA then compiled it again)."""
+
+
+TNNC_CTRL_C = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+               "from tnn_dsl.cli import main; sys.exit(main())"]
+"""``tnnc`` in a child process that takes Ctrl-C (SIGINT) as at a terminal, however the test run was started. A shell
+without job control starts a background command with SIGINT ignored (``make test &`` in a script, ``nohup``), the
+children inherit that, and Python then installs no KeyboardInterrupt handler: a clean clone's ``make test`` started
+that way (2026-11-28 06:04) failed both Ctrl-C tests, the training running on for 300 s and the fleet exiting 0."""
 
 
 def _jax_cache_dir(config) -> str:

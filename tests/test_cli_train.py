@@ -162,8 +162,9 @@ def test_ctrl_c_keeps_best_model(files, tmp_path):
     import time
 
     out = tmp_path / "model"
-    cmd = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())",
-           *_train_args(files, out, "jax", "--epochs", "1000000", "--patience", "0")]
+    from conftest import TNNC_CTRL_C
+
+    cmd = [*TNNC_CTRL_C, *_train_args(files, out, "jax", "--epochs", "1000000", "--patience", "0")]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
                             cwd=str(Path(__file__).resolve().parents[1]))

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import TNNC_CTRL_C
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -313,9 +314,10 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     fl = _fleet(tmp_path, n=5, faulty=0, seed=4)
     out = tmp_path / "out"
     workers = "2" if how == "ctrl-c on ray" else "0"
-    cmd = TNNC + ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers",
-                  workers, "--batch", "1", "--quiet"]  # one unit per task: the units finish one by one
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    args = ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers", workers,
+            "--batch", "1", "--quiet"]  # one unit per task: the units finish one by one
+    cmd = TNNC + args
+    proc = subprocess.Popen(TNNC_CTRL_C + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first = _wait_for_results(out, 1, proc)
         proc.send_signal(signal.SIGINT if how == "ctrl-c on ray" else signal.SIGKILL)
