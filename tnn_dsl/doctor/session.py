@@ -671,7 +671,8 @@ class _Session:
         lead = min(paying, key=lambda f: f["val_mae"], default=None)
         equal = ([t for t in lead["score"].get("same", []) if t["cand"].kind not in STRUCTURAL_KINDS
                   and t["place"] <= lead["score"]["place"]][:2] if lead is not None else [])
-        todo = [t for i, t in enumerate(bad + idle + equal) if not any(t is u for u in (bad + idle)[:i])]
+        todo = bad + idle
+        todo += [t for t in equal if not any(t is u for u in todo)]
         return self.fit_extra(todo, "an exact twin of a fit the score test cannot tell it from", current)
 
     def fit_replacements(self, fits: list[dict], scored: list[dict], current: dict[str, tuple[float, float]]
