@@ -96,3 +96,24 @@ def test_difference_jacobian_matches_forward_mode_and_fits_reach_the_same_optimu
         assert not info["capped"], (method, info)
         sse[method] = info["sse"]
     assert sse["difference"] == pytest.approx(sse["forward"], rel=1e-9)
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_crawling_candidate_fit_stops_when_its_last_jacobians_gained_little(backend, monkeypatch):
+    """``stall=True`` (the candidates' fits) stops a fit whose training SSE fell by less than ``STALL_REL`` over its
+    last ``STALL_JACOBIANS`` fresh Jacobians: not capped, fewer Jacobians than the fit run until a step fails, and an
+    SSE whose distance to that fit's is of the order of ``STALL_REL``. A zero ``STALL_REL`` never stops a fit."""
+    eng, free = _nominal_engine(backend)
+    start = eng.apply(eng.params, free, np.full(len(free), 0.4), trust=False)
+    runs = {}
+    for stall in (False, True):
+        eng.params = start
+        runs[stall] = eng.fit(free, max_iter=200, tol=1e-12, stall=stall)
+    full, stopped = runs[False], runs[True]
+    assert not full["capped"] and not stopped["capped"], runs
+    assert stopped["jacobians"] < full["jacobians"], runs
+    assert full["sse"] <= stopped["sse"] <= full["sse"] * (1 + 4 * E.STALL_REL) + 1e-12, runs
+    monkeypatch.setattr(E, "STALL_REL", 0.0)
+    eng.params = start
+    never = eng.fit(free, max_iter=200, tol=1e-12, stall=True)
+    assert never["jacobians"] == full["jacobians"] and never["sse"] == pytest.approx(full["sse"], rel=1e-12)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from tnn_dsl.doctor.base import Candidate, Column
 from tnn_dsl.doctor.fitting import refit_from_written, written_values
@@ -256,3 +257,66 @@ def test_of_the_extended_models_two_starts_only_the_one_ahead_goes_on():
     eng = _TwoStarts(written_first=0.8, written_val=1.5)
     assert not _second_start(eng)
     assert eng.calls == [(2.0, FIT_ITER_FIRST), (1.5, rest), (0.02, rest)] and eng._at() == 0.01
+
+
+def test_fluid_mdot_and_cp_are_product_partners_only_when_each_is_its_own_fixed_constant():
+    """``f.mdot`` and ``f.cp`` enter a fluid only as ṁ·c_p: partners, unless one is free, read by another parameter's
+    expression or shared with another element."""
+    import os
+
+    import tnn_dsl
+    from tnn_dsl.doctor.candidates import product_partners
+    from tnn_dsl.ir import Ref
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    net = tnn_dsl.load(os.path.join(root, "networks", "peltier_heatpipe", "m1.thn"))
+    assert product_partners(net) == {"f1.mdot": "f1.cp", "f1.cp": "f1.mdot", "f2.mdot": "f2.cp", "f2.cp": "f2.mdot"}
+    free = net.model_copy(update={"params": [p.model_copy(update={"free": True}) if p.name == "f1.cp" else p
+                                             for p in net.params]})
+    assert set(product_partners(free)) == {"f2.mdot", "f2.cp"}
+    shared = net.model_copy(update={"fluids": [f.model_copy(update={"cp": "f1.cp"}) if f.name == "f2" else f
+                                               for f in net.fluids]})
+    assert product_partners(shared) == {}
+    read = net.model_copy(update={"params": [p.model_copy(update={"expr": Ref(name="f2.cp")}) if p.name == "f1.cp"
+                                             else p for p in net.params]})
+    assert set(product_partners(read)) == set()
+
+
+def test_a_dependence_of_cp_is_taken_from_the_fit_of_the_same_dependence_of_mdot():
+    """The doctor fits ``f2.mdot`` depending on u1; ``f2.cp`` depending on u1 is the same model (ṁ·c_p): its fit is
+    that fit's values on its own columns (the same training SSE to 1e-9), and a fit of its own from scratch reaches
+    the same SSE. ``f2.UA`` depending on u1 is another model, and a finding already on ``f2.mdot`` ends the
+    partnership."""
+    import os
+
+    import tnn_dsl
+    import tnn_dsl.doctor.engine as E
+    from tnn_dsl.doctor.candidates import build_extended
+    from tnn_dsl.studies.planted import plant
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    net = tnn_dsl.load(os.path.join(root, "networks", "peltier_heatpipe", "m1.thn"))
+    pl = plant(net, {"I": (0.0, 3.0), "u1": (0.0, 1.0)}, "param_dependence", "f2.mdot", "u1", 0.5, n_train=400,
+               n_val=100, hold=(20, 60), noise=0.002)
+    exps, tm, vm = E._split_masks(pl.train, pl.val)
+    keys = [f"param_dependence:{t}:u1" for t in ("f2.mdot", "f2.cp", "f2.UA")]
+    ext = build_extended(net, ["I", "u1"], kinds=("param_dependence",), only=set(keys))
+    eng, _, free, cols = E._make_engine(ext, net, exps, tm, vm, "jax", E._State(), {}, keys)
+    mdot, cp, ua = (next(c for c in ext.candidates if c.key == k) for k in keys)
+    start = {k: np.array(v, copy=True) for k, v in eng.params.items()}
+    info = eng.fit(list(free) + cols[mdot.key], max_iter=40, tol=1e-10)
+    src = {"cand": mdot, "parts": [mdot], "cand_cols": {mdot.key: cols[mdot.key]}, "eng": eng, "params": eng.params,
+           "train_sse": info["sse"]}
+    assert info["sse"] < 0.2 * eng.sse(start)  # the planted dependence, found
+    ns = SimpleNamespace(net_x=net, accepted=[], round_fits=[src])
+    eng.params = start
+    got = _Session.same_model_fit(ns, [cp], eng, cols)
+    assert got is not None and got[0] is src
+    assert got[2] == pytest.approx(info["sse"], rel=1e-9)
+    assert np.allclose(eng.params["f2.cp"], start["f2.cp"])  # the engine's own values are not touched
+    own = eng.fit(list(free) + cols[cp.key], max_iter=40, tol=1e-10)
+    assert own["sse"] == pytest.approx(info["sse"], rel=1e-6, abs=1e-12)
+    eng.params = start
+    assert _Session.same_model_fit(ns, [ua], eng, cols) is None
+    ns.accepted = [mdot]
+    assert _Session.same_model_fit(ns, [cp], eng, cols) is None

@@ -47,38 +47,64 @@ from ..compiler.learned import monomial_index
 from ..ir import LearnFunction, LearnInput, LearnTarget, Link, Network, Num, Param, Radiation, Ref
 from .base import _AREA_DIM, _DEP_ROLES, _GK_DIM, _K_DIM, Candidate, Column, Extended, _unique_name, refs_in, var_label
 
-__all__ = ["build_extended"]
+__all__ = ["build_extended", "product_partners"]
+
+
+def _element_params(net: Network):
+    """``(parameter name or None, nodes/boundaries)`` for every parameter field of every element of ``net``."""
+    for n in net.nodes:
+        yield n.capacitance, (n.name,)
+    for b in net.boundaries:
+        yield b.temperature, (b.name,)
+    for l in net.links:
+        yield l.value, (l.a, l.b)
+    for r in net.radiations:
+        for p in (r.area, r.emissivity, r.view_factor):
+            yield p, (r.a, r.b)
+    for pe in net.peltiers:
+        for p in (pe.current, pe.seebeck, pe.resistance, pe.r_internal):
+            yield p, (pe.hot, pe.cold)
+    for f in net.fluids:
+        for p in (f.inlet, f.mdot, f.cp, f.ua):
+            yield p, (f.node,)
+    for s in net.sources:
+        yield s.value, (s.node,)
+    for s in net.sensors:
+        yield s.lag, (s.node,)
+        yield s.offset, (s.node,)
+
+
+def product_partners(net: Network) -> dict[str, str]:
+    """Parameters that enter ``net`` only as a product with one other: a fluid's ``mdot`` and ``cp`` (its
+    heat-capacity rate ṁ·c_p, :func:`tnn_dsl.compiler.physics.fluid_conductance`), each a fixed constant used by
+    that fluid alone (no other element, no parameter expression, no ``learn`` clause reads or targets it). Maps each to
+    its partner. A dependence or a wrong value of one is then the same model as the same dependence of the other
+    (written ``nominal + y_scale·z``, ``y_scale`` the nominal: ṁ(1 + z)·c_p = ṁ·c_p(1 + z)); the doctor fits it
+    once (:meth:`tnn_dsl.doctor.session._Session.fit_exact`)."""
+    fields: dict[str, int] = {}
+    for p, _ in _element_params(net):
+        if p:
+            fields[p] = fields.get(p, 0) + 1
+    read = {r for p in net.params for r in refs_in(p.expr)}
+    read |= {li.name for fn in net.learned for li in fn.inputs}
+    learned = set(net.learned_targets())
+    const = {p.name for p in net.params if isinstance(p.expr, Num) and not p.free and not p.per_experiment}
+    out: dict[str, str] = {}
+    for f in net.fluids:
+        m, c = f.mdot, f.cp
+        if (m and c and m != c and all(fields.get(x) == 1 and x in const and x not in read and x not in learned
+                                       for x in (m, c))):
+            out[m], out[c] = c, m
+    return out
 
 
 def _param_nodes(net: Network) -> dict[str, set[str]]:
     """Parameter name → the nodes/boundaries of the element(s) that use it (directly or through a derived
     parameter's expression)."""
     use: dict[str, set[str]] = {}
-
-    def add(p: str | None, *nodes: str):
+    for p, nodes in _element_params(net):
         if p:
             use.setdefault(p, set()).update(nodes)
-
-    for n in net.nodes:
-        add(n.capacitance, n.name)
-    for b in net.boundaries:
-        add(b.temperature, b.name)
-    for l in net.links:
-        add(l.value, l.a, l.b)
-    for r in net.radiations:
-        for p in (r.area, r.emissivity, r.view_factor):
-            add(p, r.a, r.b)
-    for pe in net.peltiers:
-        for p in (pe.current, pe.seebeck, pe.resistance, pe.r_internal):
-            add(p, pe.hot, pe.cold)
-    for f in net.fluids:
-        for p in (f.inlet, f.mdot, f.cp, f.ua):
-            add(p, f.node)
-    for s in net.sources:
-        add(s.value, s.node)
-    for s in net.sensors:
-        add(s.lag, s.node)
-        add(s.offset, s.node)
     # propagate through derived parameters: a param referenced by P's expression is used where P is
     changed = True
     exprs = {p.name: p.expr for p in net.params}

@@ -31,13 +31,14 @@ def written_values(eng: _Engine, params: dict, names: list[str]) -> dict | None:
     return p if n else None
 
 
-def continue_fit(eng: _Engine, act: list[int], info: dict, max_iter: int, deadline, tol: float) -> dict:
+def continue_fit(eng: _Engine, act: list[int], info: dict, max_iter: int, deadline, tol: float,
+                 stall: bool = False) -> dict:
     """A fit (``info``) that stopped at its Jacobian cap still moving, continued from ``eng.params`` to ``max_iter``
     Jacobians in all, its counts summed; ``info`` itself when it converged or had them all (successive halving's
     second stage: :func:`refit_from_written`, the extended model's two starts in ``session.second_start``)."""
     if not (info["capped"] and max_iter > info["jacobians"]):
         return info
-    more = eng.fit(act, max_iter=max_iter - info["jacobians"], deadline=deadline, tol=tol)
+    more = eng.fit(act, max_iter=max_iter - info["jacobians"], deadline=deadline, tol=tol, stall=stall)
     return {**more, "iterations": info["iterations"] + more["iterations"],
             "jacobians": info["jacobians"] + more["jacobians"]}
 
@@ -61,9 +62,9 @@ def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, na
     first = eng.params
     eng.params = start
     t_f = _time.monotonic()
-    info_w = eng.fit(act, max_iter=min(max_iter, FIT_ITER_FIRST), deadline=deadline, tol=1e-4)
+    info_w = eng.fit(act, max_iter=min(max_iter, FIT_ITER_FIRST), deadline=deadline, tol=1e-4, stall=True)
     if info_w["sse"] < info["sse"]:
-        info_w = continue_fit(eng, act, info_w, max_iter, deadline, 1e-4)
+        info_w = continue_fit(eng, act, info_w, max_iter, deadline, 1e-4, stall=True)
     say(f"    fitted again from the written values in {_time.monotonic() - t_f:.1f} s ({info_w['iterations']} "
         f"iterations, {info_w['jacobians']} Jacobians; training SSE {info_w['sse']:.4g} against {info['sse']:.4g} K²)")
     if info_w["sse"] < info["sse"]:
@@ -145,7 +146,7 @@ def _fit_structural(c: Candidate, s_: dict, net_x: Network, varying, extra, kind
     eng, x_s, f_s, c_s = _make_engine(ext_s, net_s, exps, train_mask, val_mask, backend, state, ref, acc_keys)
     act = list(f_s) + [j for k in acc_keys for j in c_s.get(k, [])]
     t_f = _time.monotonic()
-    info = eng.fit(act, max_iter=15, deadline=deadline, tol=1e-4)
+    info = eng.fit(act, max_iter=15, deadline=deadline, tol=1e-4, stall=True)
     say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, {info['jacobians']} "
         "Jacobians, own network)")
     e_after = eng.residual()

@@ -18,7 +18,7 @@ from ..core import THN, Diagnostic, TnnError, check_output, write_text_atomic
 from ..core.memory import release_free_memory
 from ..ir import Input, Network
 from .base import BOUNDED_AT_ZERO_KINDS, STRUCTURAL_KINDS, Candidate, Extended
-from .candidates import build_extended
+from .candidates import build_extended, product_partners
 from .engine import (
     DOCTOR_INIT_RULES,
     FIT_CONTINUE,
@@ -64,6 +64,14 @@ def _joint(a: Candidate, b: Candidate) -> Candidate:
     both are (its ``members``)."""
     return Candidate(a.kind, a.target, a.depends_on + b.depends_on, a.columns + b.columns, fn=a.fn,
                      vars=a.vars, element={**a.element, "probe": True, "members": [a, b]})
+
+
+def _same_model(a: Candidate, b: Candidate, partners: dict[str, str]) -> bool:
+    """``a`` and ``b`` (single-target candidates) are one model written two ways: the same kind, shape and variables
+    on two parameters that enter the network only as their product (``partners``:
+    :func:`.candidates.product_partners`)."""
+    return (a.kind == b.kind and a.k == b.k and a.depends_on == b.depends_on and len(a.members) == len(b.members) == 1
+            and a.element.get("shape") == b.element.get("shape") and partners.get(a.target) == b.target)
 
 
 def _beats(mae: float, other: float) -> bool:
@@ -392,6 +400,7 @@ class _Session:
         self.final_act: list[int] = []
         self.scores_out: list[dict] = []
         self.accepted: list[Candidate] = []
+        self.round_fits: list[dict] = []
         self.promised: set[str] = set()  # curved terms a probe showed to pay: fitted next round whatever their score
         self.current_val = (res.mae, res.max, eng.sse(which="val"))
         self.final_eng, self.final_ext = eng, self.ext0
@@ -418,6 +427,7 @@ class _Session:
         # last round's fits and their networks are done with: their freed arrays and compiled programs go back
         # before the score test
         release_free_memory(collect=True)
+        self.round_fits = []  # this round's exact fits, a later fit of the same model starts from theirs
         scored = self.score(rnd)
         release_free_memory()  # the score test's Jacobian blocks (hundreds of MB on 4 h of data) likewise
         if not scored:
@@ -607,22 +617,74 @@ class _Session:
         (from zero); the result's candidate is then the pair (:func:`_joint`)."""
         e_s, x_s, f_s, c_s = small
         c: Candidate = s_["cand"]
+        parts = [c] + ([extra] if extra else [])
         e_s.params = {k: np.array(v, copy=True) for k, v in start_params.items()}
-        act = list(f_s) + [j for k in acc_keys + [c.key] + ([extra.key] if extra else []) for j in c_s.get(k, [])]
+        act = list(f_s) + [j for k in acc_keys + [p.key for p in parts] for j in c_s.get(k, [])]
         init = np.zeros(len(act))
         for d, j in zip(s_["delta"], c_s.get(c.key, [])):
             init[act.index(j)] = d
+        tell = say or self.say
+        same = self.same_model_fit(parts, e_s, c_s)
         t_f = _time.monotonic()
-        info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4)
-        (say or self.say)(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, "
-                          f"{info['jacobians']} Jacobians{note})")
-        info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline,
-                                  say or self.say)
+        if same is not None:  # the same model at its twin's solution (verified): that fit, written on these columns
+            src, e_s.params, sse = same
+            info = {"sse": sse, "capped": bool(src.get("more"))}
+            prod = sorted({f"{b.target}·{a.target}" for a, b in zip(parts, src["parts"])})
+            tell(f"    the same model as {src['cand'].describe()} ({', '.join(prod)} enter only as one product): its "
+                 f"fit, training SSE {sse:.6g} against {src['train_sse']:.6g} K²")
+        else:
+            info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4, stall=True)
+            tell(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, "
+                 f"{info['jacobians']} Jacobians{note})")
+            info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline, tell)
         f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
-        f.update(act=act, train_sse=info["sse"], more=bool(info["capped"]))
+        f.update(act=act, train_sse=info["sse"], more=bool(info["capped"]), parts=parts,
+                 cand_cols={p.key: list(c_s.get(p.key, [])) for p in parts})
         if info.get("start") == "written":
             f["start"] = "written"
+        if same is not None:
+            f["same_as"] = same[0]["cand"].key
+        self.round_fits.append(f)
         return f
+
+    def same_model_fit(self, parts: list[Candidate], e_s, c_s: dict[str, list[int]]
+                         ) -> tuple[dict, dict, float] | None:
+        """The fit of ``parts`` (a candidate, or a line and its square) on engine ``e_s`` taken from this round's fit
+        of the same model written on the partner parameters (:func:`_same_model`: a fluid's ``cp`` for its ``mdot``):
+        that fit's values, the candidate columns copied in order. Taken only when they reproduce that fit's training
+        SSE to 1e-9 (one simulation): then they are that fit, and fitting again would retrace it. On the case study's
+        second round ``f1.cp`` and ``f1.mdot`` depending on I were each fitted from scratch, as were their
+        sub-models and their probes, every pair along the same path to the same values (about 13 s of a 126 s
+        diagnosis). Returns ``(that fit, the parameters, their training SSE K²)`` or None."""
+        partners = product_partners(self.net_x)
+        if not partners:
+            return None
+        taken = {m.target for a in self.accepted for m in a.members}
+        partners = {a: b for a, b in partners.items() if a not in taken and b not in taken}
+        for src in self.round_fits:
+            sp = src.get("parts") or []
+            if (len(sp) != len(parts) or not all(_same_model(a, b, partners) for a, b in zip(sp, parts))
+                    or not math.isfinite(src["train_sse"])):
+                continue
+            s_eng, s_par = src["eng"], src["params"]
+            s_cols = [s_eng.cols[j] for a in sp for j in src["cand_cols"][a.key]]
+            d_cols = [e_s.cols[j] for a in parts for j in c_s.get(a.key, [])]
+            if len(s_cols) != len(d_cols):
+                continue
+            mine = {col.key for col in s_cols} | {col.key for col in d_cols}
+            p = {k: np.array(v, dtype=float, copy=True) for k, v in e_s.params.items()}
+            for k, v in s_par.items():  # free parameters, initial states, accepted findings
+                if k in p and k not in mine and np.shape(v) == p[k].shape:
+                    p[k] = np.array(v, dtype=float, copy=True)
+            for cs, cd in zip(s_cols, d_cols):
+                flat = p[cd.key].reshape(-1)
+                flat[cd.index] = float(np.asarray(s_par[cs.key]).reshape(-1)[cs.index])
+                p[cd.key] = flat.reshape(p[cd.key].shape)
+            sse = e_s._train_sse(p)[0]
+            # to 1e-9, or round-off where the fit is exact (residuals of 1e-10 K)
+            if abs(sse - src["train_sse"]) <= 1e-9 * src["train_sse"] + 1e-20 * e_s.train_idx.size:
+                return src, p, sse
+        return None
 
     def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
         """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence one after the
@@ -843,7 +905,8 @@ class _Session:
                 say(f"  continuing {c.describe()} ...")
                 e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
                 t_f = _time.monotonic()
-                info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4)
+                info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4,
+                             stall=True)
                 say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations, "
                     f"{info['jacobians']} Jacobians)")
                 return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
