@@ -125,6 +125,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     for rnd in range(1, max_rounds + 1):
         if not run.selection_round(rnd):
             break
+    run.end_rounds()
     release_free_memory(collect=True)  # the rounds' engines, networks and arrays are done with (core.memory)
     run.build_extension()
     release_free_memory()

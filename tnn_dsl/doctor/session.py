@@ -464,6 +464,7 @@ class _Session:
         if chosen is not None and self.ml is not None:
             self.adopt_ml(chosen)
         self.record(fits, scored, chosen, rnd)
+        self.round_fits = []  # their engines and compiled networks go with the round
         if chosen is None:
             self.say(f"round {rnd}: no candidate pays on held-out data")
             return False
@@ -1067,6 +1068,12 @@ class _Session:
             self.ext = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds)
             self.big = None
         self.remaining = self.candidates_now()
+
+    def end_rounds(self) -> None:
+        """After the last round: the score test's extended network (every candidate's column, its compiled
+        simulation and derivatives) and the last round's fits are not needed by the extension or the MLP check."""
+        self.big = None
+        self.round_fits = []
 
     # -- the extension ---------------------------------------------------------------------------------
 
