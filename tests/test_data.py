@@ -437,3 +437,47 @@ def test_real_building_files():
     for e in (bm, lp, dg, ps):
         assert isinstance(e, Experiment) and np.all(np.isfinite(e.inputs))
         assert 250 < np.nanmin(e.outputs) and np.nanmax(e.outputs) < 320  # kelvin, indoor temperatures
+
+
+@settings(max_examples=300, deadline=None)
+@given(cells=st.lists(st.one_of(st.text(alphabet="0123456789.eE+- \t", max_size=8),
+                                st.floats(allow_nan=False).map(repr),
+                                st.sampled_from(["", "nan", "NA", "-", "1,5", "inf", "1_0", "x"])), max_size=12))
+def test_plain_numbers_agree_with_pandas_or_leave_the_column_to_it(cells):
+    """The numeric fast path (no pandas import) reads a column exactly as ``pandas.to_numeric(errors="coerce")``
+    does, or declines it (None) and pandas' parser with its diagnostics decides."""
+    import pandas as pd
+
+    from tnn_dsl.data.tables import _plain_numbers
+
+    text = np.array(cells, dtype=object)
+    got = _plain_numbers(text)
+    if got is None:
+        return
+    want = pd.to_numeric(pd.Series(text, dtype=object).str.strip(), errors="coerce").to_numpy(dtype=np.float64)
+    assert got.shape == want.shape
+    assert np.array_equal(got, want, equal_nan=True), (cells, got, want)
+
+
+def test_reading_a_plain_numeric_csv_does_not_import_pandas(tmp_path):
+    """pandas holds 60–90 MB for the rest of the process (issue 18's diagnosis memory): a CSV of plain numbers, blank
+    cells and a numeric time column is read without it; a missing-value marker still goes through its parser."""
+    import subprocess
+    import sys
+
+    csv = tmp_path / "d.csv"
+    csv.write_text("time,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,10,0,20.5,21\n1,10,0,,21.25\n2,20,5,20.75,21.5\n")
+    marked = tmp_path / "m.csv"
+    marked.write_text("time,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,10,0,20.5,21\n1,10,0,NA,21.25\n2,20,5,20.75,21.5\n")
+    code = ("import sys, json; sys.path.insert(0, sys.argv[1]); import test_data as T; from tnn_dsl.data import "
+            "read_data; out = []\nfor p in sys.argv[2:]:\n    e = read_data(T.tclab_net(), p)[0]\n"
+            "    out.append(['pandas' in sys.modules, e.outputs[:, 0].tolist()])\nprint(json.dumps(out))")
+    res = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent), str(csv), str(marked)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    import json
+
+    (plain_pandas, plain_t1), (marked_pandas, marked_t1) = json.loads(res.stdout.strip().splitlines()[-1])
+    assert plain_pandas is False and marked_pandas is True
+    assert plain_t1[0] == pytest.approx(293.65) and plain_t1[1] != plain_t1[1]  # kelvin; the blank cell is NaN
+    assert marked_t1[1] != marked_t1[1]

@@ -8,7 +8,7 @@ import re
 import numpy as np
 
 from ..core import DataError, Diagnostic
-from .tables import MAX_REPORTED, _find_column, _numeric, _row_list, _Table
+from .tables import MAX_REPORTED, _find_column, _numeric, _plain_numbers, _row_list, _Table
 
 __all__ = ["TIME_NAMES"]
 
@@ -43,6 +43,12 @@ def _suffix_unit(name: str) -> float | None:
 def _as_timestamps(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(seconds since epoch as float64 with NaN for unparsable, ok mask) or None if it is not a time-stamp
     column (fewer than half the cells parse)."""
+    if vals.dtype.kind != "M":
+        if vals.dtype.kind in "fiub" or len(vals) == 0:
+            return None
+        plain = _plain_numbers(np.array(["" if v is None else str(v) for v in vals], dtype=object))
+        if plain is not None and (~np.isnan(plain)).mean() > 0.5:
+            return None  # a column of plain numbers (decided without importing pandas)
     import pandas as pd
 
     if vals.dtype.kind == "M":
@@ -52,8 +58,6 @@ def _as_timestamps(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         ns = s.to_numpy(dtype="datetime64[ns]").astype(np.int64).astype(np.float64)
         ok = ~pd.isna(s).to_numpy()
         return np.where(ok, ns / 1e9, np.nan), ok
-    if vals.dtype.kind in "fiub" or len(vals) == 0:
-        return None
     text = pd.Series(["" if v is None else str(v) for v in vals])
     # a column of plain numbers is not a time-stamp column
     if pd.to_numeric(text, errors="coerce").notna().mean() > 0.5:
