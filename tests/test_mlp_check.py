@@ -122,3 +122,34 @@ def test_a_training_cut_by_the_time_limit_leaves_the_answer_undecided_only_where
         assert f"the {cut} variant" in r["reason"] and "--mlp-time" in r["reason"]
     else:
         assert r["choice"] == ("mlp" if mlp_pays else "linear"), r["reason"]
+
+
+def test_a_training_whose_other_route_the_time_limit_cut_is_reported_as_cut(monkeypatch):
+    """The trainer fits in windows, polishes as single shooting, then fits as single shooting from the start and keeps
+    the better route (``fit.training._best_route``). When the time limit stops that second route, the kept one is
+    whole but the choice is not: the training says ``time_limit``, so the MLP check does not take it as decided. A
+    second route that ends keeps the first route's own status."""
+    import tnn_dsl.fit.training as T
+
+    class _Tr:
+        def __init__(self, stopped: str, score: float):
+            self.stopped, self.score, self.logged = stopped, score, []
+
+        def wants_single_shooting_finish(self) -> bool:
+            return True
+
+        def finish_single_shooting(self, z):
+            return z
+
+        def selection_score(self, z) -> float:
+            return self.score
+
+        def log(self, msg: str) -> None:
+            self.logged.append(msg)
+
+    for second, expect in (("time_limit", "time_limit"), ("completed", "completed")):
+        first, other = _Tr("completed", 1.0), _Tr(second, 2.0)
+        routes = iter([(first, np.zeros(2)), (other, np.ones(2))])
+        monkeypatch.setattr(T, "_fit", lambda *a, **k: next(routes))
+        tr, z, info = T._best_route(None, [], [], T.make_config(None, {}), None, None, None)
+        assert tr is first and tr.stopped == expect and info["single_stopped"] == second

@@ -17,7 +17,9 @@ the doctor's own Levenberg–Marquardt fit.
 Each training runs the trainer's fixed schedule (its default epochs, early stopping and L-BFGS iterations), so the
 answer does not depend on the machine — unless the time limit (``mlp_time``, 60 s by default) cuts a training
 short. A cut only matters when it could change the answer: an MLP stopped early that does not pay might with its
-whole schedule, a linear law stopped early makes an MLP look better than it is. Then the check says it did not
+whole schedule, a linear law stopped early makes an MLP look better than it is (a training is cut when the limit
+stops any of its routes, the single-shooting fit the trainer compares its windowed fit with included:
+``fit.training._best_route``). Then the check says it did not
 decide (``decided: False``, the linear law kept, the reason naming the cut training and the limit to raise).
 Measured on the case study (``python benchmarks/bench_diagnose.py --threads 1,2`` on a contended host,
 2026-11-28): one training at a time the MLP finished its schedule in 54 s (p = 0.062); two side by side it was

@@ -176,9 +176,16 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
     by = "validation MAE" if vals else "free-run training loss"
     if tr_s.stopped not in _CUT_SHORT and b < a:
         tr, z = tr_s, z_s
+    elif tr_s.stopped == "time_limit" and tr.stopped not in _CUT_SHORT:
+        # the route kept finished, but the choice between the two did not: with more time the other might have won,
+        # so the training as a whole was cut by the limit and says so (it said "completed": the doctor's MLP check
+        # took such a training as decided)
+        tr.stopped = "time_limit"
+        tr.log("the time limit stopped the single-shooting route before it ended: the other route is kept, and the "
+               "training reported as cut by the time limit")
     tr.log(f"kept {'single shooting' if tr is tr_s else 'multiple shooting, then single shooting'} "
            f"({by} {min(a, b):.4g} against {max(a, b):.4g})")
-    return tr, z, {"windows_then_single": a, "single": b, "by": by}
+    return tr, z, {"windows_then_single": a, "single": b, "by": by, "single_stopped": tr_s.stopped}
 
 
 def _rollout_meta(tr: _Trainer) -> dict[str, Any]:
