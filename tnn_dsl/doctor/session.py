@@ -643,8 +643,6 @@ class _Session:
                  cand_cols={p.key: list(c_s.get(p.key, [])) for p in parts})
         if info.get("start") == "written":
             f["start"] = "written"
-        if same is not None:
-            f["same_as"] = same[0]["cand"].key
         self.round_fits.append(f)
         return f
 
