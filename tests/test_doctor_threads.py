@@ -21,13 +21,23 @@ BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}  # heater fraction (SI of [%])
 def test_one_thread_and_two_give_the_same_diagnosis():
     """A dependence planted in TCLab data (U1 grows with T(h1)), three candidates fitted per round and the best
     continued: one thread and two name the same findings in the same order with the same values, word for word.
-    JAX only: torch fits one candidate at a time (next test)."""
+    JAX only: torch fits one candidate at a time (next test). Numpy's and scipy's BLAS run one thread during the
+    diagnosis, and the caller's number of threads is back after it."""
     net = tnn_dsl.load(TCLAB)
     backend = "jax"
     pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.01, seed=3, n_train=700, n_val=400,
                hold=(20, 150), backend=backend)
-    runs = [tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, backend=backend,
-                             threads=n) for n in (1, 2)]
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen: list[int] = []  # the BLAS threads at each progress line: one while the doctor runs (core.blas)
+    with threadpool_limits(limits=2, user_api="blas"):  # the user's setting, restored after each diagnosis
+        runs = [tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, backend=backend,
+                                 threads=n, progress=lambda line: seen.extend(blas_threads())) for n in (1, 2)]
+        assert set(blas_threads()) == {2}
+    assert seen and set(seen) == {1}, seen
     a, b = (d.to_dict() for d in runs)
     assert [f["words"] for f in a["findings"]] == [f["words"] for f in b["findings"]], (runs[0].summary(),
                                                                                          runs[1].summary())

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+from ..core.blas import one_blas_thread
 from ..core.memory import release_free_memory
 from .results import Diagnosis, Finding
 from .session import _Session
@@ -119,6 +120,11 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     run = _Session(net_or_path, train, val, budget_s, backend, progress, top=top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
                    burn_in=burn_in, objective=objective, threads=threads)
+    with one_blas_thread():  # small matrices between compiled simulations: BLAS threads only spin (core.blas)
+        return _run(run, max_rounds)
+
+
+def _run(run: _Session, max_rounds: int) -> Diagnosis:
     run.read_data()
     run.fit_baseline()
     run.analyse_residuals()
