@@ -14,8 +14,10 @@ the structural ones); ``tnn_dsl.diagnose`` sees only the nominal network and the
   ``@pytest.mark.slow`` and checks the issue's targets on the totals; the same grid is the benchmark
   ``python benchmarks/diagnose_suite.py`` whose table is in BENCHMARKS.md.
 
-The JAX persistent compilation cache is switched on for this module (a temporary directory, restored after):
-the runs share networks and data shapes, so most compilations are reused.
+The runs share networks and data shapes, so most of their compilations come from the test session's JAX
+compilation cache (``conftest.py``). This module used to switch to a cache of its own, which JAX ignored once the
+worker had compiled anything (it opens its cache once per process) and which, had this module compiled first,
+would have cut that worker off from the session's cache.
 """
 
 from __future__ import annotations
@@ -26,7 +28,6 @@ import re
 import sys
 
 import pytest
-from conftest import JAX_CACHE_MAX_BYTES
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -43,21 +44,6 @@ def _load_suite():
 
 S = _load_suite()
 CASES = {c.name: c for c in S.CASES}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _jax_compilation_cache(tmp_path_factory):
-    import jax
-
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_compilation_cache_max_size")
-    old = {n: getattr(jax.config, n) for n in names}
-    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_compilation_cache_max_size", JAX_CACHE_MAX_BYTES)  # the file lock (conftest.py)
-    yield
-    for n, v in old.items():
-        jax.config.update(n, v)
 
 
 # ---------------------------------------------------------------------------------------------
