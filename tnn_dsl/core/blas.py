@@ -1,4 +1,4 @@
-"""One BLAS thread for numpy and scipy while the model doctor and the CLI run.
+"""One BLAS thread for numpy and scipy while the model doctor runs (`tnn_dsl.diagnose`).
 
 The fits' linear algebra is small (a Jacobian of 14 401 rows by 15 columns times itself, a 15 × 15 solve) and
 comes between short compiled simulations. OpenBLAS, numpy's and scipy's BLAS, starts its own threads for such a
