@@ -727,6 +727,9 @@ class Model:
         # the scan's length is dynamic from the first call: one compiled graph serves every rollout length (a
         # burn-in of a few minutes, then the whole file) instead of a second compilation for the second length
         torch._dynamo.maybe_mark_dynamic(U, 0)
+        # the scan's carry must be laid out as its body's result: one initial state broadcast to a batch of
+        # input sequences is a view with a stride of 0, which torch refused (the model then ran eager)
+        T0 = T0.contiguous()
         try:
             ys = compiled(prep, T0, U)
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
