@@ -91,7 +91,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         Where to write the extended ``.thn`` (default: not written; the text is in the result). Checked
         before any work: never an input, never an existing file other than a ``.thn`` unless ``force``.
     mlp_check : bool
-        When the extended model's held-out residual is still not white, train the extension with its
+        When the extended model's held-out residual is still not white (all sensors and both whiteness tests
+        together at a family-wise 5 %), train the extension with its
         ``linear`` clauses and with them as MLPs and keep the MLP only if it pays on held-out data
         (:mod:`tnn_dsl.doctor.mlp_check`); ``mlp_time`` s of training for each (skipped when the budget is short).
     init : "estimate" | "measured" | "steady"

@@ -2,7 +2,8 @@
 ``learn`` clause(s), linear or mlp, as the evidence says").
 
 The forward selection fits each dependence as ``linear(v…)`` (cheap, exactly null at zero, a score test).
-When the extended model's held-out residual is still not white, the law may be curved in its variables.
+When the extended model's held-out residual is still not white (every sensor and both whiteness tests taken
+together at a family-wise 5 %: :func:`tnn_dsl.analysis.residuals.all_white`), the law may be curved in its variables.
 The evidence is then a fit, not a guess: the extension is trained twice with the shared trainer
 (``tnn_dsl.train``, same data, same options, same time limit) — once as written, once with every ``linear``
 function the doctor added turned into ``mlp(…; hidden = [8], activation = tanh)`` (:func:`mlp_variant`, an IR

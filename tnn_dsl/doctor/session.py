@@ -1228,7 +1228,7 @@ class _Session:
         res_fin = self.res_fin
         targets = doctor_targets(self.acc_small)
         if not (self.accepted and targets and self.mlp_check
-                and not all(w.get("white") for w in res_fin.whiteness.values())
+                and not R.all_white(res_fin.whiteness)
                 and (self.deadline is None or _time.monotonic() + 2 * self.mlp_time < self.deadline)):
             return
         from ..data import split_by_time

@@ -292,4 +292,7 @@ def _what_is_left(res: R.ResidualSummary) -> str:
             parts.append(f"{s}: structure it cannot explain (residual not white, Ljung–Box p = "
                          f"{w.get('ljung_box_p', 0):.2g}, MAE {res.errors[s]['mae']:.3g} K, "
                          f"noise σ ≈ {sig:.3g} K{extra})")
+    if R.all_white(res.whiteness) and not all(w.get("white") for w in res.whiteness.values()):
+        parts.append(f"taken together ({len(res.whiteness)} sensor(s), both whiteness tests at a family-wise 5 %) the "
+                     "residuals are consistent with white noise")
     return "; ".join(parts)
