@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import sys
@@ -64,6 +65,17 @@ def pytest_configure(config):
     except ImportError:  # pragma: no cover
         return
     torch.set_num_threads(1)
+
+
+def pytest_runtest_setup(item):
+    """Before each test, collect the garbage left by the last one and move every live object to the collector's
+    permanent generation (``gc.freeze``): Python's full collections then walk only what the running test made.
+    A worker accumulates a million live objects (JAX's and torch's caches of traced and compiled programs, the
+    modules' state), and every automatic full collection walked them all, again and again: three doctor and
+    torch test files in one process spent 14–19 s of 162–195 s in the collector, 5.6 s with this (2026-11-28).
+    What a test leaves reachable stays reachable; what it leaves as garbage is collected here, before freezing."""
+    gc.collect()
+    gc.freeze()
 
 
 def pytest_unconfigure(config):
