@@ -184,7 +184,7 @@ def test_cpp_wrapper_failure_falls_back_to_the_python_wrapper(monkeypatch):
     assert mc.torch_compile is True and _adjoint_used(mc)
     _assert_close(_torch_grads(me, p_np, T0, U), got)
     runner = next(v for v in mc._jit_cache.values() if hasattr(v, "_bwd"))
-    scans = [*runner._fwd.values(), *(fn for _, fn in runner._bwd.values())]
+    scans = [*runner._fwd.values(), *(entry[1] for entry in runner._bwd.values())]  # (graph, scan, 0-d slots)
     assert len(scans) == 2 and all(isinstance(f, CompiledScan) and "buf35" in f.fallback for f in scans)
     adjoint = [(n, cpp) for n, cpp in seen if n.startswith("tnn_adjoint_")]
     assert [cpp for _, cpp in adjoint] == [True, False, True, False]  # each scan: C++ tried, then Python
