@@ -537,7 +537,7 @@ class Model:
 
     def _fused_core(self):
         """The model's plan on :class:`~tnn_dsl.compiler.backends.torch_ops.FusedTorchXP` (small products as
-        multiply-and-sum), for single sequences traced by ``torch.compile``; built once."""
+        multiply-and-sum), for the rollouts traced by ``torch.compile``; built once."""
         core = self._jit_cache.get("fused_core")
         if core is None:
             from .backends.torch_ops import FusedTorchXP
@@ -638,7 +638,7 @@ class Model:
         rollout's samples but the last), ``(..., M, n_states)``, with gradients, through
         :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`: one compiled ``scan`` forward, one compiled
         adjoint ``scan`` backward (no per-step call, no per-step autograd node). Kept per ``(dt, integrator, sub,
-        batched)``; a single sequence is traced on :class:`FusedTorchXP`. ``None`` for the packed parameter table
+        batched)``; traced on :class:`FusedTorchXP`. ``None`` for the packed parameter table
         of large networks (the step-by-step path runs), and after a warning if torch cannot compile here."""
         import torch
 
@@ -648,7 +648,7 @@ class Model:
         key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
         runner = self._jit_cache.get(key)
         if runner is None:
-            core = self._fused_core() if unbatched else self._core
+            core = self._fused_core()
 
             def stepper(prep, traced):
                 return self._stepper(prep, dt, integrator, sub, core, traced=traced)
@@ -681,8 +681,8 @@ class Model:
         context (:meth:`_Core.rhs_u`) is computed inside the graph from the raw inputs (no gradient flows through
         the scanned arrays; only ``prep``, an input of the graph, carries the parameters).
 
-        On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples and the body is traced on
-        :class:`FusedTorchXP`; with a batch axis one sample per iteration and library products. Compiled graphs
+        On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples, with a batch axis one; the
+        body is traced on :class:`FusedTorchXP` (small products as multiply-and-sum). Compiled graphs
         (:class:`~.torch_adjoint.CompiledScan`, inductor's C++ wrapper unless it fails to build) are kept per
         ``(dt, integrator, sub, chunk, batched, C++ wrapper)`` and reused for new parameter values; the scan's
         length is dynamic from the first call, other new shapes recompile (dynamic after the second). Returns ``None``
@@ -699,7 +699,7 @@ class Model:
 
             from .torch_adjoint import CompiledScan
 
-            core = self._fused_core() if unbatched else self._core
+            core = self._fused_core()
 
             def roll(prep, T0, U):  # U (n_chunks, chunk, ..., n_inputs), time-major
                 step = self._stepper(prep, dt, integrator, sub, core, traced=True)

@@ -1,10 +1,12 @@
 """The PyTorch array namespace (explicit dtype everywhere; never changes torch's global default).
 
-:class:`FusedTorchXP` is the namespace of code traced for ``torch.compile`` (the compiled rollout in
-``model.py``): there a product of an unbatched vector by a small matrix is written as a multiply-and-sum,
-which inductor fuses with its neighbours into one C++ loop instead of calling a library ``mm`` per product
-(the same rule as :func:`~tnn_dsl.compiler.backends.jax_ops.matmul`; eager torch keeps ``torch.matmul``, one
-dispatch instead of three).
+:class:`FusedTorchXP` is the namespace of code traced for ``torch.compile`` (the compiled forward and adjoint
+scans in ``model.py`` and ``torch_adjoint.py``): there a product of a vector or a batch of vectors by a small
+matrix is written as a multiply-and-sum, which inductor fuses with its neighbours into C++ loops instead of
+calling a library ``mm`` per product: in the compiled C++ wrapper each ``mm`` is a call through torch's
+dispatcher per scan iteration (the case study M2's reverse scan made 20 a step). Eager torch keeps
+``torch.matmul``, one dispatch instead of three. JAX applies the rule to unbatched vectors only
+(:func:`~tnn_dsl.compiler.backends.jax_ops.matmul`): XLA's batched ``dot`` is faster there.
 """
 
 from __future__ import annotations
@@ -107,20 +109,19 @@ class TorchXP(ArrayNamespace):
 
 
 SMALL_MATMUL = 256
-"""Largest ``K·N`` of a matrix that :class:`FusedTorchXP` multiplies an unbatched vector by with multiply-and-sum."""
+"""Largest ``K·N`` of a matrix that :class:`FusedTorchXP` multiplies vectors by with multiply-and-sum."""
 
 
 def fused_matmul(a, b):
-    """``a @ b``; for an unbatched vector ``a (K,)`` and a small matrix ``b (K, N)`` (``K·N ≤``
-    :data:`SMALL_MATMUL`) as ``sum(a[:, None]·b, 0)``. Same value as ``torch.matmul`` up to the order of the
-    additions."""
-    if (isinstance(a, torch.Tensor) and a.ndim == 1 and isinstance(b, torch.Tensor) and b.ndim == 2
-            and b.shape[0] == a.shape[0] and b.numel() <= SMALL_MATMUL):
-        return torch.sum(a[:, None] * b, dim=0)
+    """``a @ b``; for vectors ``a (..., K)`` and a small matrix ``b (K, N)`` (``K·N ≤`` :data:`SMALL_MATMUL`) as
+    ``sum(a[..., :, None]·b, -2)``. Same value as ``torch.matmul`` up to the order of the additions."""
+    if (isinstance(a, torch.Tensor) and a.ndim >= 1 and isinstance(b, torch.Tensor) and b.ndim == 2
+            and b.shape[0] == a.shape[-1] and b.numel() <= SMALL_MATMUL):
+        return torch.sum(a[..., :, None] * b, dim=-2)
     return torch.matmul(a, b)
 
 
 class FusedTorchXP(TorchXP):
-    """:class:`TorchXP` for code traced by ``torch.compile`` on a single sequence (see the module docstring)."""
+    """:class:`TorchXP` for code traced by ``torch.compile`` (see the module docstring)."""
 
     matmul = staticmethod(fused_matmul)
