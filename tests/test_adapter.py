@@ -40,8 +40,27 @@ def test_conversions_keep_shapes_and_kinds(backend):
     t = B.tree({"a": [1.0, np.ones(2)], "b": np.zeros((2, 2))})
     assert B.numpy(t["a"][1]).shape == (2,) and B.numpy(t["b"]).shape == (2, 2)
     assert Backend(backend, "float32").asarray(np.ones(2)).dtype == Backend(backend, "float32").dtype
-    with pytest.raises(ValueError):
-        Backend("numpy")
+    with pytest.raises(ValueError, match="no autodiff backend 'tensorflow'"):
+        Backend("tensorflow")
+
+
+def test_numpy_adapter_simulates_and_refuses_derivatives():
+    """``Backend("numpy")`` (the reference backend, for simulations): conversions in its dtype, a Python-loop scan,
+    and a clear error for every derivative instead of a torch or JAX path."""
+    B = Backend("numpy", "float32")
+    x = B.asarray([1.0, 2.0])
+    assert isinstance(x, np.ndarray) and x.dtype == np.float32
+    assert B.asarray(np.array([0, 2])).dtype.kind == "i"
+    assert B.jit(np.sin) is np.sin and B.no_grad(np.sin)(0.0) == 0.0
+    carry, ys = B.scan(lambda c, x: (c + x[0], 2 * c), 0.0, (np.arange(4.0),))
+    assert carry == 6.0 and ys.tolist() == [0.0, 0.0, 2.0, 6.0]
+    assert float(B.amax(np.array([[1.0, 3.0]]), (0, 1))) == 3.0 and B.clip_min(np.array([-1.0]), 0.0).tolist() == [0.0]
+    np.testing.assert_allclose(B.sigmoid(np.array([0.3])), 1 / (1 + np.exp(-0.3)), rtol=1e-14)
+    for call in (lambda: B.value_and_grad(np.sum), lambda: B.jvp(np.sin, (x,), (x,)),
+                 lambda: B.jacobian(np.sin, [0.0]), lambda: B.jacobian_fn(np.sin, 1),
+                 lambda: B.batched_jvp(np.sin, (x,), (x[None],))):
+        with pytest.raises(NotImplementedError, match="numpy reference backend has no autodiff"):
+            call()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -424,6 +424,37 @@ def test_loss_and_gradient_agree_across_backends(case_short):
 # ---------------------------------------------------------------------------------------------
 
 
+def test_nominal_run_on_torch_is_a_numpy_simulation_equal_to_jax(case_short, monkeypatch):
+    """torch's nominal run (one simulation per file, no gradients) runs on the numpy reference backend, not as a
+    torch rollout, and gives JAX's states to round-off; its model (normalisations, pre-fits) stays torch's."""
+    import tnn_dsl
+    from tnn_dsl.compiler import model as compiled_model
+    from tnn_dsl.compiler.model import compile as compile_network
+    from tnn_dsl.data import read_data
+    from tnn_dsl.fit.trainer import _Trainer
+
+    net = tnn_dsl.load(NETS / "m2.thn")
+    (exp,) = read_data(net, case_short["train"])
+    rollout = compiled_model.Model.rollout
+    used: list = []
+
+    def recorded(self, *a, **k):
+        used.append(self.backend)
+        return rollout(self, *a, **k)
+
+    monkeypatch.setattr(compiled_model.Model, "rollout", recorded)
+    runs, seen = {}, {}
+    for backend in BACKENDS:
+        used.clear()
+        tr = _Trainer(net, [exp], [], TrainConfig(backend=backend), compile_network(net, backend=backend))
+        nom, _bp, (runs[backend],) = tr.nominal_runs(tr.initial_params())
+        seen[backend] = set(used)
+        assert nom.backend == backend
+    assert seen == {"jax": {"jax"}, "torch": {"numpy"}}
+    assert runs["jax"].shape == (exp.n_steps, 7)
+    np.testing.assert_allclose(runs["torch"], runs["jax"], rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize("backend", SLOW_TORCH)
 def test_m5_loads_m4_frozen_and_trains(case_short, tmp_path, backend):
     import shutil

@@ -193,16 +193,23 @@ class _Trainer(_Rollouts):
             if k in params and np.shape(params[k]) == np.shape(npar[k]):
                 npar[k] = params[k]
         bp = nom.from_numpy(npar)
+        # the nominal run sets normalisations and the windows' first guesses: started as measured (an estimate
+        # of the unsensed states with the nominal model would fit its errors into them), except for single
+        # shooting, whose one initial state per file starts at the burn-in estimate
+        init = check_rule(self.cfg.init)
+        if init in ("estimate", "filter") and not self.plan_rollout()[2]:
+            init = "measured"
+        sim, sim_params = nom, bp
+        if self.cfg.backend == "torch" and init not in ("estimate", "filter"):
+            # one simulation per file, without gradients: the numpy reference backend takes about half eager
+            # torch's time per step (BENCHMARKS.md "Rollout cost": 114 against 247 µs on M3) and compiles no
+            # torch graph for one use (M2: 5 → 4 graphs, BENCHMARKS.md "Training time")
+            sim = compile_network(nom_net, backend="numpy", dtype=self.cfg.dtype)
+            sim_params = sim.from_numpy(npar)
         runs = []
         for e in self.exps:
-            # the nominal run sets normalisations and the windows' first guesses: started as measured (an estimate
-            # of the unsensed states with the nominal model would fit its errors into them), except for single
-            # shooting, whose one initial state per file starts at the burn-in estimate
-            init = check_rule(self.cfg.init)
-            if init in ("estimate", "filter") and not self.plan_rollout()[2]:
-                init = "measured"
-            states, y = simulate(nom, bp, e, init=init, integrator=self.cfg.integrator, substeps=self.cfg.substeps,
-                                 burn_in_s=self.cfg.burn_in, check=False)
+            states, y = simulate(sim, sim_params, e, init=init, integrator=self.cfg.integrator,
+                                 substeps=self.cfg.substeps, burn_in_s=self.cfg.burn_in, check=False)
             if not np.all(np.isfinite(states)):
                 raise TnnError(Diagnostic(
                     f"the nominal model does not simulate on {e.name}: its temperatures become non-finite",

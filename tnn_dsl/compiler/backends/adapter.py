@@ -24,6 +24,10 @@ operation              JAX                                           torch
 
 Arrays are float64 unless the adapter is made with ``dtype="float32"``; integer and boolean numpy arrays
 keep their kind.
+
+``Backend("numpy")`` adapts the numpy reference backend for plain simulations (conversions, ``jit`` and ``no_grad``
+as the function itself, the operations above the namespace); it has no autodiff, and its transforms raise
+:class:`NotImplementedError`. The trainer's nominal run uses it on torch (``fit/trainer.py``).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import numpy as np
 __all__ = ["Backend", "backend_of"]
 
 BACKENDS = ("jax", "torch")
+"""The autodiff backends (what a user may choose); ``"numpy"`` is accepted too, for simulations only."""
 
 LEAN_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 """XLA options of a program compiled with ``Backend.jit(..., lean=True)`` on a CPU: the loop emitters instead of the
@@ -50,7 +55,7 @@ class Backend:
     transforms of one backend. ``Backend("jax")``, ``Backend("torch", "float32")``."""
 
     def __init__(self, name: str, dtype: str = "float64") -> None:
-        if name not in BACKENDS:
+        if name not in BACKENDS and name != "numpy":
             raise ValueError(f"no autodiff backend {name!r}; use one of {', '.join(BACKENDS)}")
         if dtype not in ("float64", "float32"):
             raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
@@ -63,6 +68,9 @@ class Backend:
             jax.config.update("jax_enable_x64", True)
             self.jax, self.xp = jax, jnp
             self.dtype = jnp.float64 if dtype == "float64" else jnp.float32
+        elif name == "numpy":
+            self.xp = np
+            self.dtype = np.float64 if dtype == "float64" else np.float32
         else:
             import torch
 
@@ -79,6 +87,8 @@ class Backend:
         if self.name == "torch" and isinstance(x, self.torch.Tensor):
             return x.to(self.dtype) if x.is_floating_point() else x
         x = np.asarray(x)
+        if self.name == "numpy":
+            return x.astype(self.dtype) if x.dtype.kind == "f" else x
         if self.name == "jax":
             return self.xp.asarray(x, dtype=self.dtype) if x.dtype.kind == "f" else self.xp.asarray(x)
         t = self.torch.from_numpy(np.asarray(x, order="C"))  # (ascontiguousarray would make 0-d arrays 1-d)
@@ -109,6 +119,8 @@ class Backend:
         return self.xp.exp(x)
 
     def sigmoid(self, x: Any) -> Any:
+        if self.name == "numpy":
+            return 0.5 + 0.5 * np.tanh(0.5 * x)
         return self.jax.nn.sigmoid(x) if self.name == "jax" else self.torch.sigmoid(x)
 
     def where(self, c: Any, a: Any, b: Any) -> Any:
@@ -121,15 +133,19 @@ class Backend:
         return self.xp.sum(x)
 
     def amax(self, x: Any, axes: int | tuple[int, ...]) -> Any:
-        return self.xp.max(x, axis=axes) if self.name == "jax" else self.torch.amax(x, dim=axes)
+        return self.torch.amax(x, dim=axes) if self.name == "torch" else self.xp.max(x, axis=axes)
 
     def clip_min(self, x: Any, lo: float) -> Any:
-        return self.xp.clip(x, lo) if self.name == "jax" else self.torch.clamp(x, min=lo)
+        return self.torch.clamp(x, min=lo) if self.name == "torch" else self.xp.clip(x, lo, None)
 
     def solve(self, a: Any, b: Any) -> Any:
         return self.xp.linalg.solve(a, b)
 
     # -- transforms ---------------------------------------------------------------------------------
+
+    def _autodiff(self) -> None:
+        if self.name == "numpy":
+            raise NotImplementedError("the numpy reference backend has no autodiff (derivatives need jax or torch)")
 
     def jit(self, fn: Callable, *, fallback: bool = False, lean: bool = False) -> Callable:
         """``jax.jit(fn)``; torch runs ``fn`` as it is. ``fallback=True``: if JAX cannot trace ``fn`` (a
@@ -177,6 +193,7 @@ class Backend:
     def value_and_grad(self, f: Callable) -> Callable[..., tuple[float, np.ndarray]]:
         """``g(z_numpy, *args) -> (float, gradient numpy)`` for a scalar ``f(z, *args)``, differentiated in
         its first argument (``args`` are passed through: backend arrays or plain data)."""
+        self._autodiff()
         if self.name == "jax":
             vg = self.jax.jit(self.jax.value_and_grad(f))
 
@@ -197,6 +214,7 @@ class Backend:
 
     def jvp(self, f: Callable, primals: tuple, tangents: tuple) -> tuple[Any, Any]:
         """``(f(*primals), ∂f·tangents)`` in forward mode."""
+        self._autodiff()
         if self.name == "jax":
             return self.jax.jvp(f, tuple(primals), tuple(tangents))
         return self.torch.func.jvp(f, tuple(primals), tuple(tangents))
@@ -206,6 +224,7 @@ class Backend:
         ``tangents`` has a leading axis ``m`` (one direction each) → outputs with that leading axis (a
         tuple output gives a tuple). torch falls back to one ``jvp`` per direction where ``f`` cannot be
         vmapped."""
+        self._autodiff()
         primals = tuple(primals)
 
         def one(*t):
@@ -227,6 +246,8 @@ class Backend:
         call per batch element where ``f`` cannot be vmapped."""
         if self.name == "jax":
             return self.jax.vmap(f)
+        if self.name == "numpy":
+            return lambda *args: np.stack([f(*a) for a in zip(*args)])
         torch = self.torch
 
         def call(*args):
@@ -241,6 +262,7 @@ class Backend:
         """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector): numpy
         array of shape ``fn(x).shape + (len(x),)``. torch: ``jacfwd``, else one ``jvp`` per column, else
         reverse mode (for ops without forward rules)."""
+        self._autodiff()
         xb = self.asarray(np.asarray(x, dtype=float))
         if self.name == "jax":
             return np.asarray(self.jax.jacfwd(fn)(xb), dtype=float)
@@ -267,6 +289,7 @@ class Backend:
         leading batch axis), else one backward pass per output. (``torch.func.jacfwd`` gives the same
         numbers, but its per-operation overhead makes a 5000-step filter about 20× slower on small
         networks.)"""
+        self._autodiff()
         if self.name == "jax":
             return self.jax.jacfwd(f)
         torch = self.torch
@@ -288,17 +311,17 @@ class Backend:
     def scan(self, body: Callable, carry: Any, xs: tuple) -> tuple[Any, Any]:
         """``jax.lax.scan(body, carry, xs)``: ``body(carry, x_k) -> (carry, y_k)`` over the leading axis of
         every array in ``xs``; returns ``(carry, ys)`` with the ``y_k`` stacked (a tuple of arrays for a
-        tuple ``y_k``). torch: a Python loop."""
+        tuple ``y_k``). torch and numpy: a Python loop."""
         if self.name == "jax":
             return self.jax.lax.scan(body, carry, xs)
-        torch = self.torch
+        stack = self.torch.stack if self.name == "torch" else np.stack
         outs = []
         for k in range(int(xs[0].shape[0])):
             carry, y = body(carry, tuple(a[k] for a in xs))
             outs.append(y)
         if outs and isinstance(outs[0], tuple):
-            return carry, tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
-        return carry, torch.stack(outs)
+            return carry, tuple(stack([o[i] for o in outs]) for i in range(len(outs[0])))
+        return carry, stack(outs)
 
 
 @functools.cache
