@@ -4,15 +4,17 @@
 the first call (tracing and compiling both scans, into the inductor cache the environment names) and the median
 and fastest of 15 further calls.
 
-    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/bench_torch_options.py '{}'
-    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/bench_torch_options.py \\
+    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/profile_torch_options.py '{}'
+    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/profile_torch_options.py \\
         '{"aot_inductor.compile_wrapper_opt_level": "O0"}'
 
-Compare options one after the other, each in a fresh cache directory (the host's speed drifts).
+Compare options one after the other, each in a fresh cache directory (the host's speed drifts). A profiling tool,
+not part of ``make bench`` (it writes no section of BENCHMARKS.md).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -23,8 +25,10 @@ sys.path.insert(0, str(ROOT))
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    opts = json.loads(argv[0]) if argv else {}
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("options", nargs="?", default="{}",
+                    help='inductor options as a JSON object, e.g. \'{"memory_planning": true}\' (default: none)')
+    opts = json.loads(ap.parse_args(argv).options)
     import torch
 
     import tnn_dsl
