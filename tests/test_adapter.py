@@ -189,3 +189,68 @@ def test_the_models_point_programs_and_steady_state_are_lean_from_python_and_nes
     np.testing.assert_allclose(np.asarray(top["rhs"]), np.asarray(eager), rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(np.asarray(batched[0]), np.asarray(top["rhs"]), rtol=1e-12, atol=1e-15)
     assert np.all(np.isfinite(np.asarray(top["steady"])))
+
+
+def test_inside_lean_programs_the_training_s_programs_are_lean_and_nested_rollouts_work():
+    """Inside ``lean_programs()`` (the doctor's linear-or-MLP check: two trainings whose compilation was the
+    diagnosis' peak memory, issue 18) the programs ``jit`` and ``value_and_grad`` make, the model's rollout called from
+    Python and the forward-mode Jacobian are compiled with the lean options, a rollout traced inside another program
+    takes the enclosing one's (JAX refuses options on a nested ``jit``), and every number is the default program's
+    to round-off; outside the block nothing changes."""
+    import jax
+
+    import tnn_dsl
+    from tnn_dsl.compiler.backends.adapter import lean_programs, lean_programs_active
+    from tnn_dsl.studies.casestudy import network_path
+
+    model = tnn_dsl.compile(tnn_dsl.load(network_path("peltier_heatpipe/m1.thn")), backend="jax")
+    B = backend_of(model)
+    p = model.init_params(seed=1)
+    u = np.random.default_rng(0).uniform(0.0, 1.0, (200, len(model.input_names))) + 0.5
+    T0 = np.full(len(model.state_names), 300.0)
+    name = next(k for k, s in model.param_specs.items() if s.kind == "physical" and s.trainable)
+
+    def loss(z):
+        q = dict(p)
+        q[name] = z[0]
+        return jax.numpy.sum(model.rollout(q, T0, u, 1.0)[1] ** 2)
+
+    def run(z):
+        return model.rollout(p, T0 + z, u, 1.0)[1]
+
+    z0 = np.array([float(np.asarray(p[name]))])
+    ref = (B.numpy(model.rollout(p, T0, u, 1.0)[1]), B.value_and_grad(loss)(z0), B.jacobian(run, np.zeros(len(T0))),
+           B.numpy(B.jit(lambda T: model.rollout(p, T, u, 1.0)[1])(T0)))
+    assert not lean_programs_active()
+    with lean_programs():
+        assert lean_programs_active()
+        got = (B.numpy(model.rollout(p, T0, u, 1.0)[1]), B.value_and_grad(loss)(z0),
+               B.jacobian(run, np.zeros(len(T0))), B.numpy(B.jit(lambda T: model.rollout(p, T, u, 1.0)[1])(T0)))
+        assert any(isinstance(k, tuple) and k[0] == "rollout" and k[-1] is True for k in model._jit_cache)
+    assert not lean_programs_active()
+    for a, b in zip((ref[0], ref[1][0], ref[1][1], ref[2], ref[3]), (got[0], got[1][0], got[1][1], got[2], got[3])):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_batched_in_chunks_equals_one_batch(backend):
+    """``Backend.batched(f, chunk=k)`` (the doctor's forward-difference Jacobians run their simulations a few at a
+    time, issue 18) gives what one batch gives, for a batch that the chunk divides and one it does not."""
+    import tnn_dsl
+    from tnn_dsl.studies.casestudy import network_path
+
+    model = tnn_dsl.compile(tnn_dsl.load(network_path("tclab/tclab.thn")), backend=backend)
+    B = backend_of(model)
+    p = model.init_params(seed=1)
+    u = B.asarray(np.random.default_rng(0).uniform(0.0, 1.0, (120, len(model.input_names))))
+
+    def run(T0):
+        return model.rollout(p, T0, u, 1.0)[1]
+
+    for m in (6, 7):
+        T0 = B.asarray(300.0 + np.arange(m)[:, None] * np.ones(len(model.state_names)))
+        whole = B.numpy(B.no_grad(B.batched(run))(T0))
+        for chunk in (2, 3, 6):
+            got = B.numpy(B.no_grad(B.batched(run, chunk=chunk))(T0))
+            assert got.shape == whole.shape == (m, 120, len(model.output_names))
+            np.testing.assert_allclose(got, whole, rtol=1e-12, atol=1e-12)

@@ -117,3 +117,28 @@ def test_a_crawling_candidate_fit_stops_when_its_last_jacobians_gained_little(ba
     eng.params = start
     never = eng.fit(free, max_iter=200, tol=1e-12, stall=True)
     assert never["jacobians"] == full["jacobians"] and never["sse"] == pytest.approx(full["sse"], rel=1e-12)
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_released_programs_are_built_again_and_give_the_same_numbers(backend):
+    """``_Engine.release_programs`` (issue 18: a finished phase's networks free their compiled programs) lets the
+    engine's programs and its model's compiled cache go; the next simulation, Jacobian and fit compile them again and
+    give the numbers they gave before, to round-off."""
+    eng, free = _nominal_engine(backend)
+    y0, x0 = eng.simulate()
+    J0 = eng.jacobian(free, method="difference")
+    sse0 = eng._train_sse(eng.params)[0]
+    eng.release_programs()
+    assert not any(name in eng.__dict__ for name in E._PROGRAMS)
+    assert not any(isinstance(k, tuple) for k in eng.model._jit_cache)
+    y1, x1 = eng.simulate()
+    np.testing.assert_allclose(y1, y0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(x1, x0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(eng.jacobian(free, method="difference"), J0, rtol=1e-9, atol=1e-12)
+    assert eng._train_sse(eng.params)[0] == pytest.approx(sse0, rel=1e-12)
+    assert all(name in eng.__dict__ for name in ("_sim", "_sim_train", "_jac_diff"))
+    clone = eng.clone()  # a clone of a released engine shares nothing it lacks
+    eng.release_programs()
+    np.testing.assert_allclose(clone.simulate()[0], y0, rtol=1e-12, atol=1e-12)
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        eng.nothing_here  # noqa: B018

@@ -421,11 +421,19 @@ class Model:
         """The compiled program :meth:`_jitted` ``(what, *static)`` on ``args``: with XLA's lean options
         (``Backend.jit(..., lean=True)``) for the point evaluations and the steady state called from Python, the
         default where the call is traced inside another program (JAX takes compiler options only at the top
-        level; the enclosing program's options apply)."""
+        level; the enclosing program's options apply); every program called from Python inside
+        :func:`~.backends.adapter.lean_programs`."""
         import jax
+
+        from .backends.adapter import lean_programs_active
 
         lean = what in LEAN_PROGRAMS and not any(isinstance(a, jax.core.Tracer)
                                                   for a in jax.tree_util.tree_leaves(args))
+        if not lean and lean_programs_active():
+            # inside the trainer's loss (a trace whose arguments may all be constants) the enclosing program's
+            # options apply; JAX refuses options on a nested program
+            clean = getattr(getattr(getattr(jax, "_src", None), "core", None), "trace_state_clean", None)
+            lean = clean is not None and bool(clean())
         return self._jitted(what, *static, lean=lean)(*args)
 
     def _jitted(self, what, *static, lean: bool = False):

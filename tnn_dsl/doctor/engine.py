@@ -93,6 +93,29 @@ class _InitPlan:
     burn: tuple[int, ...] = ()
 
 
+JAC_BATCH: int | None = 6
+"""The forward-difference Jacobian's simulations (:meth:`_Engine.jacobian`, ``method="difference"``) run at most this
+many at a time (``Backend.batched(..., chunk=...)``: ``lax.map`` in even chunks, one program; None: the whole batch
+at once). Each simulation's intermediates (its states, the input-only context, the outputs: ~35 numbers a sample)
+grow with the batch: on the case study's 4 h (14 401 samples) the 17 simulations of a 16-column Jacobian held
+58–109 MB of XLA temporaries, the diagnosis' peak, and ran slower per simulation than a few at a time (a batch of
+17: 466 ns a simulated sample; 8: 370; 4: 377). The nominal M1 engine's 16-column Jacobian, three rounds of five
+calls alternating (2026-11-28, a busy host): median 116–135 ms whole, 79–97 ms in chunks of 6, 86–98 in chunks of
+4, 98–109 in chunks of 8, the same Jacobian to the bit. Forward-mode tangents gain nothing from chunks (each chunk
+recomputes the primal: 169–235 against 238–257 ms in chunks of 4), so they stay one batch."""
+
+def _even_chunk(m: int, most: int | None) -> int | None:
+    """The chunk size that splits a batch of ``m`` into even chunks of at most ``most`` (None: no chunks)."""
+    if not most or m <= most:
+        return None
+    return -(-m // -(-m // most))
+
+
+_PROGRAMS = ("_sim", "_sim_train", "_jac", "_jac_diff", "_jac_forced", "_point", "_inv_cap")
+"""The engine's compiled programs (:meth:`_Engine._setup_backend`), let go by :meth:`_Engine.release_programs` and
+built again on first use."""
+
+
 class _Engine:
     """A compiled model over a set of experiments with train/val row masks.
 
@@ -134,6 +157,25 @@ class _Engine:
         self.keys = sorted({c.key for c in cols})
         self._build_scatter()
         self._setup_backend()
+
+    def release_programs(self) -> None:
+        """Let this engine's compiled programs go, and its model's (the simulations, Jacobians, burn-in estimates and
+        steady states compiled for its network): a phase of the doctor done with a network of its own (a round's
+        twins, sub-models, replacements or probes) frees them before the next phase compiles its own, instead of
+        holding every one to the round's end (issue 18: the case study's second round grew by ~50 MB a network).
+        Data, columns and parameters stay; a later call compiles what it needs again (:meth:`__getattr__`)."""
+        for name in _PROGRAMS:
+            self.__dict__.pop(name, None)
+        cache = getattr(self.model, "_jit_cache", None)
+        if isinstance(cache, dict):
+            cache.clear()
+
+    def __getattr__(self, name: str):
+        # only reached for a missing attribute: a program let go by release_programs is built again
+        if name in _PROGRAMS and "model" in self.__dict__:
+            self._setup_backend()
+            return self.__dict__[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # -- parameter plumbing ---------------------------------------------------------------------
 
@@ -282,7 +324,8 @@ class _Engine:
             """Forward differences ``(y(θ = s) − y(0)) / h`` along each row ``s`` of ``steps`` (m, n_θ), one
             coordinate ``h`` ≠ 0 per row (a zero row gives zeros) → (m, len(idx)); the unperturbed simulation rides
             in the same batch, so both come from one compiled program."""
-            ys = B.batched(lambda th: out_flat(base, th, idx))(xp.concat([steps[:1] * 0.0, steps], 0))
+            ys = B.batched(lambda th: out_flat(base, th, idx), chunk=_even_chunk(int(steps.shape[0]) + 1, JAC_BATCH))(
+                xp.concat([steps[:1] * 0.0, steps], 0))
             h = steps.sum(1)
             return (ys[1:] - ys[:1]) / B.where(h == 0, h + 1.0, h)[:, None]
 

@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 
 from ..analysis import held_out_test
+from ..compiler.backends.adapter import lean_programs
 from ..ir import Network
 from .selection import MIN_GAIN, P_ACCEPT
 from .threads import side_by_side
@@ -90,8 +91,11 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     def run(form: str, variant: Network, tell: Callable[[str], None]) -> tuple[np.ndarray, dict]:
         t0 = time.monotonic()
         tell(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
-        trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0)
-        e = _held_out_errors(trained, val)
+        # each training's programs are compiled for it alone: XLA's lean options, whose compilation needs a
+        # fraction of the memory (this check was the diagnosis' peak; issue 18)
+        with lean_programs():
+            trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0)
+            e = _held_out_errors(trained, val)
         row = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
                "k": _n_params(trained), "seconds": round(time.monotonic() - t0, 1),
                "stopped": trained.meta.get("stopped")}

@@ -15,11 +15,14 @@ from .base import STRUCTURAL_KINDS, Candidate
 from .engine import _Engine
 from .selection import _place
 
-FORCED_CHUNK = 16
+FORCED_CHUNK = 8
 """Candidate columns whose forcing series are built and pushed through the forced Jacobian together (the engine's
 tangent batch): memory per chunk ``FORCED_CHUNK × N × nodes`` floats, several times over inside the compiled
 derivative (issue 18; ``python benchmarks/trace_diagnose_memory.py [--chunk 32]`` prints each call's resident size:
-on the 4 h case study a call of 16 takes about half the time of a call of 32)."""
+on the 4 h case study a call of 16 takes about half the time of a call of 32). 16 → 8 (2026-11-28, ``--rounds 2
+--chunk 8`` against the default, one run each on a busy host): the second score test's highest resident size 743 →
+686 MB, the diagnosis' peak then; the forced Jacobians and pointwise derivatives took 15.0 → 18.4 s in round 1's
+score test (its first calls compiling) and 13.8 → 15.5 s in round 2's."""
 MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training residual is not fitted
 
 

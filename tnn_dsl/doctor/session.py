@@ -701,6 +701,7 @@ class _Session:
             f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
             self.judge(f, current)
             out.append(f)
+        small[0].release_programs()  # fitted and judged: its network's programs go before the next phase's
         return out
 
     def fit_twins(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> list[dict]:
@@ -780,6 +781,10 @@ class _Session:
             if f is not None:
                 self.judge(f, current)
                 out.append(f)
+                if c.kind in STRUCTURAL_KINDS:
+                    f["eng"].release_programs()
+        if small is not None:
+            small[0].release_programs()  # fitted and judged: their networks' programs go
         return out
 
     def curvature_look_ahead(self, chosen: dict | None, fits: list[dict], current: dict[str, tuple[float, float]]
@@ -825,6 +830,7 @@ class _Session:
                     and probe["val_mae"] * CONFIRM_RATIO <= ref
                     and (best_probe is None or probe["val_mae"] < best_probe["val_mae"])):
                 line, best_probe = f, probe
+        small[0].release_programs()  # the probes are fitted and judged
         if line is None or best_probe is None:
             return chosen
         if refusal(line, mae0) is None:  # the line pays alone: it first, its square next round

@@ -32,12 +32,14 @@ as the function itself, the operations above the namespace); it has no autodiff,
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-__all__ = ["Backend", "backend_of"]
+__all__ = ["Backend", "backend_of", "lean_programs", "lean_programs_active"]
 
 BACKENDS = ("jax", "torch")
 """The autodiff backends (what a user may choose); ``"numpy"`` is accepted too, for simulations only."""
@@ -48,6 +50,30 @@ MLIR fusion emitters. Measured on the model doctor (issue 18, BENCHMARKS.md "Dia
 score test's pointwise derivatives of the case study's extended network compiled in 2.7 instead of 4.6 s, the
 resident size growing by 46 instead of 214 MB; the fused kernels run up to 1.5× slower on the case study's M3 rollout
 (``bench_rollout.py``), so the training's hot programs keep XLA's default."""
+
+
+_LEAN_PROGRAMS: contextvars.ContextVar[bool] = contextvars.ContextVar("tnn_dsl_lean_programs", default=False)
+
+
+@contextlib.contextmanager
+def lean_programs() -> Iterator[None]:
+    """Within the block (in this thread; a thread started inside it does not inherit it), every JAX program
+    :meth:`Backend.jit` and :meth:`Backend.value_and_grad` make, and the compiled model's own programs called from
+    Python (its rollout too), are compiled with :data:`LEAN_XLA_OPTIONS`: for a caller that trains a model once and
+    throws it away, whose peak memory is XLA compiling the training's programs. The model doctor's linear-or-MLP
+    check trains two extensions under it (``doctor/mlp_check.py``): on the case study the linear training alone
+    peaked at 414 against 496 MB in 51 against 56 s (issue 18, BENCHMARKS.md). A program compiled before the block
+    keeps its options."""
+    token = _LEAN_PROGRAMS.set(True)
+    try:
+        yield
+    finally:
+        _LEAN_PROGRAMS.reset(token)
+
+
+def lean_programs_active() -> bool:
+    """Whether this thread is inside :func:`lean_programs`."""
+    return _LEAN_PROGRAMS.get()
 
 
 class Backend:
@@ -147,13 +173,16 @@ class Backend:
         if self.name == "numpy":
             raise NotImplementedError("the numpy reference backend has no autodiff (derivatives need jax or torch)")
 
-    def jit(self, fn: Callable, *, fallback: bool = False, lean: bool = False) -> Callable:
+    def jit(self, fn: Callable, *, fallback: bool = False, lean: bool | None = None) -> Callable:
         """``jax.jit(fn)``; torch runs ``fn`` as it is. ``fallback=True``: if JAX cannot trace ``fn`` (a
         Python branch on a traced value), run it eagerly from then on. ``lean=True``: on a CPU, compiled with
         :data:`LEAN_XLA_OPTIONS` (about half the compilation time and a quarter of its memory, kernels up to 1.5×
-        slower): for programs called a few hundred times or less, whose compilation outweighs their runs."""
+        slower): for programs called a few hundred times or less, whose compilation outweighs their runs.
+        ``lean=None`` (the default): lean inside :func:`lean_programs`; pass ``False`` for a program that may be
+        traced inside another one (JAX takes compiler options only at the top level)."""
         if self.name != "jax":
             return fn
+        lean = _LEAN_PROGRAMS.get() if lean is None else lean
         jitted = self.jax.jit(fn, compiler_options=self.lean_options() if lean else None)
         if not fallback:
             return jitted
@@ -195,7 +224,8 @@ class Backend:
         its first argument (``args`` are passed through: backend arrays or plain data)."""
         self._autodiff()
         if self.name == "jax":
-            vg = self.jax.jit(self.jax.value_and_grad(f))
+            vg = self.jax.jit(self.jax.value_and_grad(f),
+                              compiler_options=self.lean_options() if _LEAN_PROGRAMS.get() else None)
 
             def g(z, *args):
                 v, gr = vg(self.xp.asarray(z, dtype=self.dtype), *args)
@@ -241,22 +271,33 @@ class Backend:
                 return tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
             return torch.stack(outs)
 
-    def batched(self, f: Callable) -> Callable:
+    def batched(self, f: Callable, chunk: int | None = None) -> Callable:
         """``f`` over a leading batch axis of every argument (outputs stacked likewise). torch falls back to one
-        call per batch element where ``f`` cannot be vmapped."""
+        call per batch element where ``f`` cannot be vmapped. ``chunk``: at most that many elements at a time
+        (JAX: ``lax.map`` with ``batch_size``, one program; torch: one vectorised call per slice), for a long
+        rollout whose intermediates grow with the batch (the doctor's forward-difference Jacobians)."""
         if self.name == "jax":
-            return self.jax.vmap(f)
+            if chunk is None:
+                return self.jax.vmap(f)
+            return lambda *args: self.jax.lax.map(lambda a: f(*a), args, batch_size=int(chunk))
         if self.name == "numpy":
             return lambda *args: np.stack([f(*a) for a in zip(*args)])
         torch = self.torch
 
-        def call(*args):
+        def whole(*args):
             try:
                 return torch.func.vmap(f)(*args)
             except Exception:  # noqa: BLE001 - an op without a batching rule: one element at a time
                 return torch.stack([f(*a) for a in zip(*args)])
 
-        return call
+        if chunk is None:
+            return whole
+
+        def sliced(*args):
+            n = int(args[0].shape[0])
+            return torch.cat([whole(*(a[s: s + chunk] for a in args)) for s in range(0, n, int(chunk))], 0)
+
+        return sliced
 
     def jacobian(self, fn: Callable, x: Any) -> np.ndarray:
         """Forward-mode Jacobian of ``fn`` (backend vector → backend array) at ``x`` (numpy vector): numpy
@@ -265,7 +306,10 @@ class Backend:
         self._autodiff()
         xb = self.asarray(np.asarray(x, dtype=float))
         if self.name == "jax":
-            return np.asarray(self.jax.jacfwd(fn)(xb), dtype=float)
+            # eager, ``fn``'s own compiled programs are compiled again, differentiated, with their own options;
+            # inside :func:`lean_programs` the whole derivative is one lean program (compiled at each call)
+            jac = self.jit(self.jax.jacfwd(fn)) if _LEAN_PROGRAMS.get() else self.jax.jacfwd(fn)
+            return np.asarray(jac(xb), dtype=float)
         torch = self.torch
         try:
             return self.numpy(torch.func.jacfwd(fn)(xb))
