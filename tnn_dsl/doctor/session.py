@@ -442,6 +442,11 @@ class _Session:
                    for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
         for f in fits:
             self.judge(f, current)
+        # the shortlist's networks are fitted and judged: their programs go before the twins', sub-models' and
+        # probes' networks compile theirs (issue 18: ~40 MB a network on the case study); the fit chosen compiles
+        # its network again when it becomes the current model
+        for eng in {id(f["eng"]): f["eng"] for f in fits}.values():
+            eng.release_programs()
         fits += self.fit_twins(fits, current)
         fits += self.fit_nested(fits, scored, current)
         fits += self.fit_replacements(fits, scored, current)
