@@ -192,6 +192,8 @@ class _Engine:
     def clone(self) -> "_Engine":
         """The same compiled network and data with its own parameter table: fits on clones run side by side in
         threads (the compiled programs are shared; JAX releases the interpreter while a simulation runs)."""
+        if any(name not in self.__dict__ for name in _PROGRAMS):
+            self._setup_backend()  # programs let go (release_programs): built once here, not once per clone
         e = copy.copy(self)
         e._params = {k: np.array(v, copy=True) for k, v in self._params.items()}
         return e

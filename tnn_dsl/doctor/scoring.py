@@ -3,7 +3,9 @@ lag and mass columns), projected off the free directions and ranked on the noise
 
 from __future__ import annotations
 
+import itertools
 import math
+from typing import Iterator
 
 import numpy as np
 from scipy import stats
@@ -76,9 +78,6 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     smass = [c for c in struct if c.kind == "source_mass"]
     rates = cur.rates(X, U) if struct else None  # (N, ns) K/s
     mass_rows: list[tuple[Candidate, float | None, str | None]] = []  # (candidate, C or τ, source part)
-    Fm: list[np.ndarray] = []
-    if mass or smass:
-        Fm, mass_rows = _structural_forcing(cur, mass, smass, X, U, rates, nn)
     # columns [nominal free and accepted | candidates' (forced response + direct output term) | structural forcings],
     # computed FORCED_CHUNK columns at a time: the forcing series of all candidates at once, (m, N, nodes) floats,
     # held 1 GB on the 4 h case study (issue 18); a chunk holds a few MB. Between chunks the C heap's free pages go
@@ -97,9 +96,13 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         J = cur.forced_jacobian([], F, chunk=FORCED_CHUNK)
         J += d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # the direct output term (sensor offsets)
         blocks.append(J)
-    for s0 in range(0, len(Fm), FORCED_CHUNK):
-        blocks.append(cur.forced_jacobian([], np.stack(Fm[s0: s0 + FORCED_CHUNK]), chunk=FORCED_CHUNK))
-    del Fm
+    # the structural forcings last, made a chunk at a time (each an (N, nodes) series: all of them at once held
+    # ~40 MB through the whole score test on the 4 h case study, issue 18)
+    forcings = _structural_forcing(cur, mass, smass, X, U, rates, nn)
+    while part_f := list(itertools.islice(forcings, FORCED_CHUNK)):
+        mass_rows += [row for _, row in part_f]
+        blocks.append(cur.forced_jacobian([], np.stack([f for f, _ in part_f]), chunk=FORCED_CHUNK))
+        del part_f
     J_all = np.concatenate(blocks, axis=1)
     del blocks
     if struct:
@@ -110,9 +113,10 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
                         _noise_var(e, cur.train_mask))
 
 
-def _structural_forcing(cur: _Engine, mass: list[Candidate], smass: list[Candidate], X, U, rates, nn: int):
-    """Forcing heat flows of the thermal-mass and source-mass candidates, ``[(N, nn)]``, and what each is:
-    ``[(candidate, capacity or τ, source part)]``.
+def _structural_forcing(cur: _Engine, mass: list[Candidate], smass: list[Candidate], X, U, rates, nn: int
+                        ) -> Iterator[tuple[np.ndarray, tuple[Candidate, float | None, str | None]]]:
+    """Forcing heat flows of the thermal-mass and source-mass candidates, one at a time: ``(F (N, nn) W, what it
+    is: (candidate, capacity or τ, source part))``.
 
     At first order (T_m = (1−f)·T_a + f·T_b) a mass on a link to a constant boundary is exactly a larger
     capacity of a (−C_m(1−f)²·dT_a/dt): only its lag tells them apart. So each mass is also tried with its lag
@@ -125,18 +129,15 @@ def _structural_forcing(cur: _Engine, mass: list[Candidate], smass: list[Candida
     lens = [e.n_steps for e in cur.exps[: cur.n_score_exps]]
     dts = [float(e.dt) for e in cur.exps[: cur.n_score_exps]]
     duration = max(n * d for n, d in zip(lens, dts))
-    Fm, rows = [], []
     for c in mass:
         for cg in [None] + mass_grid(cur.net, c, cur.params, min(dts), duration):
-            Fm.append(mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates, mass=cg)[:, :nn])
-            rows.append((c, cg, None))
+            yield mass_forcing(cur.net, c, X, U, cur.params, lens, dts, frac=0.5, rates=rates, mass=cg)[:, :nn], (
+                c, cg, None)
     for c in smass:
         for tau in source_tau_grid(min(dts), duration):
-            Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau)[:, :nn])
-            rows.append((c, tau, "lag"))
-            Fm.append(source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau, rates=rates)[:, :nn])
-            rows.append((c, tau, "capacity"))
-    return Fm, rows
+            yield source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau)[:, :nn], (c, tau, "lag")
+            yield source_lag_forcing(cur.net, c, X, U, cur.params, lens, dts, tau, rates=rates)[:, :nn], (
+                c, tau, "capacity")
 
 
 def _structural_columns(cur: _Engine, big: _Engine, struct: list[Candidate], mass_rows, J_all: np.ndarray, n0: int,
