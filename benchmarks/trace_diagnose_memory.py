@@ -78,7 +78,7 @@ def main(argv=None) -> int:
             mod.release_free_memory = lambda: False
     for name in ("point_derivs", "forced_jacobian", "jacobian", "inv_capacity", "rates", "fit"):
         setattr(engine._Engine, name, _traced(getattr(engine._Engine, name), name))
-    for name in ("_structural_forcing", "_structural_columns", "_score_stats"):
+    for name in ("_structural_columns", "_score_stats"):  # the structural forcings are a generator since 4ef79bb
         setattr(scoring, name, _traced(getattr(scoring, name), name))
     score = session._Session.score
 
