@@ -136,7 +136,9 @@ def _run(run: _Session, max_rounds: int) -> Diagnosis:
     release_free_memory(collect=True)  # the rounds' engines, networks and arrays are done with (core.memory)
     run.build_extension()
     # the extension's engines are done with too: collected before the MLP check compiles and trains two models
-    # (its peak with two threads 878 → 829 MB, benchmarks/bench_diagnose.py, one run each, 2026-11-28)
+    # (its peak with two threads 878 → 829 MB, benchmarks/bench_diagnose.py, one run each, 2026-11-28), and the
+    # nominal and extended engines' compiled programs let go (the result needs their data only)
+    run.release_programs()
     release_free_memory(collect=True)
     run.compare_with_mlp()
     return run.result()

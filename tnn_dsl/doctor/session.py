@@ -1234,6 +1234,13 @@ class _Session:
         if not self.accepted:
             self.diff = ""
 
+    def release_programs(self) -> None:
+        """The nominal and current engines' compiled programs let go (:meth:`_Engine.release_programs`; built again
+        if used): after the extension is built, before the MLP check compiles two trainings (issue 18)."""
+        for eng in (self.eng, getattr(self, "final_eng", None)):
+            if eng is not None:
+                eng.release_programs()
+
     def compare_with_mlp(self) -> None:
         """Linear or MLP, as the evidence says: only where a structured residual is left and time allows."""
         res_fin = self.res_fin
