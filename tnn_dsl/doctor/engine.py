@@ -98,11 +98,12 @@ JAC_BATCH: int | None = 6
 many at a time (``Backend.batched(..., chunk=...)``: ``lax.map`` in even chunks, one program; None: the whole batch
 at once). Each simulation's intermediates (its states, the input-only context, the outputs: ~35 numbers a sample)
 grow with the batch: on the case study's 4 h (14 401 samples) the 17 simulations of a 16-column Jacobian held
-58–109 MB of XLA temporaries, the diagnosis' peak, and ran slower per simulation than a few at a time (a batch of
-17: 466 ns a simulated sample; 8: 370; 4: 377). The nominal M1 engine's 16-column Jacobian, three rounds of five
-calls alternating (2026-11-28, a busy host): median 116–135 ms whole, 79–97 ms in chunks of 6, 86–98 in chunks of
-4, 98–109 in chunks of 8, the same Jacobian to the bit. Forward-mode tangents gain nothing from chunks (each chunk
-recomputes the primal: 169–235 against 238–257 ms in chunks of 4), so they stay one batch."""
+58–109 MB of XLA temporaries (``memory_analysis()`` of the compiled program), the diagnosis' peak then, and a few
+at a time run faster per simulation. ``python benchmarks/profile_jacobian_batch.py --dir DIR none 4 6 8`` (the
+nominal M1 engine's 16-column Jacobian, three rounds of five calls alternating; 2026-11-28, a busy host): median
+116–135 ms whole, 79–97 ms in chunks of 6, 86–98 in chunks of 4, 98–109 in chunks of 8, the same Jacobian to the
+bit. The forward-mode tangents, tried the same way once, gained nothing from chunks (each chunk recomputes the
+primal), so they stay one batch."""
 
 def _even_chunk(m: int, most: int | None) -> int | None:
     """The chunk size that splits a batch of ``m`` into even chunks of at most ``most`` (None: no chunks)."""
@@ -162,7 +163,7 @@ class _Engine:
         """Let this engine's compiled programs go, and its model's (the simulations, Jacobians, burn-in estimates and
         steady states compiled for its network): a phase of the doctor done with a network of its own (a round's
         twins, sub-models, replacements or probes) frees them before the next phase compiles its own, instead of
-        holding every one to the round's end (issue 18: the case study's second round grew by ~50 MB a network).
+        holding every one to the round's end (issue 18: ~35–45 MB a network on the case study).
         Data, columns and parameters stay; a later call compiles what it needs again (:meth:`__getattr__`)."""
         for name in _PROGRAMS:
             self.__dict__.pop(name, None)

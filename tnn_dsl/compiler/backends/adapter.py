@@ -61,9 +61,9 @@ def lean_programs() -> Iterator[None]:
     :meth:`Backend.jit` and :meth:`Backend.value_and_grad` make, and the compiled model's own programs called from
     Python (its rollout too), are compiled with :data:`LEAN_XLA_OPTIONS`: for a caller that trains a model once and
     throws it away, whose peak memory is XLA compiling the training's programs. The model doctor's linear-or-MLP
-    check trains two extensions under it (``doctor/mlp_check.py``): on the case study the linear training alone
-    peaked at 414 against 496 MB in 51 against 56 s (issue 18, BENCHMARKS.md). A program compiled before the block
-    keeps its options."""
+    check trains two extensions under it (``doctor/mlp_check.py``): on the case study, one thread, its linear and
+    MLP trainings peaked at 641 and 673 MB against 681 and 762 MB before (``python benchmarks/bench_diagnose.py``,
+    issue 18, BENCHMARKS.md "the diagnosis' peak"). A program compiled before the block keeps its options."""
     token = _LEAN_PROGRAMS.set(True)
     try:
         yield
