@@ -1,6 +1,7 @@
-"""`tnn_dsl.core.memory.release_free_memory`: arrays of a few MB freed with smaller live objects between them stay
-on glibc's heap (resident) until it is called, and go back to the operating system when it is. Run in fresh
-processes (the allocator's state is per process)."""
+"""`tnn_dsl.core.memory.release_free_memory` and `large_blocks_mapped`: arrays of a few MB freed with smaller live
+objects between them stay on glibc's heap (resident) until the first is called, and go back to the operating system
+when it is, or at once when they were mapped on their own (the second). Run in fresh processes (the allocator's state
+is per process)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from tnn_dsl.core.memory import _glibc
 CHILD = r"""
 import json, sys
 import numpy as np
-from tnn_dsl.core.memory import release_free_memory
+from tnn_dsl.core.memory import large_blocks_mapped, release_free_memory
 
 def rss_mb():
     with open("/proc/self/status") as f:
@@ -23,6 +24,8 @@ def rss_mb():
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
 
+block = large_blocks_mapped() if sys.argv[1] == "mapped" else None
+mapped = block.__enter__() if block is not None else False
 big = np.ones(20 * 2**20 // 8)  # 20 MB, mapped on its own; freeing it raises glibc's mmap threshold to 20 MB,
 # so the 8 MB arrays below come from the heap
 del big
@@ -35,7 +38,16 @@ peak = rss_mb()
 del held
 applied = release_free_memory() if sys.argv[1] == "on" else False
 after = rss_mb()
-print(json.dumps({"applied": applied, "grew": peak - before, "kept": after - before}))
+if block is not None:  # left: blocks below 32 MiB come from the heap again and stay there when freed
+    block.__exit__(None, None, None)
+    again = [np.ones(8 * 2**20 // 8) for _ in range(5)]
+    small = np.ones(2000)
+    del again
+    after_exit = rss_mb() - after
+else:
+    after_exit = 0.0
+print(json.dumps({"applied": applied, "mapped": mapped, "grew": peak - before, "kept": after - before,
+                  "kept_after_exit": after_exit}))
 """
 
 
@@ -53,3 +65,13 @@ def test_freed_arrays_go_back_to_the_system_only_with_the_setting():
     assert on["kept"] < 40, on  # returned
     assert off["kept"] > 150, off  # glibc's default keeps them: the test can tell
 
+
+
+@pytest.mark.skipif(_glibc() is None, reason="glibc's mallopt only")
+def test_large_blocks_mapped_go_back_when_freed_without_a_trim():
+    mapped, off = _child("mapped"), _child("off")
+    assert mapped["mapped"] and not mapped["applied"] and not off["mapped"]
+    assert mapped["grew"] > 150
+    assert mapped["kept"] < 40, mapped  # each 8 MB block was a mapping of its own, unmapped by `del`
+    assert off["kept"] > 150, off
+    assert mapped["kept_after_exit"] > 30, mapped  # glibc's behaviour after the block: heap blocks kept

@@ -59,7 +59,7 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from ..core.blas import one_blas_thread
-from ..core.memory import release_free_memory
+from ..core.memory import large_blocks_mapped, release_free_memory
 from .results import Diagnosis, Finding
 from .session import _Session
 
@@ -126,19 +126,22 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
 
 
 def _run(run: _Session, max_rounds: int) -> Diagnosis:
-    run.read_data()
-    run.fit_baseline()
-    run.analyse_residuals()
-    for rnd in range(1, max_rounds + 1):
-        if not run.selection_round(rnd):
-            break
-    run.end_rounds()
-    release_free_memory(collect=True)  # the rounds' engines, networks and arrays are done with (core.memory)
-    run.build_extension()
-    # the extension's engines are done with too: collected before the MLP check compiles and trains two models
-    # (its peak with two threads 878 → 829 MB, benchmarks/bench_diagnose.py, one run each, 2026-11-28), and the
-    # nominal and extended engines' compiled programs let go (the result needs their data only)
-    run.release_programs()
+    # the fits' large buffers (simulations' temporaries, Jacobians) mapped on their own and handed back when freed
+    # (core.memory); the MLP check's trainings after it reuse theirs step after step
+    with large_blocks_mapped():
+        run.read_data()
+        run.fit_baseline()
+        run.analyse_residuals()
+        for rnd in range(1, max_rounds + 1):
+            if not run.selection_round(rnd):
+                break
+        run.end_rounds()
+        release_free_memory(collect=True)  # the rounds' engines, networks and arrays are done with (core.memory)
+        run.build_extension()
+        # the extension's engines are done with too: collected before the MLP check compiles and trains two models
+        # (its peak with two threads 878 → 829 MB, benchmarks/bench_diagnose.py, one run each, 2026-11-28), and the
+        # nominal and extended engines' compiled programs let go (the result needs their data only)
+        run.release_programs()
     release_free_memory(collect=True)
     run.compare_with_mlp()
     return run.result()

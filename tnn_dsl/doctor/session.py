@@ -493,6 +493,9 @@ class _Session:
             self.remaining = [r for r in self.remaining if r.kind not in STRUCTURAL_KINDS]
             active_base = list(b_free) + [j for k in acc_keys for j in b_cols.get(k, [])]
             scored = _score(b_eng, self.remaining, active_base, b_cols, self.sigma)
+        # the extended network's programs (~35 MB on the case study) go until the next round's score test compiles
+        # them again: the round's candidate fits stand on what is left (issue 18)
+        b_eng.release_programs()
         self.lap(f"score_round{rnd}", t0)
         if rnd == 1:
             self.scores_out = [dict(s["public"]) for s in scored]
