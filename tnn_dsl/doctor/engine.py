@@ -102,8 +102,10 @@ grow with the batch: on the case study's 4 h (14 401 samples) the 17 simulations
 at a time run faster per simulation. ``python benchmarks/profile_jacobian_batch.py --dir DIR none 4 6 8`` (the
 nominal M1 engine's 16-column Jacobian, three rounds of five calls alternating; 2026-11-28, a busy host): median
 116–135 ms whole, 79–97 ms in chunks of 6, 86–98 in chunks of 4, 98–109 in chunks of 8, the same Jacobian to the
-bit. The forward-mode tangents, tried the same way once, gained nothing from chunks (each chunk recomputes the
-primal), so they stay one batch."""
+bit for that call — not for every call of the fits: with 4 at a time the case study's nominal fit ended a hair
+apart and its diagnosis accepted two more terms (BENCHMARKS.md, 2026-11-29), so the value is part of what the
+doctor's answers were measured with. The forward-mode tangents, tried the same way once, gained nothing from chunks
+(each chunk recomputes the primal), so they stay one batch."""
 
 def _even_chunk(m: int, most: int | None) -> int | None:
     """The chunk size that splits a batch of ``m`` into even chunks of at most ``most`` (None: no chunks)."""
