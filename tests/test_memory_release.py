@@ -66,7 +66,6 @@ def test_freed_arrays_go_back_to_the_system_only_with_the_setting():
     assert off["kept"] > 150, off  # glibc's default keeps them: the test can tell
 
 
-
 @pytest.mark.skipif(_glibc() is None, reason="glibc's mallopt only")
 def test_large_blocks_mapped_go_back_when_freed_without_a_trim():
     mapped, off = _child("mapped"), _child("off")

@@ -80,8 +80,9 @@ def large_blocks_mapped(threshold: int = LARGE_BLOCK_BYTES) -> Iterator[bool]:
     calls a compiled simulation's temporaries and the Jacobians (1–40 MB each on the case study's 4 h) come from the
     heap, and the small objects allocated meanwhile pin the pages they leave: the resident size then carries the
     fragments of every phase. ``tnn_dsl.diagnose`` runs its rounds in this block (issue 18, ``python
-    benchmarks/bench_diagnose.py --threads 1,2`` one run each, 2026-11-29, BENCHMARKS.md: peak 678 → 595 MB with one
-    candidate fit at a time, 727 → 644 MB with two). The setting is the process's: glibc cannot go back to its rule
+    benchmarks/bench_diagnose.py --threads 1,2``, 2026-11-29, BENCHMARKS.md: with the score test's network released
+    between rounds too, peak 678 → 574 MB with one candidate fit at a time, 727 → 605 MB with two, as fast; runs of
+    one code had differed by up to 46 MB, now by a few). The setting is the process's: glibc cannot go back to its rule
     once it is set, so on leaving the threshold is fixed where that rule ends, 32 MiB (the trim threshold at twice
     that), for the trainings after it whose buffers are reused step after step."""
     taken = _mallopt(M_MMAP_THRESHOLD, threshold)
