@@ -142,3 +142,37 @@ def test_released_programs_are_built_again_and_give_the_same_numbers(backend):
     np.testing.assert_allclose(clone.simulate()[0], y0, rtol=1e-12, atol=1e-12)
     with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
         eng.nothing_here  # noqa: B018
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_warm_compiles_what_a_fit_calls_first_and_changes_nothing(backend):
+    """``_Engine.warm`` (the doctor calls it before a round's fits start side by side): the parameters stay as they
+    were, a fit on a clone afterwards compiles nothing more on JAX, and it reaches the SSE that the same fit reaches
+    on an engine never warmed, to the bit."""
+    eng, free = _nominal_engine(backend)
+    eng.params = eng.apply(eng.params, free, np.full(len(free), 0.4), trust=False)
+    cold = eng.clone()  # shares no compiled program with the warmed engine's later calls: released below
+    before = {k: np.array(v, copy=True) for k, v in eng.params.items()}
+    eng.warm(free)
+    assert set(eng.params) == set(before)
+    for k, v in before.items():
+        np.testing.assert_array_equal(eng.params[k], v)
+    warm = eng.clone()
+    compiled: list[str] = []
+    if backend == "jax":
+        import jax.monitoring
+
+        def listen(event: str, duration: float, **kwargs) -> None:
+            if event == "/jax/core/compile/backend_compile_duration":
+                compiled.append(event)
+
+        jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        got = warm.fit(free, max_iter=3, init_delta=np.full(len(free), -0.2), tol=1e-12)
+    finally:
+        if backend == "jax":
+            jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == [], f"the fit compiled {len(compiled)} program(s) after warm"
+    cold.release_programs()
+    want = cold.fit(free, max_iter=3, init_delta=np.full(len(free), -0.2), tol=1e-12)
+    assert got["sse"] == want["sse"] and got["jacobians"] == want["jacobians"] == 3

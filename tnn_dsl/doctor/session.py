@@ -547,6 +547,15 @@ class _Session:
         structural = [s_ for s_ in short if s_["cand"].kind in STRUCTURAL_KINDS]
         exact = [s_ for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
 
+        if self.threads > 1 and len(exact) > 1:
+            # the round's small network compiled here, alone, and the compilation's scratch memory handed back
+            # before its fits start side by side (:meth:`_Engine.warm`)
+            t_w = _time.monotonic()
+            c0: Candidate = exact[0]["cand"]
+            e_s.warm(list(f_s) + [j for k in acc_keys + [c0.key] for j in c_s.get(k, [])])
+            release_free_memory()
+            t_c += _time.monotonic() - t_w
+
         def fit_structural(say) -> list[dict | None]:
             """The structural candidates one after the other (each compiles its own network and may update the
             learned inputs' reference run that the next one reads)."""
@@ -1071,7 +1080,11 @@ class _Session:
         self.final_act = list(chosen.get("act") or [])
         chosen["eng"].params = chosen["params"]
         self.state.harvest(chosen["eng"], chosen["ext"], [k.key for k in self.accepted])
-        self.final_eng, self.final_ext = chosen["eng"], chosen["ext"]
+        prev, self.final_eng, self.final_ext = self.final_eng, chosen["eng"], chosen["ext"]
+        if prev is not self.final_eng and prev.model is not self.final_eng.model:
+            # the model it replaces (in round 1 the nominal engine, which stays for its data) compiles nothing more
+            # for the selection: its programs (~40 MB on the case study) go before the next round's fits
+            prev.release_programs()
         self.current_val = (chosen["val_mae"], chosen["val_max"], chosen["val_sse"])
         if self.ml is not None:
             self.ml.accept(chosen["ml_fit"], chosen["ml_net"])
