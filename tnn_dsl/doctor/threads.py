@@ -42,7 +42,8 @@ def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads:
     and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are independent
     (each on its own engine clone or network) and spend their time inside compiled simulations, where JAX releases
     the interpreter (torch runs one job at a time: the session sets ``threads`` = 1). The case study's whole diagnosis
-    on 2 cores: 229 s with one thread, 182 s with two (benchmarks/bench_diagnose.py)."""
+    on 2 cores: 356 s with one thread, 279 s with two, on a slow host (``benchmarks/bench_diagnose.py --threads 1,2``,
+    2026-11-29; BENCHMARKS.md)."""
     jobs = [_then_release(job) for job in jobs]
     if threads <= 1 or len(jobs) <= 1:
         return [job(say) for job in jobs]
