@@ -60,6 +60,7 @@ def run(args) -> int:
     diag_text = None
     if not args.no_diagnose:
         from ..studies import generate_case_study, network_path
+        from ..studies.thesis import DATA_BACKEND
 
         try:
             from ..doctor import diagnose
@@ -67,7 +68,7 @@ def run(args) -> int:
             diagnose = None
         if diagnose is not None:
             data = generate_case_study(data_dir, widen=cfg.widen, n_ood=cfg.n_ood, durations=cfg.durations,
-                                       backend=cfg.backend, progress=lambda m: say("data: " + m))
+                                       backend=DATA_BACKEND, progress=lambda m: say("data: " + m))
             say(f"diagnosing m1.thn on the training data (budget {diag_budget:g} s)")
             d = diagnose(str(network_path("peltier_heatpipe/m1.thn")), data["train"], val=data["val"],
                          budget_s=diag_budget, backend=cfg.backend, progress=lambda m: say("  doctor: " + m))
