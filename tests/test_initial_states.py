@@ -25,7 +25,7 @@ from tnn_dsl.core import TnnError
 from tnn_dsl.data import Experiment, read_data
 from tnn_dsl.fit.initial import burn_in_samples, default_burn_in, fingerprint, free_run_start, initial_state
 from tnn_dsl.fit.model_files import TrainedModel, load_model
-from tnn_dsl.fit.simulation import error_metrics, free_run, free_runs
+from tnn_dsl.fit.simulation import error_metrics, free_run
 
 BACKENDS = ["jax", "torch"]
 K0 = 273.15
@@ -128,37 +128,6 @@ def test_estimate_finds_an_off_rest_start_that_steady_and_measured_miss(backend)
     assert run.burn_in == 30 and np.abs(run.y - exp.outputs).max() < 1e-3
     run_m = free_run(model, params, exp, "measured")
     assert np.abs(run_m.y - exp.outputs)[30:].max() > 0.5
-
-
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_free_runs_of_equal_length_are_one_batched_rollout_with_the_same_numbers(backend, monkeypatch):
-    """``free_runs``: three files of 300 samples and one of 200, each started by its own burn-in estimate; the three
-    are simulated as one batched rollout (one call of the simulation), and every run equals its own ``free_run`` to
-    1e-9 K; with ``check`` a run leaving the physical range still raises."""
-    import tnn_dsl.fit.simulation as sim
-
-    _, model, params = _model(backend)
-    exps = [_simulated(backend, _prbs_inputs(s), off=OFF * (1 + s), name=f"f{s}")[0] for s in range(3)]
-    exps.insert(1, _simulated(backend, _prbs_inputs(7, n=200), name="short")[0])
-    calls = []
-    real = sim._sim_fn
-
-    def counting(*a, **k):
-        fn = real(*a, **k)
-        return lambda p, U, T0: calls.append(np.shape(T0)) or fn(p, U, T0)
-
-    monkeypatch.setattr(sim, "_sim_fn", counting)
-    together = free_runs(model, params, exps, "estimate")
-    assert sorted(calls) == sorted([(3, 2), (2,)]), calls  # the three 300-sample files, then the short one
-    for exp, run in zip(exps, together):
-        alone = free_run(model, params, exp, "estimate")
-        assert run.burn_in == alone.burn_in and run.y.shape == exp.outputs.shape
-        np.testing.assert_allclose(run.y, alone.y, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(run.states[run.init.at:], alone.states[alone.init.at:], rtol=0, atol=1e-9)
-    hot = Experiment(name="hot", path="", t=exps[0].t, dt=1.0, inputs=exps[0].inputs * 1e9, outputs=exps[0].outputs,
-                     input_names=("P",), output_names=("Sa",))
-    with pytest.raises(TnnError, match="left the physical range"):
-        free_runs(model, params, [exps[0], hot], "steady", check=True)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

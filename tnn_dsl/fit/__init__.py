@@ -13,11 +13,11 @@ from __future__ import annotations
 from .config import TrainConfig, load_config
 from .initial import INIT_RULES, InitialState, initial_state
 from .model_files import MODEL_DIR, TrainedModel, is_model_dir, load_model, save_model
-from .simulation import FreeRun, error_metrics, free_run, free_runs, simulate
+from .simulation import FreeRun, error_metrics, free_run, simulate
 from .training import evaluate, train
 
 __all__ = [
     "MODEL_DIR", "TrainedModel", "is_model_dir", "load_model", "save_model", "error_metrics", "INIT_RULES",
-    "InitialState", "initial_state", "FreeRun", "free_run", "free_runs", "simulate", "TrainConfig", "evaluate",
-    "load_config", "train"
+    "InitialState", "initial_state", "FreeRun", "free_run", "simulate", "TrainConfig", "evaluate", "load_config",
+    "train"
 ]

@@ -47,7 +47,7 @@ from ..core import (
 )
 from ..core.htmlview import html_list, html_table, safe_repr_html, view
 from ..ir import Network, Span
-from .simulation import as_experiments, error_metrics, free_runs
+from .simulation import as_experiments, error_metrics, free_run
 
 if TYPE_CHECKING:
     from ..compiler import Model
@@ -554,10 +554,9 @@ class TrainedModel:
         substeps = self.meta.get("config", {}).get("substeps")
         known = self.free_run_context()
         out = []
-        exps = as_experiments(self.network, data)
-        runs = free_runs(model, params, exps, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
-                         check=check, **known)
-        for exp, run in zip(exps, runs):
+        for exp in as_experiments(self.network, data):
+            run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
+                           check=check, **known)
             out.append({
                 "name": exp.name, "t": np.asarray(exp.t), "y": run.y, "measured": np.asarray(exp.outputs, dtype=float),
                 "states": run.states, "sensors": list(model.output_names), "state_names": list(model.state_names),

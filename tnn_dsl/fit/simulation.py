@@ -22,8 +22,7 @@ from .ranges import (  # noqa: F401 - re-exported: the ranges' home before they 
     start_range,
 )
 
-__all__ = ["simulate", "free_run", "free_runs", "FreeRun", "error_metrics", "as_experiments", "check_rollout",
-           "plausible_range"]
+__all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments", "check_rollout", "plausible_range"]
 
 @dataclass
 class FreeRun:
@@ -74,53 +73,22 @@ def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str =
     values per training file (see :func:`~tnn_dsl.fit.initial.initial_state`). With ``check`` a run that
     leaves the physical range raises :class:`~tnn_dsl.core.TnnError` naming the node and the time
     (:func:`check_rollout`); the trainer's own runs are unchecked (it has its divergence guard)."""
-    return free_runs(model, params, [exp], init, integrator=integrator, substeps=substeps, burn_in_s=burn_in_s,
-                     stored=stored, per_experiment=per_experiment, stored_params=stored_params, check=check)[0]
-
-
-def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment], init: str = "estimate", *,
-              integrator: str = "rk4", substeps: int | None = None, burn_in_s: float | None = None,
-              stored: Mapping[str, Any] | None = None, per_experiment: Mapping[str, float] | None = None,
-              stored_params: Mapping[str, Mapping[str, float]] | None = None, check: bool = False) -> list[FreeRun]:
-    """:func:`free_run` of every experiment of ``exps``, in order. Each starts by its own initial-state rule; the
-    runs of equal length and step with no per-experiment values of their own are simulated as one batched rollout
-    (the same numbers as one by one, to round-off): eager torch pays its per-operation cost once per step for the
-    whole batch, the case study's 10 out-of-distribution files of a widening as one run instead of ten (issue 18).
-    With ``check`` the first run, in order, that leaves the physical range raises."""
     ops = backend_of(model)
-    inis = [initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s, integrator=integrator,
-                          substeps=substeps, stored=stored, per_experiment=per_experiment, stored_params=stored_params)
-            for exp in exps]
+    ini = initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s, integrator=integrator,
+                        substeps=substeps, stored=stored, per_experiment=per_experiment, stored_params=stored_params)
+    if ini.params:
+        params = with_values(model, params, ini.params)
+    fn = _sim_fn(model, integrator, float(exp.dt), substeps)
+    U = np.asarray(exp.inputs, dtype=float)
     pack = getattr(model, "pack_params", None)  # a large network: one jit argument, not one per constant
-    groups: dict[tuple, list[int]] = {}
-    for i, (exp, ini) in enumerate(zip(exps, inis)):
-        key = (repr(float(exp.dt)), int(exp.n_steps) - int(ini.at)) if not ini.params else ("own", i)
-        groups.setdefault(key, []).append(i)
-    sims: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for idx in groups.values():
-        ini0 = inis[idx[0]]
-        p = with_values(model, params, ini0.params) if ini0.params else params
-        fn = _sim_fn(model, integrator, float(exps[idx[0]].dt), substeps)
-        U = [np.asarray(exps[i].inputs, dtype=float)[inis[i].at:] for i in idx]
-        T0 = [np.asarray(inis[i].T, dtype=float) for i in idx]
-        if len(idx) == 1:
-            states, y = fn(pack(p) if pack else p, ops.asarray(U[0]), ops.asarray(T0[0]))
-            sims[idx[0]] = (ops.numpy(states), ops.numpy(y))
-            continue
-        states, y = fn(pack(p) if pack else p, ops.asarray(np.stack(U)), ops.asarray(np.stack(T0)))
-        states, y = ops.numpy(states), ops.numpy(y)
-        for b, i in enumerate(idx):
-            sims[i] = (states[b], y[b])
-    runs = []
-    for i, (exp, ini) in enumerate(zip(exps, inis)):
-        states, y = sims[i]
-        if ini.at:
-            states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
-            y = np.concatenate([ini.prefix_outputs, y])
-        if check:
-            check_rollout(model, exp, states, y, start=ini.at)
-        runs.append(FreeRun(states, y, ini))
-    return runs
+    states, y = fn(pack(params) if pack else params, ops.asarray(U[ini.at:]), ops.asarray(ini.T))
+    states, y = ops.numpy(states), ops.numpy(y)
+    if ini.at:
+        states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
+        y = np.concatenate([ini.prefix_outputs, y])
+    if check:
+        check_rollout(model, exp, states, y, start=ini.at)
+    return FreeRun(states, y, ini)
 
 
 def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray, start: int = 0) -> None:

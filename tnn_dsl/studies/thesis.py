@@ -200,16 +200,12 @@ def _out_of_distribution(tm, ood_files: dict[str, list[str]], backend: str) -> d
     ood, ood_max, diverged = {}, {}, {}
     for p, paths in ood_files.items():
         maes, maxes = [], []
-        try:  # the widening's sets together: free runs of equal length are one batched rollout (fit.free_runs)
-            evs = [tm.evaluate(list(paths), backend=backend)] if paths else []
-        except TnnError:  # a set diverged: each on its own, to say which
-            evs = []
-            for path in paths:
-                try:
-                    evs.append(tm.evaluate([path], backend=backend))
-                except TnnError as err:
-                    diverged.setdefault(p, []).append(f"{Path(path).name}: {err.diagnostics[0].message}")
-        for ev in evs:
+        for path in paths:
+            try:
+                ev = tm.evaluate([path], backend=backend)
+            except TnnError as err:
+                diverged.setdefault(p, []).append(f"{Path(path).name}: {err.diagnostics[0].message}")
+                continue
             maes += [e["mae"] for e in ev["experiments"]]
             maxes += [e["max_error"] for e in ev["experiments"]]
         bad = p in diverged
