@@ -340,9 +340,10 @@ def _central_difference_jacobian(B: Any, model: Any, dt: float, integrator: str,
     """``J(p, U, x) (n_t, n_out, n_states)``: the burn-in readings' derivatives with respect to the initial state
     ``x`` (n_states,) K by central differences, all ``2·n_states`` perturbed runs as one batched rollout (torch's
     compiled scan, or eager torch, whose cost per step hardly grows with the batch; ``U`` (n_t, n_in) is shared).
-    The case study's M2 on its 2 h validation file, eager: 0.33 s an estimate against 16 s by forward mode; the
-    estimate within 3.6e-5 K of JAX's (``jacfwd``), the Gauss–Newton iterations stopping a little apart in the
-    burn-in's poorly seen directions (2026-11-29, issue 18)."""
+    The case study's M2 on its 2 h validation file, eager (``python benchmarks/bench_burn_in.py --backends
+    jax,torch``): 1.42 s an estimate (median of 3, 2026-11-29) against 16.3 s by forward mode (2026-11-26); the
+    estimate within 4.3e-5 K of JAX's (``jacfwd``), the Gauss–Newton iterations stopping a little apart in the
+    burn-in's poorly seen directions (issue 18)."""
     torch = B.torch
 
     def J(p, U, x):
