@@ -481,3 +481,26 @@ def test_reading_a_plain_numeric_csv_does_not_import_pandas(tmp_path):
     assert plain_pandas is False and marked_pandas is True
     assert plain_t1[0] == pytest.approx(293.65) and plain_t1[1] != plain_t1[1]  # kelvin; the blank cell is NaN
     assert marked_t1[1] != marked_t1[1]
+
+
+def test_networks_that_read_a_file_alike_have_one_key_and_read_the_same_experiments(tmp_path):
+    """``columns_read``: the case study's five networks read their files alike (one key: the study reads each
+    out-of-distribution file once for all five); another column, unit or temperature unit is another key, and a
+    network with the same key reads the same arrays."""
+    import tnn_dsl
+    from tnn_dsl.data import columns_read
+
+    root = Path(__file__).resolve().parents[1] / "networks" / "peltier_heatpipe"
+    keys = {columns_read(tnn_dsl.load(root / f"m{i}.thn")) for i in range(1, 5)}
+    assert len(keys) == 1
+    base = tclab_net()
+    renamed = base.model_copy(update={"sensors": [base.sensors[0], base.sensors[1].model_copy(update={"column": "x"})]})
+    watts = base.model_copy(update={"inputs": [base.inputs[0].model_copy(update={"unit": "W"}), base.inputs[1]]})
+    assert len({columns_read(n) for n in (base, renamed, watts, tclab_net("K"))}) == 4
+    csv = tmp_path / "d.csv"
+    csv.write_text("time,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,10,0,20.5,21\n1,10,0,,21.25\n2,20,5,20.75,21.5\n")
+    twin = tclab_net().model_copy(update={"name": "another"})
+    assert columns_read(twin) == columns_read(base)
+    (a,), (b,) = read_data(base, csv), read_data(twin, csv)
+    np.testing.assert_array_equal(a.inputs, b.inputs)
+    np.testing.assert_array_equal(a.outputs, b.outputs)

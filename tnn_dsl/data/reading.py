@@ -65,7 +65,7 @@ from .tables import MAX_REPORTED, _find_column, _missing_column, _numeric, _row_
 from .timebase import _interp_linear, _interval_mean_zoh, _nice_step, _show_time, _time
 from .units import from_kelvin, to_kelvin, unit_scale_offset
 
-__all__ = ["read_data", "as_experiments", "GAP_STEPS", "HOLE_STEPS"]
+__all__ = ["read_data", "as_experiments", "columns_read", "GAP_STEPS", "HOLE_STEPS"]
 
 GAP_STEPS = 5.0
 """A jump between rows with data longer than this many periods splits a file into segments (module docstring)."""
@@ -139,6 +139,17 @@ def read_data(
     if problems:
         raise DataError(problems)
     return experiments
+
+
+def columns_read(net: Network) -> tuple:
+    """What :func:`read_data` takes from ``net`` to read a file, as a hashable key: the temperature unit, each
+    input's name, column, unit and whether it is a temperature, each sensor's name and column (in order). Two
+    networks with equal keys read any file into the same experiments, so a caller that runs several networks on
+    the same files can read each file once (the case study's five models share their 40 out-of-distribution
+    files: ``tnn_dsl.studies.thesis``)."""
+    return (net.temperature_unit,
+            tuple((i.name, i.column, i.unit, bool(i.is_temperature)) for i in net.inputs),
+            tuple((s.name, s.column) for s in net.sensors))
 
 
 def _read_one(net: Network, path: str, time_col, dt, time_unit, require_outputs, split_gaps) -> list[Experiment]:

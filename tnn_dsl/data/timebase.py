@@ -4,6 +4,7 @@ and the sample step; resampling inputs (zero-order hold, interval means) and out
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import numpy as np
 
@@ -40,13 +41,18 @@ def _suffix_unit(name: str) -> float | None:
     return None
 
 
-def _as_timestamps(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+_NOT_READ = object()
+
+
+def _as_timestamps(vals: np.ndarray, plain: Any = _NOT_READ) -> tuple[np.ndarray, np.ndarray] | None:
     """(seconds since epoch as float64 with NaN for unparsable, ok mask) or None if it is not a time-stamp
-    column (fewer than half the cells parse)."""
+    column (fewer than half the cells parse). ``plain``: the cells already read as plain numbers
+    (:meth:`_Table.plain`, None when they are not), if the caller has them."""
     if vals.dtype.kind != "M":
         if vals.dtype.kind in "fiub" or len(vals) == 0:
             return None
-        plain = _plain_numbers(np.array(["" if v is None else str(v) for v in vals], dtype=object))
+        if plain is _NOT_READ:
+            plain = _plain_numbers(np.array(["" if v is None else str(v) for v in vals], dtype=object))
         if plain is not None and (~np.isnan(plain)).mean() > 0.5:
             return None  # a column of plain numbers (decided without importing pandas)
     import pandas as pd
@@ -103,7 +109,7 @@ def _time(tab: _Table, time_col: str | None, time_unit: str | None, dt: float | 
                     break
         if j is None:  # a time-stamp column of any name (pandas writes its index unnamed)
             for jj in range(len(tab.columns)):
-                if jj not in used and _as_timestamps(tab.cells[jj]) is not None:
+                if jj not in used and _as_timestamps(tab.cells[jj], tab.plain(jj)) is not None:
                     j = jj
                     break
         if j is None:
@@ -117,7 +123,7 @@ def _time(tab: _Table, time_col: str | None, time_unit: str | None, dt: float | 
             return None, None, None
 
     vals = tab.cells[j]
-    stamps = _as_timestamps(vals)
+    stamps = _as_timestamps(vals, tab.plain(j))
     start = None
     if stamps is not None:
         sec, ok = stamps
@@ -166,7 +172,7 @@ def _unit_from_companion(tab: _Table, j: int, raw: np.ndarray, used: set[int]):
     for jj in range(len(tab.columns)):
         if jj == j or jj in used:
             continue
-        stamps = _as_timestamps(tab.cells[jj])
+        stamps = _as_timestamps(tab.cells[jj], tab.plain(jj))
         if stamps is None or not stamps[1].all():
             continue
         span_s = stamps[0][-1] - stamps[0][0]
