@@ -35,9 +35,11 @@ def main(argv=None) -> int:
     t0 = time.monotonic()
     cfg = StudyConfig(backend=args.backend, epochs=args.epochs, time_limit=args.time_limit, lbfgs_iters=args.lbfgs,
                       n_ood=args.n_ood, seed=args.seed)
-    res = run_study(args.out, config=cfg, progress=lambda m: print(f"[{time.monotonic() - t0:5.0f} s] {m}", flush=True))
+    runs: dict = {}
+    res = run_study(args.out, config=cfg, progress=lambda m: print(f"[{time.monotonic() - t0:5.0f} s] {m}", flush=True),
+                    validation_runs=runs)
     res["models_dir"] = str(Path(args.out) / "models")
-    plots = plot_study(res, args.out)
+    plots = plot_study(res, args.out, validation_runs=runs)
     text = "\n\n".join([
         f"Command: `python examples/thesis_case_study.py --out {args.out} --epochs {args.epochs} "
         f"--time-limit {args.time_limit:g} --lbfgs {args.lbfgs} --n-ood {args.n_ood} --backend {args.backend}` "

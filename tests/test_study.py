@@ -17,8 +17,9 @@ from tnn_dsl.studies.thesis import StudyConfig, plot_study, ratios_table, result
 def test_study_tiny(tmp_path, backend):
     cfg = StudyConfig(backend=backend, epochs=2, time_limit=None, lbfgs_iters=0, n_ood=1, widen=(0.4,),
                       durations=(600.0, 300.0, 300.0), models=("M4", "M5"))
-    msgs = []
-    res = run_study(tmp_path / "out", data_dir=tmp_path / "data", config=cfg, progress=msgs.append)
+    msgs, runs = [], {}
+    res = run_study(tmp_path / "out", data_dir=tmp_path / "data", config=cfg, progress=msgs.append,
+                    validation_runs=runs)
     assert set(res["models"]) == {"M4", "M5"}
     for name, r in res["models"].items():
         assert math.isfinite(r["validation"]["mae"]) and r["validation"]["mae"] > 0
@@ -49,9 +50,24 @@ def test_study_tiny(tmp_path, backend):
     assert "| M4 |" in results_table(res) and "M5/M3" in ratios_table(res)
     saved = json.loads((tmp_path / "out/results.json").read_text())
     assert saved["models"]["M4"]["validation"]["mae"] == pytest.approx(res["models"]["M4"]["validation"]["mae"])
+    # the validation runs handed to the plot are the runs the validation metrics score (made by the trained models
+    # in memory); the out-of-distribution sets, read once for both models, score as the files read by a model
+    # loaded from disk score them
+    from tnn_dsl.fit import error_metrics
+
+    assert set(runs) == {"M4", "M5"}
+    for name, run in runs.items():
+        assert error_metrics([run], ["T_out"])["mae"] == pytest.approx(res["models"][name]["validation"]["mae"],
+                                                                       rel=1e-9)
+    loaded = tnn_dsl.load_model(tmp_path / "out/models/m5")
+    assert loaded.evaluate(res["data"]["val"])["mae"] == pytest.approx(res["models"]["M5"]["validation"]["mae"],
+                                                                       rel=1e-9)
+    (ood_file,) = sorted((tmp_path / "data").glob("ood_40_*.csv"))
+    assert loaded.evaluate([str(ood_file)])["mae"] == pytest.approx(res["models"]["M5"]["ood"]["40"], rel=1e-9)
     res["models_dir"] = str(tmp_path / "out/models")
-    plots = plot_study(res, tmp_path / "out")
-    assert len(plots) == 2 and all((tmp_path / "out" / p.split("/")[-1]).stat().st_size > 1000 for p in plots)
+    for where, given in (("drawn", runs), ("loaded", None)):
+        plots = plot_study(res, tmp_path / where, validation_runs=given)
+        assert len(plots) == 2 and all((tmp_path / where / p.split("/")[-1]).stat().st_size > 1000 for p in plots)
     assert any("M5" in m for m in msgs)
 
 

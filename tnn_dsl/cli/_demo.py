@@ -74,9 +74,10 @@ def run(args) -> int:
                          budget_s=diag_budget, backend=cfg.backend, progress=lambda m: say("  doctor: " + m))
             diag_text = d.summary()
             print(diag_text, flush=True)
-    res = run_study(out, data_dir=data_dir, config=cfg, progress=say, force=args.force)
+    runs: dict = {}
+    res = run_study(out, data_dir=data_dir, config=cfg, progress=say, force=args.force, validation_runs=runs)
     res["models_dir"] = str(out / "models")
-    plots = plot_study(res, out)
+    plots = plot_study(res, out, validation_runs=runs)
     table, ratios = results_table(res), ratios_table(res)
     print()
     print(table)

@@ -6,7 +6,8 @@ on two cores). Steps:
 1. generate the case-study data (``generate_case_study``; cached by its manifest);
 2. train the model variants M1–M5 of Table 5.1 on ``train.csv`` with ``val.csv`` for early stopping
    (M5 = M4's Peltier network, frozen, loaded from the M4 model just trained, + M3's heat-pipe MLP);
-3. validation MAE and max error (thesis eq. 4.9), free run from the steady state of the first inputs;
+3. validation MAE and max error (thesis eq. 4.9): the trainer's free run of ``val.csv`` from an initial state
+   estimated on its first tenth (a burn-in, not scored; ``tnn_dsl.fit.initial``);
 4. out of distribution: MAE averaged over the ``ood_<P>_<k>.csv`` sets per widening P (Figure 5.6);
 5. the ratios the thesis reports (``THESIS``) computed from our numbers, side by side.
 
@@ -22,7 +23,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -107,11 +108,16 @@ STUDY_DIR = OutputKind("case-study output directory", is_dir=True, ours=_is_stud
 
 def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = None,
               config: StudyConfig | None = None, progress: Callable[[str], None] | None = None,
-              *, force: bool = False) -> dict:
+              *, force: bool = False, validation_runs: dict | None = None) -> dict:
     """Run the study; write ``out_dir/models/<m>``, ``out_dir/results.json``; → the results dict::
 
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
          "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
+
+    ``validation_runs``: a dict to fill with each model's free run on the validation set
+    (``{"M1": TrainedModel.predict(...)[0], ...}``), made by the trained model still in memory, whose compiled
+    programs the study has already built; :func:`plot_study` draws them without simulating again (loading five
+    models from disk to simulate them took 53 s of the torch demo and 17 s of JAX's, 2026-11-29).
     """
     from .casestudy import generate_case_study
 
@@ -140,8 +146,10 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
         trained[name], results["models"][name] = _train_model(name, cfg, data, out, say)
     if cfg.n_ood > 0 and cfg.widen:
         say(f"[3/3] out of distribution: {len(cfg.widen)} widenings × {cfg.n_ood} sets × {len(order)} models")
+        sets_for = _read_once(data["ood"])
         for name in order:
-            results["models"][name].update(_out_of_distribution(trained[name], data["ood"], cfg.backend))
+            results["models"][name].update(_out_of_distribution(trained[name], sets_for(trained[name].network),
+                                                                cfg.backend))
             ood, bad = results["models"][name]["ood"], results["models"][name]["ood_diverged"]
             say(f"      {name}: " + ", ".join(f"+{p} %: " + (f"diverged on {len(bad[p])} of {len(data['ood'][p])} sets"
                                                             if p in bad else f"{v * 1e3:.0f} mK")
@@ -149,6 +157,9 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
             for p, reasons in bad.items():
                 for reason in reasons:
                     say(f"        +{p} %: {reason}")
+    if validation_runs is not None:
+        for name in order:
+            validation_runs[name] = trained[name].predict(data["val"], backend=cfg.backend)[0]
     results["ratios"] = thesis_ratios(results)
     results["seconds"] = time.perf_counter() - t_start
     write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
@@ -192,19 +203,38 @@ def _train_model(name: str, cfg: StudyConfig, data: dict, out: Path, say: Callab
     return tm, entry
 
 
-def _out_of_distribution(tm, ood_files: dict[str, list[str]], backend: str) -> dict:
-    """Mean MAE and mean max error over the data sets of each widening: ``{"ood": {...}, "ood_max": {...},
-    "ood_diverged": {widening: [file: reason]}}`` (K). A model whose free run leaves the physical range on a set
-    (out of distribution, a learned law far outside its training range may) has no error there: that widening's
-    means are NaN and the set is listed with the reason, so one diverged run does not stop the study."""
+def _read_once(ood_files: dict[str, list[str]]) -> Callable[[Any], dict[str, list]]:
+    """``sets_for(network)``: the out-of-distribution files of each widening read as experiments for ``network``,
+    each file read once for all networks that read it alike (:func:`tnn_dsl.data.columns_read`; the five models
+    do). Reading a 2 h file takes about 0.2 s: 40 files for each of five models were 45 s of the demo on either
+    backend (2026-11-29)."""
+    from ..data import columns_read, read_data
+
+    cache: dict = {}
+
+    def sets_for(net) -> dict[str, list]:
+        key = columns_read(net)
+        if key not in cache:
+            cache[key] = {p: read_data(net, paths) for p, paths in ood_files.items()}
+        return cache[key]
+    return sets_for
+
+
+def _out_of_distribution(tm, ood_sets: dict[str, list], backend: str) -> dict:
+    """Mean MAE and mean max error over the data sets of each widening (``ood_sets``: widening → files or
+    experiments read for ``tm``'s network): ``{"ood": {...}, "ood_max": {...}, "ood_diverged": {widening: [file:
+    reason]}}`` (K). A model whose free run leaves the physical range on a set (out of distribution, a learned law
+    far outside its training range may) has no error there: that widening's means are NaN and the set is listed
+    with the reason, so one diverged run does not stop the study."""
     ood, ood_max, diverged = {}, {}, {}
-    for p, paths in ood_files.items():
+    for p, sets in ood_sets.items():
         maes, maxes = [], []
-        for path in paths:
+        for one in sets:
             try:
-                ev = tm.evaluate([path], backend=backend)
+                ev = tm.evaluate([one], backend=backend)
             except TnnError as err:
-                diverged.setdefault(p, []).append(f"{Path(path).name}: {err.diagnostics[0].message}")
+                name = Path(getattr(one, "path", one)).name
+                diverged.setdefault(p, []).append(f"{name}: {err.diagnostics[0].message}")
                 continue
             maes += [e["mae"] for e in ev["experiments"]]
             maxes += [e["max_error"] for e in ev["experiments"]]
@@ -275,10 +305,10 @@ def ratios_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
+def plot_study(results: dict, out_dir: str | os.PathLike, validation_runs: dict | None = None) -> list[str]:
     """Write ``ood.png`` (validation MAE and MAE per widening, the thesis's Figure 5.6) and ``validation.png``
-    (T_out error through the validation run per model; from the model directories of the study). Returns the
-    paths written."""
+    (T_out error through the validation run per model: ``validation_runs`` as :func:`run_study` fills it, else
+    each model loaded from the study's model directories and simulated). Returns the paths written."""
     from .. import plots
     from ..fit import load_model
 
@@ -290,8 +320,10 @@ def plot_study(results: dict, out_dir: str | os.PathLike) -> list[str]:
         save_figure(fig, out / "ood.png", dpi=110)
         written.append(str(out / "ood.png"))
     models_dir = Path(results.get("models_dir", out.parent / "models"))
-    preds = {}
+    preds = {name: run for name, run in (validation_runs or {}).items() if name in results["models"]}
     for name in results["models"]:
+        if name in preds:
+            continue
         d = models_dir / name.lower()
         if d.is_dir():
             try:
