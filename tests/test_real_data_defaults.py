@@ -11,7 +11,9 @@
 * The trainer's validation on that split (``val=[tail]`` or ``val_fraction=0.3``) is exactly ``evaluate`` of
   the tail.
 
-JAX fits take about 2 s each here; torch's 1184-step single shooting is the ``slow`` variant.
+JAX fits take 3–30 s each here, mostly compiling (2026-11-29, AMD EPYC: default 9.2, 14.3, 15.0 and 29.6 s,
+7.7–12.3 s of it compilation; single shooting 2.9–11.4 s); torch's 1184-step single shooting is the ``slow``
+variant.
 """
 
 from __future__ import annotations
