@@ -504,3 +504,13 @@ def test_networks_that_read_a_file_alike_have_one_key_and_read_the_same_experime
     (a,), (b,) = read_data(base, csv), read_data(twin, csv)
     np.testing.assert_array_equal(a.inputs, b.inputs)
     np.testing.assert_array_equal(a.outputs, b.outputs)
+
+
+def test_cells_around_which_any_whitespace_stands_are_read_as_their_numbers(tmp_path):
+    """A cell is read stripped of what ``str.strip`` strips, a non-breaking space or a form feed too (spreadsheet
+    exports), as before the reader skipped stripping files without whitespace."""
+    csv = tmp_path / "d.csv"
+    csv.write_text("time,Q1_pct,Q2_pct,T1_degC,T2_degC\n0,10\xa0,0,20.5,21\n1,10,0,\x0c20.75,21.25\n", encoding="utf-8")
+    (e,) = read_data(tclab_net(), csv)
+    np.testing.assert_allclose(e.inputs[:, 0], [0.10, 0.10])
+    np.testing.assert_allclose(e.outputs[:, 0], [293.65, 293.9])

@@ -188,8 +188,7 @@ def _read_csv(path: str) -> _Table:
         raise DataError(Diagnostic("the data file has no header line (only blank fields)",
                                    Span(file=path, line=1, col=1, end_line=1, end_col=2),
                                    hint="a data file needs a header line naming its columns and at least two rows"))
-    body = "".join(map("".join, rows))
-    if " " in body or "\t" in body:  # cells to strip
+    if any(ch.isspace() for ch in set("".join(map("".join, rows)))):  # cells to strip (what str.strip strips)
         cells = {j: np.array([r[j].strip() for r in rows], dtype=object) for j in range(len(header))}
     else:  # machine-written files: nothing to strip, the columns are the rows transposed
         cells = {j: np.array(col, dtype=object) for j, col in enumerate(zip(*rows))}
