@@ -92,6 +92,8 @@ class _Rollouts:
         return out
 
     _force_single = False
+    _full_vg: Any = None
+    """The current layout's compiled loss and gradient over the whole batch (``full_loss``); ``None`` until built."""
     vectorise_files = True
     """Windows of several files with per-experiment values in one vectorised rollout (JAX; :meth:`_rollout_per_file`)
     rather than one rollout per file (the same loss to round-off; the tests compare both)."""
@@ -126,8 +128,7 @@ class _Rollouts:
         self._force_single = True
         self.build_batches([np.asarray(T0)[None] for T0 in starts])
         z_ss = np.concatenate([zp, np.zeros(self.n_x0 * len(names))])
-        data, statics = self.batch_arrays(None)
-        full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        data, full_vg = self.full_loss()
         has_val = bool(self.vals)
         best = self.validate(z_ss) if has_val else _safe(full_vg(z_ss, data))[0]
         self.log("single shooting: one free run per file from its fitted initial state, from the windowed fit")
@@ -166,6 +167,7 @@ class _Rollouts:
     def build_batches(self, runs) -> None:
         """Groups of equal-length rollouts (arrays) and their static description."""
         cfg = self.cfg
+        self._full_vg = None  # the whole batch's loss program is this layout's (``full_loss``)
         mode, window, self.single_shooting = self.plan_rollout()
         self.window = window
         init = check_rule(cfg.init)

@@ -441,9 +441,19 @@ class _Trainer(_Rollouts):
         training loss of the current layout (a single-shooting layout: the free runs' mean squared error, K²)."""
         if self.vals:
             return self.validate(z)
-        data, statics = self.batch_arrays(None)
-        value = _safe(self.ops.value_and_grad(self.make_loss(statics))(z, data))[0]
+        data, full_vg = self.full_loss()
+        value = _safe(full_vg(z, data))[0]
         return value if math.isfinite(value) else math.inf
+
+    def full_loss(self) -> tuple[Any, Any]:
+        """``(data, vg)``: the current layout's whole training batch and ``vg(z, data) -> (loss, gradient)``, built
+        (for JAX: traced and compiled) once per layout (:meth:`build_batches` forgets it): the Adam epochs, the
+        L-BFGS polish and :meth:`selection_score` share one program. (A fresh one per score cost a real-data fit
+        without validation files two more compilations of its loss and gradient, issue 18.)"""
+        data, statics = self.batch_arrays(None)
+        if self._full_vg is None:
+            self._full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        return data, self._full_vg
 
     def make_loss(self, statics):
         cfg, model, ops = self.cfg, self.model, self.ops
@@ -529,8 +539,7 @@ class _Trainer(_Rollouts):
         z = np.concatenate([self.z_from_params(self.params0)]
                            + ([np.zeros(self.n_x0 * len(self.model.state_names))] if self.n_x0 else []))
         minibatch = bool(cfg.batch_size) and any(len(g["windows"]) > cfg.batch_size for g in self.groups)
-        data, statics = self.batch_arrays(None)
-        full_vg = self.ops.value_and_grad(self.make_loss(statics))
+        data, full_vg = self.full_loss()
         batch_vg = None
         if minibatch:
             _, bstatics = self.batch_arrays(rng)
