@@ -193,6 +193,22 @@ class Model:
         self._jit_cache: dict = {}
         self._nominal_np = None
         self._tau = None
+        self._compile_failed = False
+
+    def compile_torch_rollouts(self) -> bool:
+        """Turn on compiled torch rollouts (``torch_compile``) for this model from now on, unless torch failed to
+        compile here before (that warned once; the model stays eager). Returns whether they are on; always
+        ``False`` on another backend."""
+        if self.backend == "torch" and not self._compile_failed:
+            self.torch_compile = True
+        return self.torch_compile
+
+    def _compiling_failed(self, e: Exception) -> None:
+        """torch could not compile here (inductor needs a C++ compiler): warn once, run eager from here on."""
+        self.torch_compile = False
+        self._compile_failed = True
+        warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs eager from here "
+                      "on", TorchCompileWarning, stacklevel=5)
 
     # -- parameters ------------------------------------------------------------------------------
 
@@ -582,9 +598,7 @@ class Model:
                 try:
                     return compiled(prep, T, c)
                 except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
-                    self.torch_compile = False
-                    warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
-                                  "eager from here on", TorchCompileWarning, stacklevel=4)
+                    self._compiling_failed(e)
             return eager(T, c)
         return step
 
@@ -635,9 +649,7 @@ class Model:
                 T = ys[-1]
                 outs.append(ys)
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
-            self.torch_compile = False
-            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
-                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            self._compiling_failed(e)
             return None
         return torch.movedim(torch.cat(outs, 0)[:M], 0, -2)
 
@@ -674,9 +686,7 @@ class Model:
         except Unsupported:
             return None
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
-            self.torch_compile = False
-            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
-                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            self._compiling_failed(e)
             return None
         return torch.movedim(S, 0, -2)
 
@@ -741,9 +751,7 @@ class Model:
         try:
             ys = compiled(prep, T0, U)
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
-            self.torch_compile = False
-            warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); the model runs "
-                          "eager from here on", TorchCompileWarning, stacklevel=4)
+            self._compiling_failed(e)
             return None
         ys = ys.reshape(n_chunks * chunk, *ys.shape[2:])[:M]
         return torch.movedim(ys, 0, -2)

@@ -28,6 +28,26 @@ section. The case study's M2 (4 h + 2 h at 1 s, 300 epochs: 6.5·10⁶) is over 
 are far under it."""
 
 
+FREE_RUN_COMPILE_MIN_SAMPLES = 10_000
+"""Samples (all files of one call together) from which the free runs of a loaded model on torch
+(:meth:`TrainedModel.predict <tnn_dsl.fit.model_files.TrainedModel.predict>`, ``evaluate``, ``tnnc evaluate``)
+compile its rollouts (:func:`free_runs_compile_pay`): more than one 2 h file at 1 s. Per 2 h file (its initial state
+estimated on a burn-in, then the free run; ``python benchmarks/bench_free_runs.py --files 4``, 2026-11-29, AMD EPYC,
+2 cores): the case study's M2 eager 14.4 s for the first file and 7.4 s for each other, compiled 27.5 s for the
+first (compilation included) and 0.40 s for each other; M4 (an MLP Peltier element) eager 36.7 and 18.8 s,
+compiled 25.4 and 1.5 s. Compiling pays from the first file on M4 and from the third on M2 (JAX: 5.0 s for the
+first file, then 0.21–0.27 s each)."""
+
+
+def free_runs_compile_pay(n_samples: int) -> bool | None:
+    """Whether the free runs of a trained model on torch over ``n_samples`` samples in all should compile its
+    rollouts: ``None`` when the environment variable ``TNN_TORCH_COMPILE`` is set (``tnn_dsl.compile`` follows it),
+    else whether ``n_samples`` reaches :data:`FREE_RUN_COMPILE_MIN_SAMPLES`."""
+    if os.environ.get("TNN_TORCH_COMPILE", "").strip():
+        return None
+    return int(n_samples) >= FREE_RUN_COMPILE_MIN_SAMPLES
+
+
 def torch_compile_pays(cfg: "TrainConfig", n_samples: int) -> bool | None:
     """``cfg.torch_compile`` where it is set; otherwise, for the torch backend, ``None`` when the environment
     variable ``TNN_TORCH_COMPILE`` is set (``tnn_dsl.compile`` reads it), else whether ``n_samples`` (training and

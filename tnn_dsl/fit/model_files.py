@@ -488,6 +488,7 @@ class TrainedModel:
         self.meta = dict(meta or {})
         self.path = Path(path) if path is not None else None
         self._models: dict[tuple[str, str], Any] = {}
+        self._compiled_here: set[tuple[str, str]] = set()
 
     def __repr__(self) -> str:
         where = f" from {self.path}" if self.path else ""
@@ -508,6 +509,7 @@ class TrainedModel:
             model = compile_network(self.network, backend=backend, dtype=dtype)
             self._check_params(model)
             self._models[key] = model
+            self._compiled_here.add(key)  # (the trainer hands over its own model, its compile choice made)
         return self._models[key]
 
     def _check_params(self, model) -> None:
@@ -545,7 +547,13 @@ class TrainedModel:
         missing), ``states`` (N, n_states) K, ``burn_in`` (samples not scored), ``init`` (the rule applied),
         ``notes``, ``sensors``, ``state_names``. A run that leaves the physical range (non-finite, below 0 K,
         or far outside the data's temperatures) raises :class:`TnnError` naming the node and the time, unless
-        ``check`` is false (:func:`~tnn_dsl.fit.simulation.check_rollout`)."""
+        ``check`` is false (:func:`~tnn_dsl.fit.simulation.check_rollout`).
+
+        On torch, a loaded model's rollouts are compiled (``torch.compile``) when the experiments hold
+        :data:`~tnn_dsl.fit.config.FREE_RUN_COMPILE_MIN_SAMPLES` samples or more and ``TNN_TORCH_COMPILE`` is not
+        set; the model the trainer left in memory keeps the trainer's choice."""
+
+        from .config import free_runs_compile_pay
 
         backend = backend or self.backend
         model = self.compiled(backend)
@@ -553,8 +561,12 @@ class TrainedModel:
         integ = integrator or self.meta.get("config", {}).get("integrator", "rk4")
         substeps = self.meta.get("config", {}).get("substeps")
         known = self.free_run_context()
+        exps = as_experiments(self.network, data)
+        if (model.backend == "torch" and not model.torch_compile and (backend, "float64") in self._compiled_here
+                and free_runs_compile_pay(sum(len(e.t) for e in exps))):
+            model.compile_torch_rollouts()  # a loaded model over many samples: compiling pays
         out = []
-        for exp in as_experiments(self.network, data):
+        for exp in exps:
             run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
                            check=check, **known)
             out.append({
