@@ -316,9 +316,13 @@ def test_burn_in_jacobian_by_central_differences_matches_forward_mode(network, c
         for m in (mc, mj):
             B = backend_of(m)
             fit = _BurnInFit(m, 1.0, n, "rk4", None)
-            if B.name == "torch":  # one batched rollout of the perturbed states, not a tangent through every step
-                assert fit.fJ.__qualname__.startswith("_central_difference_jacobian."), fit.fJ
-            J[B.name] = B.numpy(fit.fJ(m.pack_params(m.from_numpy(p_np)), B.asarray(U), B.asarray(x)))
+            args = (m.pack_params(m.from_numpy(p_np)), B.asarray(U), B.asarray(x))
+            if B.name == "torch":  # one batched rollout of x and the perturbed states, not a tangent through every step
+                assert fit.fJ is None and fit.fyJ.__qualname__.startswith("_central_difference_jacobian."), fit.fyJ
+                y, J[B.name] = (B.numpy(a) for a in fit.fyJ(*args))
+                np.testing.assert_allclose(y, B.numpy(fit.fy(*args)), rtol=0, atol=1e-9)  # the run from x, as alone
+            else:
+                J[B.name] = B.numpy(fit.fJ(*args))
     assert J["torch"].shape == J["jax"].shape == (n, len(mj.output_names), len(mj.state_names))
     assert np.max(np.abs(J["torch"] - J["jax"])) <= 1e-6 * np.max(np.abs(J["jax"]))
 

@@ -205,6 +205,12 @@ class _BurnInFit:
     models and their compiled programs alive: the model doctor, which compiles a network per shortlist and per
     continued fit, held 300 MB more at its peak on the case study (issue 18)."""
 
+    fJ: Any = None
+    """``J(p, U, x)`` (n_t, n_out, n_unknowns), beside ``fy(p, U, x)`` (n_t, n_out); ``None`` where ``fyJ`` gives
+    both."""
+    fyJ: Any = None
+    """``(y, J)`` from one call (torch's central differences), or ``None``."""
+
     def __init__(self, model: Any, dt: float, n: int, integrator: str, substeps: int | None,
                  pe_names: tuple[str, ...] = ()):
         key = ("burn_in_fit", repr(float(dt)), int(n), integrator, substeps, pe_names)
@@ -214,7 +220,7 @@ class _BurnInFit:
             cache = {}  # a model without a cache of its own: compiled for this fit only
         hit = cache.get(key)
         if hit is not None:
-            self.fy, self.fJ = hit
+            self.fy, self.fJ, self.fyJ = hit
             return
         B = backend_of(model)
 
@@ -243,11 +249,11 @@ class _BurnInFit:
             # rollout: about 1 µs a sequence-step compiled, and eager the same per-step dispatch as one
             # sequence (FD_REL_STEP says why the difference quotient is as good as the tangent here)
             self.fy = B.no_grad(outputs)
-            self.fJ = _central_difference_jacobian(B, model, float(dt), integrator, substeps)
+            self.fyJ = _central_difference_jacobian(B, model, float(dt), integrator, substeps)
         else:
             self.fy = B.no_grad(outputs)
             self.fJ = lambda p, U, T0: B.asarray(B.jacobian(lambda T: outputs(p, U, T), B.numpy(T0)))
-        cache[key] = (self.fy, self.fJ)
+        cache[key] = (self.fy, self.fJ, self.fyJ)
 
     held: list[int]
     """The states the last :meth:`solve` left on an edge of its ``bounds`` (indices)."""
@@ -274,10 +280,14 @@ class _BurnInFit:
             x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
         rms = math.inf
         for _ in range(MAX_GN_ITER):
-            y = B.numpy(self.fy(params, Ub, B.asarray(x)))
+            if self.fyJ is not None:  # the readings and their Jacobian from one call
+                y, J = (B.numpy(a) for a in self.fyJ(params, Ub, B.asarray(x)))
+            else:
+                y = B.numpy(self.fy(params, Ub, B.asarray(x)))
             if not np.all(np.isfinite(y[mask])):
                 break
-            J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
+            if self.fyJ is None:
+                J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
             r = (y - Y)[mask]
             with np.errstate(over="ignore"):
                 rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
@@ -337,27 +347,29 @@ the burn-in can notice: the estimate it converges to moves by that fraction of a
 
 
 def _central_difference_jacobian(B: Any, model: Any, dt: float, integrator: str, substeps: int | None) -> Any:
-    """``J(p, U, x) (n_t, n_out, n_states)``: the burn-in readings' derivatives with respect to the initial state
-    ``x`` (n_states,) K by central differences, all ``2·n_states`` perturbed runs as one batched rollout (torch's
-    compiled scan, or eager torch, whose cost per step hardly grows with the batch; ``U`` (n_t, n_in) is shared).
+    """``yJ(p, U, x) -> (y (n_t, n_out), J (n_t, n_out, n_states))``: the burn-in readings from the initial state
+    ``x`` (n_states,) K and their derivatives with respect to it by central differences, the run from ``x`` and all
+    ``2·n_states`` perturbed runs as one batched rollout (torch's compiled scan, or eager torch, whose cost per step
+    hardly grows with the batch; ``U`` (n_t, n_in) is shared). (The run from ``x`` as a rollout of its own cost a
+    compiled call per Gauss–Newton iteration: 24 ms beside the batch's 62 ms on the case study's M4, issue 18.)
     The case study's M2 on its 2 h validation file, eager (``python benchmarks/bench_burn_in.py --backends
     jax,torch``): 1.42 s an estimate (median of 3, 2026-11-29) against 16.3 s by forward mode (2026-11-26); the
     estimate within 4.3e-5 K of JAX's (``jacfwd``), the Gauss–Newton iterations stopping a little apart in the
     burn-in's poorly seen directions (issue 18)."""
     torch = B.torch
 
-    def J(p, U, x):
+    def yJ(p, U, x):
         n = x.shape[0]
         with torch.no_grad():
             h = FD_REL_STEP * torch.clamp(x.abs(), min=1.0)
             E = torch.diag(h)
-            X = torch.cat([x + E, x - E], 0)  # (2n, n)
-            step = torch.diagonal(X[:n] - X[n:])  # the differences as represented (2h, up to round-off)
-            Ub = U.unsqueeze(0).expand(2 * n, *U.shape).contiguous()
-            Y = model.rollout(p, X, Ub, dt, integrator=integrator, substeps=substeps)[1]  # (2n, n_t, n_out)
-            return torch.movedim((Y[:n] - Y[n:]) / step[:, None, None], 0, -1)
+            X = torch.cat([x[None], x + E, x - E], 0)  # (2n + 1, n)
+            step = torch.diagonal(X[1:n + 1] - X[n + 1:])  # the differences as represented (2h, up to round-off)
+            Ub = U.unsqueeze(0).expand(2 * n + 1, *U.shape).contiguous()
+            Y = model.rollout(p, X, Ub, dt, integrator=integrator, substeps=substeps)[1]  # (2n + 1, n_t, n_out)
+            return Y[0], torch.movedim((Y[1:n + 1] - Y[n + 1:]) / step[:, None, None], 0, -1)
 
-    return J
+    return yJ
 
 
 REVERSE_CHUNK = 32
