@@ -31,7 +31,7 @@ def _exp(n: int, name: str = "x") -> Experiment:
 def calls(monkeypatch):
     """The models asked to compile (the call recorded, nothing compiled); a low threshold keeps the data short."""
     asked: list[Model] = []
-    monkeypatch.setattr(Model, "compile_torch_rollouts", lambda self: asked.append(self) or False)
+    monkeypatch.setattr(Model, "compile_torch_rollouts", lambda self: asked.append(self) is None)
     monkeypatch.setattr(config, "FREE_RUN_COMPILE_MIN_SAMPLES", 300)
     monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
     return asked
@@ -53,10 +53,13 @@ def test_rule_reads_the_threshold_and_the_environment(monkeypatch):
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_many_samples_compile_a_loaded_torch_model(calls, loaded, backend):
-    few = loaded.evaluate([_exp(120), _exp(120, "y")], backend=backend)  # 240 samples: under the threshold
-    assert calls == []
-    many = loaded.evaluate([_exp(200), _exp(200, "y")], backend=backend)  # 400 samples, one call
+    said: list[str] = []
+    few = loaded.evaluate([_exp(120), _exp(120, "y")], backend=backend, log=said.append)  # 240 samples: under
+    assert calls == [] and said == []
+    many = loaded.evaluate([_exp(200), _exp(200, "y")], backend=backend, log=said.append)  # 400, one call
     assert calls == ([loaded.compiled("torch")] if backend == "torch" else [])
+    assert said == (["torch: compiling the model's rollouts for 400 samples (once; TNN_TORCH_COMPILE=0 runs eager)"]
+                    if backend == "torch" else [])
     assert np.isfinite(few["mae"]) and many["mae"] < 1e-6  # the nominal model is the truth here
 
 

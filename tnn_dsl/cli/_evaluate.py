@@ -50,7 +50,8 @@ def run(args) -> int:
     exps = read_data(tm.network, args.data, time_col=args.time_col, dt=args.dt, time_unit=args.time_unit)
     for w in warning_lines(exps):
         print(w, file=sys.stderr)
-    preds = tm.predict(exps, backend=args.backend, init=args.init, burn_in_s=args.burn_in)
+    preds = tm.predict(exps, backend=args.backend, init=args.init, burn_in_s=args.burn_in,
+                       log=lambda s: print(s, file=sys.stderr))
     for p in preds:
         for n in p["notes"]:
             print(f"{p['name']}: {n}", file=sys.stderr)

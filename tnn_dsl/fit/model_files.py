@@ -27,7 +27,7 @@ import secrets
 import shutil
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable
+from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 import numpy as np
 
@@ -537,7 +537,7 @@ class TrainedModel:
 
     def predict(self, data: Any, backend: str | None = None, init: str = "estimate",
                 integrator: str | None = None, burn_in_s: float | None = None,
-                check: bool = True) -> list[dict[str, Any]]:
+                check: bool = True, log: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
         """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
 
         ``init``: the initial-state rule (:mod:`tnn_dsl.fit.initial`): ``"estimate"`` (fitted to a burn-in at
@@ -551,7 +551,7 @@ class TrainedModel:
 
         On torch, a loaded model's rollouts are compiled (``torch.compile``) when the experiments hold
         :data:`~tnn_dsl.fit.config.FREE_RUN_COMPILE_MIN_SAMPLES` samples or more and ``TNN_TORCH_COMPILE`` is not
-        set; the model the trainer left in memory keeps the trainer's choice."""
+        set (``log``, if given, is told); the model the trainer left in memory keeps the trainer's choice."""
 
         from .config import free_runs_compile_pay
 
@@ -562,9 +562,11 @@ class TrainedModel:
         substeps = self.meta.get("config", {}).get("substeps")
         known = self.free_run_context()
         exps = as_experiments(self.network, data)
+        n_samples = sum(len(e.t) for e in exps)
         if (model.backend == "torch" and not model.torch_compile and (backend, "float64") in self._compiled_here
-                and free_runs_compile_pay(sum(len(e.t) for e in exps))):
-            model.compile_torch_rollouts()  # a loaded model over many samples: compiling pays
+                and free_runs_compile_pay(n_samples) and model.compile_torch_rollouts() and log is not None):
+            log(f"torch: compiling the model's rollouts for {n_samples} samples (once; TNN_TORCH_COMPILE=0 runs "
+                "eager)")
         out = []
         for exp in exps:
             run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
@@ -600,11 +602,11 @@ class TrainedModel:
         return out
 
     def evaluate(self, data: Any, backend: str | None = None, init: str = "estimate",
-                 burn_in_s: float | None = None) -> dict[str, Any]:
+                 burn_in_s: float | None = None, log: Callable[[str], None] | None = None) -> dict[str, Any]:
         """Per-sensor and overall MAE, max absolute error (thesis eq. 4.9), bias (mean of predicted −
         measured) and RMSE, in kelvin, over the non-missing samples of every experiment after its burn-in."""
 
-        preds = self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s)
+        preds = self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s, log=log)
         return error_metrics(preds, [s.name for s in self.network.sensors])
 
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
