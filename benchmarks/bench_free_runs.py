@@ -85,11 +85,12 @@ def main(argv=None) -> int:
         for mode in args.modes.split(","):
             env = dict(os.environ)
             env.pop("TNN_TORCH_COMPILE", None)
-            env["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="tnn_bench_inductor_")
-            t = time.perf_counter()
-            proc = subprocess.run([sys.executable, __file__, "--worker", str(mdir), json.dumps(files), mode],
-                                  capture_output=True, text=True, env=env, cwd=ROOT)
-            wall = time.perf_counter() - t
+            with tempfile.TemporaryDirectory(prefix="tnn_bench_inductor_") as inductor_cache:
+                env["TORCHINDUCTOR_CACHE_DIR"] = inductor_cache
+                t = time.perf_counter()
+                proc = subprocess.run([sys.executable, __file__, "--worker", str(mdir), json.dumps(files), mode],
+                                      capture_output=True, text=True, env=env, cwd=ROOT)
+                wall = time.perf_counter() - t
             line = next((ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")), None)
             if line is None:
                 print(f"  {mode:15s} failed:\n{proc.stderr[-2000:]}")
