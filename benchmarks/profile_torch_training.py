@@ -6,7 +6,7 @@ gradients, with the backward passes apart. Case study (4 h train / 2 h validatio
     python benchmarks/profile_torch_training.py m2 --epochs 30
     python benchmarks/profile_torch_training.py m3 --epochs 20 --backend jax   # the same schedule on JAX
 
-The README's training paragraph quotes it (2026-11-27, Intel Xeon).
+The README's training paragraph of 2026-11-27 (Intel Xeon) quoted it; it is kept in docs/measurement-log.md.
 """
 
 from __future__ import annotations

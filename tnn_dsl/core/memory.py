@@ -6,7 +6,7 @@ heap cannot shrink from its top and the process's resident size stays at its hig
 every free page of the heap back (``MADV_DONTNEED``) without moving anything; it costs one walk of the free lists
 (milliseconds) and changes nothing about how later memory is allocated. Called between the doctor's phases, it
 lowers the floor each phase's own arrays stand on: ``python benchmarks/trace_diagnose_memory.py`` against the same
-with ``--no-release`` (README, "Speed"). A no-op off glibc.
+with ``--no-release`` (docs/measurement-log.md, "Speed"). A no-op off glibc.
 
 :func:`large_blocks_mapped` goes further for the length of a ``with`` block (the doctor's rounds): every block of at
 least a megabyte gets its own mapping, handed back the moment it is freed, so the large buffers a long job makes and

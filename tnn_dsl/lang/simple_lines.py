@@ -2,7 +2,7 @@
 
 A 10 000-node plate is 40 000 lines of ``node NAME C = NUMBER UNIT`` and ``G NAME -- NAME = NUMBER UNIT``; the
 LALR parser spends about 10 µs per token on them (most of the time it took to load the plate: parsing went from
-4.6–5.6 s to 2.9–3.5 s with this module, README "Large networks"). Such a line, when it
+4.6–5.6 s to 2.9–3.5 s with this module, docs/measurement-log.md, "Large networks"). Such a line, when it
 is exactly one of these two forms (no label, clause, sign or expression; an optional trailing comment), at bracket
 depth 0 and outside any ``subnet`` block, is tokenised here with the grammar's own terminal patterns (``NAME``,
 ``NUMBER``, ``UNIT``, ``WS``, ``COMMENT`` taken from the loaded grammar, not copied) and turned into its statement by

@@ -55,6 +55,6 @@ class JaxXP(NumpyLike):
 
     def asarrays(self, xs: list) -> list:
         """One device transfer for the whole list (one ``jnp.asarray`` per constant was most of ``init_params`` on a
-        10 000-node plate's 40 000 constants; README "Large networks")."""
+        10 000-node plate's 40 000 constants; docs/measurement-log.md, "Large networks")."""
         dt = np.dtype(self.dtype)
         return list(jax.device_put([np.asarray(x, dtype=dt) for x in xs]))
