@@ -255,6 +255,15 @@ def random_params(model, seed=0):
     return p
 
 
+def dynamo_restarts() -> int:
+    """How many times dynamo restarted a frame's analysis in this process so far (its second, third … attempts,
+    ``torch._dynamo.utils.compilation_time_metrics``): each restart traces the whole graph again."""
+    from torch._dynamo.utils import compilation_time_metrics
+
+    return sum(len(v) for k, v in compilation_time_metrics.items()
+               if k.startswith("compile_attempt_") and k != "compile_attempt_0")
+
+
 def assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U, atol=1e-9):
     """A ``torch_compile=True`` model's forward rollout (no gradient) on the batch ``T0 (B, n), U (B, N, m)`` and
     on its first sequence alone gives the JAX model's states to ``atol`` K, compiled (a ``TorchCompileWarning``,

@@ -151,15 +151,18 @@ def test_forward_scan_with_a_learned_function_of_two_heat_flows_matches_jax():
     """One learned function giving two heat flows read inside the step (the case study's M4 learns the Peltier's
     ``Q_hot`` and ``Q_cold`` so): its two output scales were views of one tensor, two aliasing inputs of the
     compiled scan, which torch refused ("Encountered aliasing during higher order op tracing"), so the model
-    fell back to eager with a warning. Single sequence and batch, states to 1e-9 K of JAX's."""
+    fell back to eager with a warning. Single sequence and batch, states to 1e-9 K of JAX's; each scan traced
+    once (the prepared 0-d values enter as vectors of one, so dynamo does not restart its analysis)."""
     src = SMALL.replace("learn R_sa as mlp(s, u1; hidden = [4], activation = sigmoid)",
                         "learn Q[h], Q[c] as mlp(s, I; hidden = [3])")
     net = tnn_dsl.loads(src, "two_flows.thn")
     mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
     p_np = nets.random_params(mj, 6)
     T0, U = _batch(mj, 9, B=2)
+    restarts = nets.dynamo_restarts()
     nets.assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U)
     assert mc.torch_compile
+    assert nets.dynamo_restarts() == restarts
 
 
 @pytest.mark.slow

@@ -708,9 +708,19 @@ class Model:
         compiler)."""
         import torch
 
+        from .torch_adjoint import Unsupported, flatten, scalar_slots, scalars_as_vectors, scalars_back
+
         unbatched = T0.ndim == 1
         chunk = TORCH_CHUNK if unbatched else 1
-        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
+        # the prepared values enter the graph flat, each 0-d tensor as a vector of one: a 0-d input would make
+        # dynamo restart its analysis once the graph is traced (torch_adjoint.scalars_as_vectors), which cost the
+        # first forward graph of every model a second trace (2026-11-29, TORCH_LOGS=+dynamo). The packed parameter
+        # table of a large network has no flat form; it goes in as it is.
+        try:
+            flat, rebuild, pkey = flatten(prep)
+        except Unsupported:
+            flat, rebuild, pkey = None, None, None
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, pkey)
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan
@@ -718,8 +728,11 @@ class Model:
             from .torch_adjoint import CompiledScan
 
             core = self._fused_core()
+            slots = scalar_slots(flat) if flat is not None else ()
 
             def roll(prep, T0, U):  # U (n_chunks, chunk, ..., n_inputs), time-major
+                if rebuild is not None:  # prep: the flat tensors, scalars as vectors of one
+                    prep = rebuild(scalars_back(prep, slots))
                 step = self._stepper(prep, dt, integrator, sub, core, traced=True)
                 xs = core.rhs_u(prep, U)
 
@@ -749,7 +762,7 @@ class Model:
         # input sequences is a view with a stride of 0, which torch refused (the model then ran eager)
         T0 = T0.contiguous()
         try:
-            ys = compiled(prep, T0, U)
+            ys = compiled(prep if flat is None else scalars_as_vectors(flat), T0, U)
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
             self._compiling_failed(e)
             return None

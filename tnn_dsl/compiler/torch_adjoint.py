@@ -158,10 +158,10 @@ class AdjointRollout:
         fn = self._fwd.get(key)
         if fn is None:
             stepper = self.stepper
-            scalars = _scalar_slots(p)
+            scalars = scalar_slots(p)
 
             def roll(p, T0, cvals):
-                step = stepper(rebuild(_scalars_back(p, scalars)), True)
+                step = stepper(rebuild(scalars_back(p, scalars)), True)
 
                 def body(T, cv):
                     Tn = step(T, _context(ckeys, cv))
@@ -172,7 +172,7 @@ class AdjointRollout:
         for c in cvals:  # one compiled graph for every rollout length
             torch._dynamo.maybe_mark_dynamic(c, 0)
         with torch.no_grad():
-            return fn(_scalars_as_vectors(p), T0.detach().contiguous(), cvals)
+            return fn(scalars_as_vectors(p), T0.detach().contiguous(), cvals)
 
     # -- backward ------------------------------------------------------------------------------------------
     def _vjp_graph(self, rebuild, ckeys, p, T0, cvals, wrt):
@@ -211,10 +211,10 @@ class AdjointRollout:
         entry = self._bwd.get(key)
         if entry is None:
             gm = self._vjp_graph(rebuild, ckeys, p, T0, cvals, (ip, ic))
-            scalars = _scalar_slots(p)
+            scalars = scalar_slots(p)
 
             def rev(p, Sprev, cvals, G):
-                p = _scalars_back(p, scalars)
+                p = scalars_back(p, scalars)
                 def body(carry, x):
                     a, acc = carry
                     Sp, cv, g = x
@@ -227,7 +227,7 @@ class AdjointRollout:
         gm, fn, scalars = entry
         with torch.no_grad():
             Sprev = torch.cat([T0.detach()[None], S[:-1]], 0)
-            args = (_scalars_as_vectors(p), Sprev, [c.detach() for c in cvals], G.contiguous())
+            args = (scalars_as_vectors(p), Sprev, [c.detach() for c in cvals], G.contiguous())
             for a in (Sprev, *args[2], args[3]):
                 torch._dynamo.maybe_mark_dynamic(a, 0)
             out = None
@@ -239,7 +239,7 @@ class AdjointRollout:
                     if self.on_failure is not None:
                         self.on_failure(e)
             if out is None:
-                out = _reverse_loop(gm, _scalars_back(args[0], scalars), *args[1:], ip)
+                out = _reverse_loop(gm, scalars_back(args[0], scalars), *args[1:], ip)
             (dT0, dpd), dcs = out
         dp: list = [None] * len(p)
         for i, g in zip(ip, dpd):
@@ -250,12 +250,12 @@ class AdjointRollout:
         return dT0, dp, dc
 
 
-def _scalar_slots(p: Sequence) -> tuple[int, ...]:
+def scalar_slots(p: Sequence) -> tuple[int, ...]:
     """The positions of the 0-d tensors among the prepared tensors ``p``."""
     return tuple(i for i, t in enumerate(p) if t.ndim == 0)
 
 
-def _scalars_as_vectors(p: Sequence) -> list:
+def scalars_as_vectors(p: Sequence) -> list:
     """``p`` detached and copied, every 0-d tensor as a vector of one (a compiled scan's inputs). torch's dynamo
     gives each 0-d CPU tensor input a symbolic value, which inductor then cannot turn back into a tensor: it
     restarts its analysis with them fixed, tracing the whole graph twice (``TORCH_LOGS=+dynamo``: "Restarting
@@ -263,8 +263,8 @@ def _scalars_as_vectors(p: Sequence) -> list:
     return [t.detach().clone().reshape(1) if t.ndim == 0 else t.detach().clone() for t in p]
 
 
-def _scalars_back(p: Sequence, slots: tuple[int, ...]) -> list:
-    """:func:`_scalars_as_vectors` undone inside the graph: the tensors at ``slots`` back to 0-d."""
+def scalars_back(p: Sequence, slots: tuple[int, ...]) -> list:
+    """:func:`scalars_as_vectors` undone inside the graph: the tensors at ``slots`` back to 0-d."""
     return [t.reshape(()) if i in slots else t for i, t in enumerate(p)]
 
 
