@@ -702,13 +702,14 @@ class Model:
         On a single sequence each scan iteration advances :data:`TORCH_CHUNK` samples, with a batch axis one; the
         body is traced on :class:`FusedTorchXP` (small products as multiply-and-sum). Compiled graphs
         (:class:`~.torch_adjoint.CompiledScan`, inductor's C++ wrapper unless it fails to build) are kept per
-        ``(dt, integrator, sub, chunk, batched, C++ wrapper)`` and reused for new parameter values; the scan's
-        length is dynamic from the first call, other new shapes recompile (dynamic after the second). Returns ``None``
+        ``(dt, integrator, sub, chunk, batched, C++ wrapper, the prepared values' structure)`` and reused for new
+        parameter values, which enter flat (0-d ones as vectors of one); the scan's length is dynamic from the first
+        call, other new shapes recompile (dynamic after the second). Returns ``None``
         after a warning (and the model runs eager from then on) if torch cannot compile here (inductor needs a C++
         compiler)."""
         import torch
 
-        from .torch_adjoint import Unsupported, flatten, scalar_slots, scalars_as_vectors, scalars_back
+        from .torch_adjoint import CompiledScan, Unsupported, flatten, scalar_slots, scalars_as_vectors, scalars_back
 
         unbatched = T0.ndim == 1
         chunk = TORCH_CHUNK if unbatched else 1
@@ -724,8 +725,6 @@ class Model:
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan
-
-            from .torch_adjoint import CompiledScan
 
             core = self._fused_core()
             slots = scalar_slots(flat) if flat is not None else ()
