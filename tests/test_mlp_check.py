@@ -134,6 +134,7 @@ def test_a_training_whose_other_route_the_time_limit_cut_is_reported_as_cut(monk
     class _Tr:
         def __init__(self, stopped: str, score: float):
             self.stopped, self.score, self.logged = stopped, score, []
+            self.warmup_s = 0.5  # seconds in its programs' first calls
 
         def wants_single_shooting_finish(self) -> bool:
             return True
@@ -151,5 +152,6 @@ def test_a_training_whose_other_route_the_time_limit_cut_is_reported_as_cut(monk
         first, other = _Tr("completed", 1.0), _Tr(second, 2.0)
         routes = iter([(first, np.zeros(2)), (other, np.ones(2))])
         monkeypatch.setattr(T, "_fit", lambda *a, **k: next(routes))
-        tr, z, info = T._best_route(None, [], [], T.make_config(None, {}), None, None, None)
+        tr, z, info, compile_s = T._best_route(None, [], [], T.make_config(None, {}), None, None, None)
         assert tr is first and tr.stopped == expect and info["single_stopped"] == second
+        assert compile_s == 1.0  # both routes' compilation

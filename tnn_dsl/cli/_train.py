@@ -56,7 +56,8 @@ _OPTIONS = [
                                     "tenth of the file)"),
     ("--init-from", "init_from", str, "initialise from another model directory (same names and shapes)"),
     ("--max-restarts", "max_restarts", int, "divergence guard: restarts with a smaller step (default 6)"),
-    ("--time-limit", "time_limit", float, "stop Adam after this many seconds (best state kept)"),
+    ("--time-limit", "time_limit", float, "stop Adam after this many seconds of training (best state kept; the "
+                                          "first call of each compiled program is not counted)"),
 ]
 
 
@@ -221,7 +222,7 @@ def run(args) -> int:
         else:
             how = f"rollout {meta.get('rollout')}" + (f" in windows of {_dur(win)}" if win else "")
         print(f"model written to {args.output}  ({meta.get('backend')}, {how}, "
-              f"{_dur(meta.get('train_seconds', 0.0))}, stopped: {stopped})", file=sys.stderr)
+              f"{_dur(meta.get('train_seconds', 0.0))}{_compiling(meta)}, stopped: {stopped})", file=sys.stderr)
         print(f"  train      MAE {tr.get('mae', math.nan):.4g} K  max {tr.get('max_error', math.nan):.4g} K",
               file=sys.stderr)
         if va:
@@ -236,7 +237,8 @@ def run(args) -> int:
                "n_params": est.get("n_params"), "n_obs": est.get("n_obs"), "estimates": est.get("rows"),
                "stopped": stopped,
                "metrics": meta.get("metrics"), "fitted": meta.get("fitted"), "warnings": meta.get("warnings"),
-               "train_seconds": meta.get("train_seconds"), "epochs": len(meta.get("curve", [])) - 1}
+               "train_seconds": meta.get("train_seconds"), "compile_seconds": meta.get("compile_seconds"),
+               "epochs": len(meta.get("curve", [])) - 1}
         from ..core import to_jsonable
 
         write_json(args.json, json.dumps(to_jsonable(doc), indent=2))
@@ -249,3 +251,9 @@ def run(args) -> int:
         print(f"interrupted: the best model so far was saved to {args.output}", file=sys.stderr)
         return 130
     return 0
+
+
+def _compiling(meta: dict) -> str:
+    """``", of which 12 s compiling"`` where the first calls of the compiled programs took a second or more."""
+    c = meta.get("compile_seconds")
+    return f", of which {_dur(c)} compiling" if isinstance(c, (int, float)) and c >= 1.0 else ""

@@ -90,7 +90,7 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
 
     def run(form: str, variant: Network, tell: Callable[[str], None]) -> tuple[np.ndarray, dict]:
         t0 = time.monotonic()
-        tell(f"  training the extension with {form} clauses (at most {time_limit:.0f} s) ...")
+        tell(f"  training the extension with {form} clauses (at most {time_limit:.0f} s of training) ...")
         # each training's programs are compiled for it alone: XLA's lean options, whose compilation needs a
         # fraction of the memory (this check was the diagnosis' peak; issue 18)
         with lean_programs():

@@ -141,7 +141,9 @@ class TrainConfig:
     max_restarts: int = 6
     """Divergence guard: how often the best state is restored with a smaller step before giving up."""
     time_limit: float | None = None
-    """Stop Adam after this many seconds (the best state is kept)."""
+    """Stop Adam (and the L-BFGS polish) after this many seconds of training (the best state is kept). The first
+    call of each program the training compiles (tracing, compiling and one evaluation: seconds on JAX, up to
+    minutes on compiled torch) is not counted; ``meta.json`` reports it as ``compile_seconds``."""
 
     def __post_init__(self) -> None:
         problems = []

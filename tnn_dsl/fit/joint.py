@@ -100,7 +100,7 @@ def train_jointly(network: Network | str | os.PathLike, sets: Sequence[tuple[Seq
     joint_cfg = dataclasses.replace(cfg, objective="output-error")  # each set's likelihood fit follows, alone
     t0 = time.perf_counter()
     joint_model = compile_network(joint, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
-    tr, z, strategy = _best_route(joint, exps, [], joint_cfg, joint_model, None, log)
+    tr, z, strategy, compile_s = _best_route(joint, exps, [], joint_cfg, joint_model, None, log)
     seconds = time.perf_counter() - t0
     values = tr.experiment_values(z)
     starts = tr.fitted_initial_states(z)
@@ -125,7 +125,7 @@ def train_jointly(network: Network | str | os.PathLike, sets: Sequence[tuple[Seq
         fitted = {name: {"value": float(np.asarray(trained.params[name]).reshape(-1)[0]),
                          "initial": fitted_joint[name]["initial"]} for name in mine if name in fitted_joint}
         meta = model_meta(trained, view, model, [e], list(val), cfg, est, fitted=fitted, strategy=strategy,
-                          seconds=seconds / len(exps))
+                          seconds=seconds / len(exps), compile_seconds=compile_s / len(exps))
         meta["joint"] = {"sets": len(exps), "index": k, "seconds": seconds, "stopped": tr.stopped,
                          "note": "fitted together with the other sets (one compiled program; the curve is the "
                                  "sum of their losses)"}

@@ -82,7 +82,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                 "epochs; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
-    tr, z, strategy = _best_route(net, exps, vals, cfg, model, callback, log)
+    tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log)
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
@@ -92,7 +92,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     trained._models[(cfg.backend, cfg.dtype)] = model
     est = _estimates(trained, model, exps, cfg, tr)
     trained.meta = model_meta(trained, tr, model, exps, vals, cfg, est, fitted=_fitted(tr, model, final),
-                              strategy=strategy, seconds=time.perf_counter() - t_start)
+                              strategy=strategy, seconds=time.perf_counter() - t_start, compile_seconds=compile_s)
     if out is not None:
         trained.save(out, force=force)
     return trained
@@ -111,10 +111,13 @@ _CUT_SHORT = ("interrupted", "diverged", "time_limit")
 
 
 def model_meta(trained: TrainedModel, tr: _Trainer, model: Any, exps: list, vals: list, cfg: TrainConfig, est: Any,
-               *, fitted: dict[str, Any], strategy: Any, seconds: float) -> dict[str, Any]:
+               *, fitted: dict[str, Any], strategy: Any, seconds: float,
+               compile_seconds: float | None = None) -> dict[str, Any]:
     """``meta.json`` of a fitted model: ``trained`` (its parameters, ``meta["initial_states"]`` and
     ``meta["per_experiment"]`` set) after the trainer ``tr`` on ``exps`` (validation ``vals``), with the estimates
-    ``est`` (or ``None``); its training and validation errors are computed here (free runs)."""
+    ``est`` (or ``None``); its training and validation errors are computed here (free runs). ``seconds``: the
+    whole training (s); ``compile_seconds``: the part of it in the first calls of its compiled programs (s,
+    default ``tr``'s; ``time_limit`` does not count them)."""
     metrics: dict[str, Any] = {"train": _metrics_or_nan(trained, exps, cfg)}
     if vals:
         metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
@@ -141,6 +144,7 @@ def model_meta(trained: TrainedModel, tr: _Trainer, model: Any, exps: list, vals
         "stopped": tr.stopped,
         "warnings": list(tr.warnings),
         "train_seconds": seconds,
+        "compile_seconds": tr.warmup_s if compile_seconds is None else compile_seconds,
     }
 
 
@@ -169,9 +173,10 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
     better one (validation MAE, else the free-run training loss) is kept and both scores are returned."""
     tr, z = _fit(net, exps, vals, cfg, model, callback, log)
     if not (tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT):
-        return tr, z, None
+        return tr, z, None, tr.warmup_s
     z = tr.finish_single_shooting(z)
     tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+    compile_s = tr.warmup_s + tr_s.warmup_s  # both routes trained
     a, b = tr.selection_score(z), tr_s.selection_score(z_s)
     by = "validation MAE" if vals else "free-run training loss"
     if tr_s.stopped not in _CUT_SHORT and b < a:
@@ -185,7 +190,7 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
                "training reported as cut by the time limit")
     tr.log(f"kept {'single shooting' if tr is tr_s else 'multiple shooting, then single shooting'} "
            f"({by} {min(a, b):.4g} against {max(a, b):.4g})")
-    return tr, z, {"windows_then_single": a, "single": b, "by": by, "single_stopped": tr_s.stopped}
+    return tr, z, {"windows_then_single": a, "single": b, "by": by, "single_stopped": tr_s.stopped}, compile_s
 
 
 def _rollout_meta(tr: _Trainer) -> dict[str, Any]:
