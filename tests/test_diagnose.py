@@ -250,6 +250,19 @@ def test_null_data_set_gives_no_finding(backend):
     assert d.extended["val_mae"] == pytest.approx(d.baseline["val_mae"])
 
 
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_budget_spent_before_any_test_is_not_a_clean_bill(backend):
+    """The torch demo's doctor (a 25 s budget, compiling eating it) printed "no significant deficiency found"
+    having tested no candidate, and a baseline whose fit the budget had stopped. A verdict reached with less work
+    than the method asks says so; with time, the same data gets a real verdict."""
+    net = tnn_dsl.load(TCLAB)
+    pl = plant(net, BOUNDS, None, noise=0.02, seed=5, n_train=400, n_val=300, hold=(30, 200), backend=backend)
+    d = tnn_dsl.diagnose(net, pl.train, pl.val, top=2, max_rounds=1, backend=backend, budget_s=1e-3)
+    assert not d.accepted and not d.scores
+    assert d.verdict.startswith("not decided: the budget (0.001 s) ran out before any candidate was tested"), d.verdict
+    assert any("stopped the nominal model's fit" in n for n in d.notes), d.notes
+
+
 def _write(exp, net, path):
     from tnn_dsl.data import write_csv
 

@@ -217,6 +217,12 @@ class _Session:
         self.init_rule, self.burn_in_s = init, burn_in
         self.notes: list[str] = []
         self.deadline = None if budget_s is None else self.t_start + float(budget_s)
+        self.budget_s = budget_s
+        self.budget_cut: str | None = None
+        """Where the budget first stopped work (``"before any candidate was tested"``, ``"in round 2"``,
+        ``"before round 2"``, ``"in the final fits"``): a verdict reached with less work than the method asks says
+        so."""
+        self.round_now = 0
         self.say = progress or (lambda s: None)
         self.timings: dict[str, float] = {}
         self.moved_names: list[str] = []  # free constants the current fit moved far (``refit_from_written``)
@@ -237,7 +243,12 @@ class _Session:
         self.timings[name] = round(_time.monotonic() - t0, 3)
 
     def spent(self) -> bool:
-        return self.deadline is not None and _time.monotonic() > self.deadline
+        """The budget is spent (and where it first cut the work is remembered: :attr:`budget_cut`)."""
+        out = self.deadline is not None and _time.monotonic() > self.deadline
+        if out and self.budget_cut is None:
+            self.budget_cut = (f"in round {self.round_now}" if self.round_now > 0 else
+                               "before any candidate was tested" if self.round_now == 0 else "in the final fits")
+        return out
 
     # -- stage 0: data -----------------------------------------------------------------------------
 
@@ -309,7 +320,12 @@ class _Session:
         self.say(f"fitting the nominal model ({len(free_idx) - n_x0} free parameters"
                  + (f", {n_x0} initial-state values" if n_x0 else "")
                  + f") on {int(self.train_rows.sum())} samples ...")
-        eng.fit(free_idx, max_iter=30, deadline=self.deadline, tol=1e-6)
+        info = eng.fit(free_idx, max_iter=30, deadline=self.deadline, tol=1e-6)
+        if info["capped"] and self.spent():
+            self.notes.append(f"the budget ({self.budget_s:g} s) stopped the nominal model's fit after "
+                              f"{info['iterations']} iterations, before it converged: the baseline below is not the "
+                              "best the written model does, and no candidate was tested; run with a larger --budget "
+                              "(or none)")
         self.state.harvest(eng, ext0, [])
         self.lap("nominal_fit", t0)
         self.eng, self.ext0 = eng, ext0
@@ -421,7 +437,11 @@ class _Session:
 
     def selection_round(self, rnd: int) -> bool:
         """One round: score test, proper fits of the shortlist, the held-out decision. ``False``: stop."""
+        self.round_now = rnd
+        first = self.budget_cut is None
         if self.spent():
+            if first:
+                self.budget_cut = "before any candidate was tested" if rnd == 1 else f"before round {rnd}"
             self.say("budget spent; stopping the forward selection")
             return False
         # last round's fits and their networks are done with: their freed arrays and compiled programs go back
@@ -1099,6 +1119,7 @@ class _Session:
         simulation and derivatives) and the last round's fits are not needed by the extension or the MLP check."""
         self.big = None
         self.round_fits = []
+        self.round_now = -1  # the budget, if spent from here on, cut the final fits
 
     # -- the extension ---------------------------------------------------------------------------------
 
@@ -1316,6 +1337,13 @@ class _Session:
                 extended.update(form="mlp", val_mae=form["mlp"]["val_mae"], val_max=form["mlp"]["val_max"])
         verdict = ("; ".join(f.words for f in self.findings if f.accepted) if self.accepted
                    else "no significant deficiency found")
+        if self.budget_cut is not None:
+            where = self.budget_cut
+            verdict = (f"{verdict}; the budget ({self.budget_s:g} s) ran out {where}"
+                       + (": more rounds could find more" if "round" in where else "")
+                       if self.accepted else
+                       f"not decided: the budget ({self.budget_s:g} s) ran out {where}, so no deficiency was found "
+                       "but the search did not finish; run with a larger --budget (or none)")
         self.timings["total"] = round(_time.monotonic() - self.t_start, 3)
         eng = self.eng
         plots = {"t": self.t_all, "y": eng.y, "y_nominal": self.y_nom, "y_extended": self.y_fin,
