@@ -25,6 +25,7 @@ def test_study_tiny(tmp_path, backend):
         assert math.isfinite(r["validation"]["mae"]) and r["validation"]["mae"] > 0
         assert r["validation"]["max_error"] >= r["validation"]["mae"]
         assert set(r["ood"]) == {"40"} and math.isfinite(r["ood"]["40"])
+        assert 0 < r["compile_seconds"] <= r["train_seconds"]  # the first calls that compiled, within the training
     # M5's Peltier net is M4's, frozen: identical arrays, and not counted as trainable
     from safetensors.numpy import load_file
 

@@ -112,7 +112,8 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
     """Run the study; write ``out_dir/models/<m>``, ``out_dir/results.json``; → the results dict::
 
         {"config": ..., "data": {...}, "models": {"M1": {"validation": {"mae", "max_error"}, "ood": {"10": mae, ...},
-         "ood_max": {...}, "train_seconds", "stopped", "epochs"}, ...}, "ratios": {...}, "seconds": total}
+         "ood_max": {...}, "train_seconds", "compile_seconds", "stopped", "epochs"}, ...}, "ratios": {...},
+         "seconds": total}
 
     ``validation_runs``: a dict to fill with each model's free run on the validation set
     (``{"M1": TrainedModel.predict(...)[0], ...}``), made by the trained model still in memory, whose compiled
@@ -194,12 +195,14 @@ def _train_model(name: str, cfg: StudyConfig, data: dict, out: Path, say: Callab
         "validation": {"mae": float(val.get("mae", math.nan)), "max_error": float(val.get("max_error", math.nan))},
         "train": {"mae": float(tm.meta["metrics"]["train"].get("mae", math.nan))},
         "train_seconds": float(tm.meta.get("train_seconds", time.perf_counter() - t0)),
+        "compile_seconds": float(tm.meta.get("compile_seconds", math.nan)),
         "stopped": tm.meta.get("stopped"), "epochs": len(tm.meta.get("curve", [])),
         "n_trainable": int(sum(int(np.prod(np.shape(tm.params[k]))) for k, s in
                                tm.compiled(cfg.backend).param_specs.items() if s.trainable)),
     }
     say(f"      {name}: validation MAE {entry['validation']['mae'] * 1e3:.1f} mK, max "
-        f"{entry['validation']['max_error'] * 1e3:.0f} mK ({entry['train_seconds']:.0f} s, {tm.meta.get('stopped')})")
+        f"{entry['validation']['max_error'] * 1e3:.0f} mK ({entry['train_seconds']:.0f} s, of which "
+        f"{entry['compile_seconds']:.0f} s compiling, {tm.meta.get('stopped')})")
     return tm, entry
 
 
