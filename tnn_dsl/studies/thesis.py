@@ -59,7 +59,8 @@ given separately (\"3–4× for M1–M3\")."""
 @dataclass
 class StudyConfig:
     """Budgets and sizes. ``durations`` (train, val, ood) s overrides the data lengths (quick runs);
-    ``n_ood`` sets per widening; ``epochs``/``time_limit`` (s, per model) bound training."""
+    ``n_ood`` sets per widening; ``epochs``/``time_limit`` (s of training per model, compiling not counted) bound
+    training."""
 
     backend: str = "jax"
     epochs: int = 300
@@ -140,7 +141,7 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
                               "n_ood": cfg.n_ood, "widen": list(cfg.widen), "cached": data["cached"]},
                      "models": {}}
     say(f"[2/3] training {', '.join(order)} ({cfg.backend}, ≤ {cfg.epochs} epochs"
-        + (f", ≤ {cfg.time_limit:g} s each" if cfg.time_limit else "") + ")")
+        + (f", ≤ {cfg.time_limit:g} s of training each" if cfg.time_limit else "") + ")")
     trained = {}
     for i, name in enumerate(order):
         say(f"      {name} ({MODELS[name][1]}) [{i + 1}/{len(order)}]")
