@@ -245,7 +245,7 @@ def test_null_data_set_gives_no_finding(backend):
     pl = plant(net, BOUNDS, None, noise=0.02, seed=5, n_train=n_train, n_val=n_val, hold=(30, 200), backend=backend)
     d = tnn_dsl.diagnose(net, pl.train, pl.val, top=2, max_rounds=1, backend=backend)
     assert not d.accepted, d.summary()
-    assert d.verdict == "no significant deficiency found"
+    assert d.verdict == "no significant deficiency found" and d.decided and d.budget is None
     assert "white noise" in d.left
     assert d.extended["val_mae"] == pytest.approx(d.baseline["val_mae"])
 
@@ -261,6 +261,8 @@ def test_a_budget_spent_before_any_test_is_not_a_clean_bill(backend):
     assert not d.accepted and not d.scores
     assert d.verdict.startswith("not decided: the budget (0.001 s) ran out before any candidate was tested"), d.verdict
     assert any("stopped the nominal model's fit" in n for n in d.notes), d.notes
+    doc = d.to_dict()  # what tnnc diagnose --json and a fleet's unit rows carry
+    assert doc["decided"] is False and doc["budget"] == {"seconds": 1e-3, "ran_out": "before any candidate was tested"}
 
 
 def _write(exp, net, path):

@@ -27,6 +27,7 @@ from tnn_dsl.fleet import (
     fleet_report,
     generate_fleet,
     read_fleet,
+    report_text,
     robust_z,
     run_fleet,
     template_path,
@@ -166,7 +167,24 @@ def test_report_flags_a_parameter_outlier_with_a_reading_and_groups_findings():
     assert rep["groups"] == {"sensor lag on T1": ["b3", "b5"]}
     flagged = sorted(u["unit"] for u in rep["units"] if u["flagged"])
     assert flagged == ["b3", "b5", "b7"]
-    assert rep["counts"] == {"units": 13, "ok": 12, "failed": 1, "error": 0, "flagged": 3}
+    assert rep["counts"] == {"units": 13, "ok": 12, "failed": 1, "error": 0, "flagged": 3, "undecided": 0}
+
+
+def test_a_unit_whose_diagnosis_budget_ran_out_is_not_counted_clean():
+    """A per-unit budget (``tnnc fleet diagnose --budget``) that runs out before the doctor accepts anything leaves
+    the unit undecided, not clean: the report counts and lists it (issue 18, the doctor's verdict under a budget)."""
+    net = tnn_dsl.load(template_path())
+    rows = [{"unit": f"b{i}", "status": "ok", "val_mae": 0.016, "gain": 1.0, "params": {}, "findings": [],
+             "diagnosis": {"verdict": "no significant deficiency found", "decided": True, "budget": None}}
+            for i in range(3)]
+    rows[1]["diagnosis"] = {"verdict": "not decided: ...", "decided": False,
+                            "budget": {"seconds": 5.0, "ran_out": "before any candidate was tested"}}
+    rep = fleet_report(rows, net)
+    assert rep["counts"]["undecided"] == 1 and rep["counts"]["flagged"] == 0
+    (u,) = [u for u in rep["units"] if u["undecided"]]
+    assert u["unit"] == "b1"
+    assert u["why"] == ["diagnosis not decided: its budget (5 s) ran out before any candidate was tested"]
+    assert "1 not decided (their diagnosis budget ran out" in report_text(rep).splitlines()[0]
 
 
 # ---------------------------------------------------------------------------------------------

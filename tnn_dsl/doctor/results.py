@@ -73,6 +73,16 @@ class Diagnosis:
     objective: str = "output-error"
     """What the selection maximises: ``output-error`` (free-run error, held-out Diebold–Mariano on squared errors)
     or ``ml`` (the Kalman-filter likelihood, likelihood-ratio tests; evidence ``likelihood`` per finding)."""
+    budget: dict | None = None
+    """``{"seconds": s, "ran_out": where}`` when the budget (``budget_s``) cut the work (``where``: ``"before any
+    candidate was tested"``, ``"in round 2"``, ...), else ``None``. With nothing accepted the diagnosis is then not
+    decided (:attr:`decided`)."""
+
+    @property
+    def decided(self) -> bool:
+        """``False`` where the budget ran out with nothing accepted: no deficiency found, but the search did not
+        finish (a fleet lists such units apart from clean ones)."""
+        return bool(self.accepted) or self.budget is None
 
     @property
     def accepted(self) -> list[Finding]:
@@ -101,6 +111,8 @@ class Diagnosis:
             "extended": {**self.extended, "file": self.extended_file},
             "gain": self.gain,
             "verdict": self.verdict,
+            "decided": self.decided,
+            "budget": self.budget,
             "left": self.left,
             "diff": self.diff,
             "timings": self.timings,

@@ -1353,4 +1353,6 @@ class _Session:
                          findings=self.findings, extended_text=self.ext_text if self.accepted else self.text,
                          extended_file=ext_file, extended=extended, diff=self.diff, verdict=verdict,
                          left=_what_is_left(res_fin), timings=self.timings, plots=plots, notes=self.notes,
-                         initial=self.initial, objective=self.objective)
+                         initial=self.initial, objective=self.objective,
+                         budget=None if self.budget_cut is None else {"seconds": self.budget_s,
+                                                                      "ran_out": self.budget_cut})

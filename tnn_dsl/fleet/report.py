@@ -110,6 +110,16 @@ def _error_outliers(ok: list[dict[str, Any]], mode: str) -> list[dict[str, Any]]
     return out
 
 
+def _undecided(row: dict[str, Any]) -> str | None:
+    """Why a fitted unit's diagnosis is not decided (its per-unit budget ran out with nothing accepted: no
+    deficiency found, but the search did not finish), else ``None``: such a unit is not a clean one."""
+    d = row.get("diagnosis") or {}
+    if row.get("status") != "ok" or d.get("decided") is not False:
+        return None
+    b = d.get("budget") or {}
+    return f"diagnosis not decided: its budget ({_g(b.get('seconds'))} s) ran out {b.get('ran_out', '')}".rstrip()
+
+
 def _finding_label(f: dict[str, Any]) -> str:
     kind = str(f.get("kind", "")).replace("_", " ")
     deps = [d for d in (f.get("depends_on") or []) if d]
@@ -119,7 +129,8 @@ def _finding_label(f: dict[str, Any]) -> str:
 def fleet_report(rows: list[dict[str, Any]], net: Network, mode: str = "train") -> dict[str, Any]:
     """The report (``mode``: the fleet run's, ``train`` or ``diagnose``) as a JSON-able dict: ``units`` (per
     unit: ``unit``, ``status``, ``reason``, ``val_mae``,
-    ``gain``, ``findings`` (accepted ones, as ``tnnc diagnose --json``), ``params``, ``flagged``, ``why``),
+    ``gain``, ``findings`` (accepted ones, as ``tnnc diagnose --json``), ``params``, ``flagged``, ``why``,
+    ``undecided``: why its diagnosis is not decided, or ``None``),
     ``distributions`` (per parameter: ``n``, ``median``, ``s``, ``q10``, ``q90``, unit), ``outliers`` (``unit``,
     ``parameter``, ``z``, ``value``, ``median``, ``se``, ``reading``), ``groups`` (``finding`` -> units) and
     ``counts``."""
@@ -160,13 +171,15 @@ def fleet_report(rows: list[dict[str, Any]], net: Network, mode: str = "train") 
         for f in acc[:1]:
             groups.setdefault(_finding_label(f), []).append(r["unit"])
         why = [_finding_label(f) for f in acc] + [o["reading"].split(": ", 1)[1] for o in by_unit.get(r["unit"], [])]
+        undecided = _undecided(r)
         units.append({"unit": r["unit"], "status": r.get("status"), "reason": r.get("reason") or "",
                       "val_mae": r.get("val_mae"), "train_mae": r.get("train_mae"), "gain": r.get("gain"),
                       "findings": acc, "params": r.get("params") or {},
-                      "flagged": r.get("status") == "ok" and bool(why), "why": why,
-                      "seconds": r.get("seconds")})
+                      "flagged": r.get("status") == "ok" and bool(why), "why": why + ([undecided] if undecided else []),
+                      "undecided": undecided, "seconds": r.get("seconds")})
     counts = {"units": len(rows), "ok": len(ok), "failed": sum(r.get("status") == "failed" for r in rows),
-              "error": sum(r.get("status") == "error" for r in rows), "flagged": sum(u["flagged"] for u in units)}
+              "error": sum(r.get("status") == "error" for r in rows), "flagged": sum(u["flagged"] for u in units),
+              "undecided": sum(bool(u["undecided"]) for u in units)}
     return {"network": net.name, "mode": mode, "counts": counts, "units": units, "distributions": dists,
             "outliers": outliers, "groups": dict(sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])))}
 
@@ -182,7 +195,9 @@ def report_text(rep: dict[str, Any], max_units: int = 40) -> str:
     units by finding and the outliers with their readings."""
     c = rep["counts"]
     lines = [f"fleet of {c['units']} units on network {rep['network']}: {c['ok']} fitted, {c['failed']} failed, "
-             f"{c['error']} internal errors; {c['flagged']} flagged"]
+             f"{c['error']} internal errors; {c['flagged']} flagged"
+             + (f"; {c['undecided']} not decided (their diagnosis budget ran out: give --budget more or none)"
+                if c.get("undecided") else "")]
     units = sorted(rep["units"], key=lambda u: (not u["flagged"], u["status"] != "ok", u["unit"]))
     w = max([len(u["unit"]) for u in units] + [4])
     lines.append("")
@@ -256,7 +271,9 @@ def report_html(rep: dict[str, Any]) -> str:
              "td:first-child{white-space:nowrap}</style>",
              "</head><body>", f"<h1>Fleet report: {e(rep['network'])}</h1>",
              f"<p>{c['units']} units: {c['ok']} fitted, {c['failed']} failed, {c['error']} internal errors; "
-             f"<b>{c['flagged']} flagged</b>.</p>"]
+             f"<b>{c['flagged']} flagged</b>"
+             + (f"; {c['undecided']} not decided (their diagnosis budget ran out)" if c.get("undecided") else "")
+             + ".</p>"]
     uri = _distribution_plot(rep)
     if uri:
         parts.append(f"<h2>Parameters across the fleet</h2><img src='{uri}' alt='fitted parameters across the "

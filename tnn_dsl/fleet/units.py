@@ -216,7 +216,8 @@ def _diagnose(net: Network, exps: list, vals: list, options: FleetOptions, row: 
     gain = doc.get("gain") or {}
     row["gain"] = _finite(gain.get("val_mae_ratio")) if d.accepted else 1.0
     row["extended"] = d.extended_text if d.accepted else None
-    row["diagnosis"] = {k: doc.get(k) for k in ("verdict", "notes", "baseline", "gain", "left", "diff")}
+    row["diagnosis"] = {k: doc.get(k) for k in ("verdict", "decided", "budget", "notes", "baseline", "gain", "left",
+                                                "diff")}
 
 
 def batch_problem(net: Network, members: list[tuple[dict[str, Any], list, list]], options: FleetOptions) -> str | None:
