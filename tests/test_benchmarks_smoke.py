@@ -194,7 +194,7 @@ def test_bench_scaling_tiny_run(tmp_path):
 
 def test_bench_diagnose_splits_the_progress_lines_into_phases():
     """The diagnosis benchmark's phase table: a candidate's fit lines are one phase, each phase gets the highest RSS
-    sampled in it and its length."""
+    sampled in it (with its anonymous and file-backed parts at that sample) and its length."""
     import bench_diagnose
 
     lines = [(0.0, "[ 0.0 s] building candidates from the network ..."),
@@ -202,9 +202,11 @@ def test_bench_diagnose_splits_the_progress_lines_into_phases():
              (5.0, "[ 5.0 s]   fitting a depends on u (k=1) ..."), (6.0, "[ 6.0 s]     fitted in 1 s (4 iterations)"),
              (7.0, "[ 7.0 s]   continuing a depends on u ..."),
              (9.0, "[ 9.0 s] fitting it again from the values written in the file ...")]
-    trace = [(0.5, 100.0), (3.0, 900.0), (5.5, 400.0), (8.0, 450.0), (9.5, 300.0)]
+    trace = [(0.5, 100.0, 60.0, 40.0), (3.0, 900.0, 800.0, 100.0), (3.5, 850.0, 700.0, 150.0),
+             (5.5, 400.0, 300.0, 100.0), (8.0, 450.0, 320.0, 130.0), (9.5, 300.0, 200.0, 100.0)]
     rows = bench_diagnose.phases({"lines": lines, "trace": trace, "wall_s": 10.0})
     assert len(rows) == 4
-    assert rows[1].startswith("| 2.0 | 3.0 | round 1: score test") and rows[1].endswith("| 900 |")
-    assert "fitting candidates" in rows[2] and rows[2].startswith("| 5.0 | 4.0 |") and rows[2].endswith("| 450 |")
+    assert rows[1].startswith("| 2.0 | 3.0 | round 1: score test") and rows[1].endswith("| 900 (800 + 100) |")
+    assert "fitting candidates" in rows[2] and rows[2].startswith("| 5.0 | 4.0 |")
+    assert rows[2].endswith("| 450 (320 + 130) |")
     assert "fitting it again" in rows[3]
