@@ -82,7 +82,7 @@ def run(args) -> int:
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
                  mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force, init=args.init,
-                 burn_in=args.burn_in, objective=args.objective)
+                 burn_in=args.burn_in, objective=args.objective, release_jax_caches=True)  # this process is ours
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")

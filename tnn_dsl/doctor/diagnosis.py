@@ -58,6 +58,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+from ..compiler.backends.adapter import drop_compiled_caches
 from ..core.blas import one_blas_thread
 from ..core.memory import large_blocks_mapped, release_free_memory
 from .results import Diagnosis, Finding
@@ -70,7 +71,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
              progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
-             burn_in: float | None = None, objective: str = "output-error", threads: int | None = None) -> Diagnosis:
+             burn_in: float | None = None, objective: str = "output-error", threads: int | None = None,
+             release_jax_caches: bool = False) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -113,6 +115,12 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         Candidate fits run side by side in this many threads (default ``$TNN_DOCTOR_THREADS``, else the CPUs this
         process may use, at most 4; JAX only: torch fits one at a time, its forward-mode derivatives are per
         thread). The result does not depend on it, except through ``budget_s``.
+    release_jax_caches : bool
+        Before the MLP check, empty JAX's caches of compiled programs (``jax.clear_caches()``): the selection's
+        programs, let go by then, stay there otherwise. Off by default, because every jitted function in the
+        process, the caller's own included, then compiles again on its next call; ``tnnc diagnose``, which owns its
+        process, turns it on (issue 18: the case study's peak with two threads 580–588 → 557–558 MB,
+        ``benchmarks/bench_diagnose.py``, BENCHMARKS.md "Diagnosis: time and memory").
 
     Returns
     -------
@@ -122,10 +130,10 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
                    burn_in=burn_in, objective=objective, threads=threads)
     with one_blas_thread():  # small matrices between compiled simulations: BLAS threads only spin (core.blas)
-        return _run(run, max_rounds)
+        return _run(run, max_rounds, release_jax_caches)
 
 
-def _run(run: _Session, max_rounds: int) -> Diagnosis:
+def _run(run: _Session, max_rounds: int, release_jax_caches: bool = False) -> Diagnosis:
     # the fits' large buffers (simulations' temporaries, Jacobians) mapped on their own and handed back when freed
     # (core.memory); the MLP check's trainings after it reuse theirs step after step
     with large_blocks_mapped():
@@ -142,6 +150,9 @@ def _run(run: _Session, max_rounds: int) -> Diagnosis:
         # (its peak with two threads 878 → 829 MB, benchmarks/bench_diagnose.py, one run each, 2026-11-28), and the
         # nominal and extended engines' compiled programs let go (the result needs their data only)
         run.release_programs()
+    if release_jax_caches:
+        # the programs let go above are still in JAX's own caches until they are emptied
+        drop_compiled_caches(run.backend)
     release_free_memory(collect=True)
     run.compare_with_mlp()
     return run.result()

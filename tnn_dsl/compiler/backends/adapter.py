@@ -39,7 +39,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-__all__ = ["Backend", "backend_of", "lean_programs", "lean_programs_active"]
+__all__ = ["Backend", "backend_of", "drop_compiled_caches", "lean_programs", "lean_programs_active"]
 
 BACKENDS = ("jax", "torch")
 """The autodiff backends (what a user may choose); ``"numpy"`` is accepted too, for simulations only."""
@@ -379,6 +379,19 @@ def _lean_options_accepted() -> bool:
         jax.jit(lambda x: x + 1.0, compiler_options=dict(LEAN_XLA_OPTIONS))(jnp.zeros(1)).block_until_ready()
     except Exception:  # noqa: BLE001 -- jaxlib's error types vary by version; any failure means: keep the defaults
         return False
+    return True
+
+
+def drop_compiled_caches(backend: str) -> bool:
+    """Empty every cache of compiled programs the process holds for ``backend`` (``"jax"``: ``jax.clear_caches()``;
+    others: nothing). Returns whether anything was done. Every jitted function in the process, the caller's own
+    included, compiles again on its next call: only a job that owns its process (the ``tnnc`` command line) should
+    do this. JAX keeps programs a job has let go in its caches (tens of MB on the model doctor; issue 18)."""
+    if backend != "jax":
+        return False
+    import jax
+
+    jax.clear_caches()
     return True
 
 
