@@ -1,6 +1,6 @@
 """JAX's caches of compiled programs emptied before the model doctor's MLP check (issue 18: the doctor lets the
 selection's programs go, but JAX keeps them in its own caches; ``benchmarks/bench_diagnose.py`` measured the case
-study's peak with two threads at 580–588 MB with them, 557–558 MB without). Only the command line, which owns its
+study's peak with two threads at 580–614 MB with them, 557–558 MB without). Only the command line, which owns its
 process, asks for it: a library caller's own jitted functions are left alone by default."""
 
 from __future__ import annotations

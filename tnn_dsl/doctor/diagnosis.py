@@ -119,7 +119,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         Before the MLP check, empty JAX's caches of compiled programs (``jax.clear_caches()``): the selection's
         programs, let go by then, stay there otherwise. Off by default, because every jitted function in the
         process, the caller's own included, then compiles again on its next call; ``tnnc diagnose``, which owns its
-        process, turns it on (issue 18: the case study's peak with two threads 580–588 → 557–558 MB,
+        process, turns it on (issue 18: the case study's peak with two threads 580–614 → 557–558 MB,
         ``benchmarks/bench_diagnose.py``, BENCHMARKS.md "Diagnosis: time and memory").
 
     Returns
