@@ -158,6 +158,15 @@ def _functorch_active() -> bool:
     return bool(torch._C._are_functorch_transforms_active())
 
 
+def _time_major(ctx: dict) -> dict:
+    """A rollout context (:meth:`_Core.rhs_u`: time on the last axis of ``s`` leaves, next to last of ``v`` and
+    ``u``) with time on axis 0 of every array (torch's ``scan``)."""
+    import torch
+
+    return {"s": {k: torch.movedim(v, -1, 0) for k, v in ctx["s"].items()},
+            "v": {k: torch.movedim(v, -2, 0) for k, v in ctx["v"].items()}, "u": torch.movedim(ctx["u"], -2, 0)}
+
+
 class TorchCompileWarning(UserWarning):
     """``torch.compile`` was asked for but failed; the torch model runs eager."""
 
@@ -653,18 +662,12 @@ class Model:
             return None
         return torch.movedim(torch.cat(outs, 0)[:M], 0, -2)
 
-    def _torch_adjoint_rollout(self, prep, T0, ctx, dt, integrator, sub):
-        """The states after ``T0 (..., n_states)`` for every sample of ``ctx`` (:meth:`_Core.rhs_u` of the
-        rollout's samples but the last), ``(..., M, n_states)``, with gradients, through
-        :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`: one compiled ``scan`` forward, one compiled
-        adjoint ``scan`` backward (no per-step call, no per-step autograd node). Kept per ``(dt, integrator, sub,
-        batched)``; traced on :class:`FusedTorchXP`. ``None`` for the packed parameter table
-        of large networks (the step-by-step path runs), and after a warning if torch cannot compile here."""
-        import torch
+    def _adjoint_runner(self, dt, integrator, sub, unbatched):
+        """The :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout` of this model's step, kept per ``(dt,
+        integrator, sub, unbatched)``; traced on :class:`FusedTorchXP`. Its compiled forward scan serves both the
+        rollouts with gradients (:meth:`_torch_adjoint_rollout`) and those without (:meth:`_forward_scan`)."""
+        from .torch_adjoint import AdjointRollout
 
-        from .torch_adjoint import AdjointRollout, Unsupported
-
-        unbatched = T0.ndim == 1
         key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
         runner = self._jit_cache.get(key)
         if runner is None:
@@ -679,10 +682,43 @@ class Model:
                               stacklevel=2)
             runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed,
                                                            options=_inductor_options())
-        tm = {"s": {k: torch.movedim(v, -1, 0) for k, v in ctx["s"].items()},
-              "v": {k: torch.movedim(v, -2, 0) for k, v in ctx["v"].items()}, "u": torch.movedim(ctx["u"], -2, 0)}
+        return runner
+
+    def _forward_scan(self, prep, T0, inputs, dt, integrator, sub):
+        """The states after ``T0 (..., n_states)`` (already broadcast to the rollout's batch), ``(..., M,
+        n_states)`` for the ``M`` samples of ``inputs (..., M, n_inputs)``, without gradients, through the forward
+        scan that a training with gradients compiles (:meth:`_adjoint_runner`; its batch and length axes are
+        dynamic): a model's validation runs, its burn-in's batched Jacobian and its free runs then compile nothing
+        of their own after a training (M2 of the case study compiled four graphs for a training, two of them for
+        its validation; BENCHMARKS.md, "Training time"). A single sequence runs as a batch of two (it twice: torch
+        specialises a batch of one), the inputs broadcast to the batch, the input-only context (:meth:`_Core.rhs_u`)
+        computed before the scan. Raises :class:`~tnn_dsl.compiler.torch_adjoint.Unsupported` for the packed
+        parameter table of large networks."""
+        import torch
+
+        single = T0.ndim == 1
+        if single:
+            T0 = T0.expand(2, T0.shape[-1])
+        batch = tuple(T0.shape[:-1])
+        U = torch.broadcast_to(inputs, (*batch, *inputs.shape[-2:]))
+        S = self._adjoint_runner(dt, integrator, sub, False).states(prep, T0, _time_major(self._core.rhs_u(prep, U)))
+        S = torch.movedim(S, 0, -2)
+        return S[0] if single else S
+
+    def _torch_adjoint_rollout(self, prep, T0, ctx, dt, integrator, sub):
+        """The states after ``T0 (..., n_states)`` for every sample of ``ctx`` (:meth:`_Core.rhs_u` of the
+        rollout's samples but the last), ``(..., M, n_states)``, with gradients, through
+        :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`: one compiled ``scan`` forward, one compiled
+        adjoint ``scan`` backward (no per-step call, no per-step autograd node). Kept per ``(dt, integrator, sub,
+        batched)``; traced on :class:`FusedTorchXP`. ``None`` for the packed parameter table
+        of large networks (the step-by-step path runs), and after a warning if torch cannot compile here."""
+        import torch
+
+        from .torch_adjoint import Unsupported
+
+        runner = self._adjoint_runner(dt, integrator, sub, T0.ndim == 1)
         try:
-            S = runner(prep, T0, tm)
+            S = runner(prep, T0, _time_major(ctx))
         except Unsupported:
             return None
         except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
@@ -693,7 +729,9 @@ class Model:
     def _compiled_torch_rollout(self, prep, T0, inputs, dt, integrator, sub):
         """The states after ``T0 (..., n_states)`` (already broadcast to the rollout's batch), ``(..., M,
         n_states)`` for the ``M`` samples of ``inputs (..., M, n_inputs)`` (all but the last of the rollout's),
-        through ``torch.compile`` of one ``scan`` over the samples (torch's ``scan`` higher-order operator): one
+        through ``torch.compile`` of one ``scan`` over the samples (torch's ``scan`` higher-order operator). With
+        :data:`TORCH_ADJOINT` on and :data:`TORCH_CHUNK` 1 that scan is the one rollouts with gradients compile
+        (:meth:`_forward_scan`); otherwise, and for a large network's packed parameter table, one of its own: one
         compiled graph per rollout instead of a Python loop of per-step calls, so the per-call cost of a compiled
         graph (guards, wrapper, buffers: tens of µs) is paid once per rollout, not once per step. The input-only
         context (:meth:`_Core.rhs_u`) is computed inside the graph from the raw inputs (no gradient flows through
@@ -711,6 +749,14 @@ class Model:
 
         from .torch_adjoint import CompiledScan, Unsupported, flatten, scalar_slots, scalars_as_vectors, scalars_back
 
+        if TORCH_ADJOINT and TORCH_CHUNK == 1:
+            try:
+                return self._forward_scan(prep, T0, inputs, dt, integrator, sub)
+            except Unsupported:
+                pass  # a large network's packed table: the scan below
+            except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+                self._compiling_failed(e)
+                return None
         unbatched = T0.ndim == 1
         chunk = TORCH_CHUNK if unbatched else 1
         # the prepared values enter the graph flat, each 0-d tensor as a vector of one: a 0-d input would make

@@ -30,7 +30,7 @@ from typing import Any, Callable, Sequence
 
 from .assembly import _PackedVals, _Prep
 
-__all__ = ["AdjointRollout", "Unsupported", "flatten"]
+__all__ = ["AdjointRollout", "Unsupported", "flatten", "forward_key"]
 
 
 class Unsupported(Exception):
@@ -149,13 +149,26 @@ class AdjointRollout:
                                 *[c if c.is_contiguous() else c.contiguous() for c in cvals])
 
     # -- forward -------------------------------------------------------------------------------------------
-    def forward(self, key, rebuild, ckeys, p, T0, cvals):
-        """The states ``(M, ..., n_states)`` K after ``T0`` without autograd: the compiled forward scan for
-        ``key`` (compiled on first use; the scan's length is dynamic, other shapes have keys of their own)."""
+    def states(self, prep: Any, T0, ctx: dict):
+        """The states after ``T0 (B, n_states)`` K for every sample of ``ctx`` (time-major, ``(M, B, ...)``),
+        ``(M, B, n_states)``, without gradients: the forward scan a training compiles, so that a model's free
+        runs (validation, the burn-in's batched Jacobian) reuse the training's compiled graph instead of
+        compiling graphs of their own (:meth:`forward`). Raises :class:`Unsupported` for prepared values it
+        cannot flatten."""
+        p, rebuild, pkey = flatten(prep)
+        ckeys, cvals = _flat_context(ctx)
+        return self.forward(pkey, rebuild, ckeys, p, T0, [c if c.is_contiguous() else c.contiguous() for c in cvals])
+
+    def forward(self, pkey, rebuild, ckeys, p, T0, cvals):
+        """The states ``(M, ..., n_states)`` K after ``T0`` without autograd: the compiled forward scan (compiled
+        on first use). One graph serves every rollout length and every batch of two or more sequences (both
+        axes dynamic from the first call), with or without gradients wanted: its key holds the prepared
+        values' structure and the arrays' other axes, not ``requires_grad`` (:func:`forward_key`)."""
         import torch
         from torch._higher_order_ops import scan
 
-        fn = self._fwd.get(key)
+        fkey, dynamic = forward_key(pkey, ckeys, cvals, T0)
+        fn = self._fwd.get(fkey)
         if fn is None:
             stepper = self.stepper
             scalars = scalar_slots(p)
@@ -167,12 +180,17 @@ class AdjointRollout:
                     Tn = step(T, _context(ckeys, cv))
                     return Tn, Tn.clone()
                 return scan(body, T0, list(cvals))[1]
-            fn = self._fwd[key] = CompiledScan(roll, f"tnn_adjoint_fwd_{self.name}_{len(self._fwd)}", self.options)
+            fn = self._fwd[fkey] = CompiledScan(roll, f"tnn_adjoint_fwd_{self.name}_{len(self._fwd)}", self.options)
         cvals = [c.detach() for c in cvals]
-        for c in cvals:  # one compiled graph for every rollout length
+        T0 = T0.detach().contiguous()
+        for c in cvals:  # one compiled graph for every rollout length ...
             torch._dynamo.maybe_mark_dynamic(c, 0)
+        for d in range(dynamic):  # ... and every batch of two or more
+            torch._dynamo.maybe_mark_dynamic(T0, d)
+            for c in cvals:
+                torch._dynamo.maybe_mark_dynamic(c, 1 + d)
         with torch.no_grad():
-            return fn(scalars_as_vectors(p), T0.detach().contiguous(), cvals)
+            return fn(scalars_as_vectors(p), T0, cvals)
 
     # -- backward ------------------------------------------------------------------------------------------
     def _vjp_graph(self, rebuild, ckeys, p, T0, cvals, wrt):
@@ -248,6 +266,30 @@ class AdjointRollout:
         for i, g in zip(ic, dcs):
             dc[i] = g
         return dT0, dp, dc
+
+
+def forward_key(pkey: tuple, ckeys: tuple, cvals: Sequence, T0) -> tuple[tuple, int]:
+    """``(key, n_dynamic)`` of a forward scan: the prepared values' structure (:func:`flatten`'s key without the
+    tensors' ``requires_grad``), the context's keys, and every array's dtype and shape without the time axis
+    (dynamic) and without the batch axes where they are dynamic. The batch axes (``T0``'s leading ones, the
+    context's after time) are dynamic when every array holds them in full and none is of size one (torch
+    specialises sizes 0 and 1): ``n_dynamic`` of them, else 0 and the key holds the shapes as they are."""
+    nb = T0.ndim - 1
+    batch = tuple(T0.shape[:nb])
+    full = all(tuple(c.shape[1:1 + nb]) == batch for c in cvals)
+    n_dynamic = nb if nb and full and min(batch) >= 2 else 0
+    key = (_without_grad(pkey), ckeys, tuple((tuple(c.shape[1 + n_dynamic:]), str(c.dtype)) for c in cvals),
+           tuple(T0.shape[n_dynamic:]), str(T0.dtype), n_dynamic)
+    return key, n_dynamic
+
+
+def _without_grad(spec):
+    """:func:`flatten`'s key with every tensor's ``requires_grad`` left out."""
+    if type(spec) is not tuple or not spec:
+        return spec
+    if spec[0] == "T" and len(spec) == 4:
+        return spec[:3]
+    return tuple(_without_grad(s) for s in spec)
 
 
 def scalar_slots(p: Sequence) -> tuple[int, ...]:
@@ -348,7 +390,7 @@ def _autograd_function():
         @staticmethod
         def forward(ctx, runner, key, rebuild, ckeys, n_p, T0, *flat):
             p, cvals = list(flat[:n_p]), list(flat[n_p:])
-            S = runner.forward(key, rebuild, ckeys, p, T0, cvals)
+            S = runner.forward(key[0], rebuild, ckeys, p, T0, cvals)
             ctx.save_for_backward(T0, S, *flat)
             ctx.runner, ctx.key, ctx.rebuild, ctx.ckeys, ctx.n_p = runner, key, rebuild, ckeys, n_p
             return S

@@ -21,8 +21,9 @@ OBJECTIVES = ("output-error", "ml")
 
 TORCH_COMPILE_MIN_WORK = 2_000_000
 """Sample-epochs (samples of the training and validation files × ``epochs``) from which a torch training compiles
-its rollouts when ``torch_compile`` is not set (:func:`torch_compile_pays`). Compiling costs 20–35 s (five graphs,
-cold, Intel Xeon); it then saves about 3 µs per window-step of training (batched forward + gradient: 2.60 against
+its rollouts when ``torch_compile`` is not set (:func:`torch_compile_pays`). Compiling cost 20–35 s (five graphs,
+cold, Intel Xeon; M2's training compiles two since 2026-12-02: the validation's free runs reuse the training's
+forward scan); it then saves about 3 µs per window-step of training (batched forward + gradient: 2.60 against
 5.59 µs, eager) and 220 µs per step of each validation run (9.6 against 230 µs) — BENCHMARKS.md, the `rollout`
 section. The case study's M2 (4 h + 2 h at 1 s, 300 epochs: 6.5·10⁶) is over it; the test suite's short trainings
 are far under it."""
