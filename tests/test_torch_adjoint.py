@@ -99,6 +99,13 @@ def _adjoint_used(model) -> bool:
 
 @pytest.mark.parametrize("batch", [3, None], ids=["batch", "single"])
 def test_adjoint_matches_eager_and_jax(batch):
+    """States and gradients as eager torch's and JAX's. With a batch (issue 18), the rollouts without gradients
+    after it (a training's validation free run, its burn-in's batched Jacobian, a free run after the training) run
+    through the forward scan the rollouts with gradients compiled, whatever their batch (one sequence runs as two)
+    and length: no graph of their own (the case study's M2 compiled four graphs per training, two of them for its
+    validation), JAX's states to 1e-9 K."""
+    from torch._dynamo.utils import counters
+
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc, me, mj = (tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch"),
                   tnn_dsl.compile(net, "jax"))
@@ -108,40 +115,23 @@ def test_adjoint_matches_eager_and_jax(batch):
         warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
         got = _torch_grads(mc, p_np, T0, U)
         assert _adjoint_used(mc)
+        graphs = counters["stats"]["unique_graphs"]
         # a second window length reuses the compiled programs (the scan's length is dynamic) and is still exact
         T0b, Ub = _inputs(mj, 5, batch, seed=1)
         got_b = _torch_grads(mc, p_np, T0b, Ub)
+        if batch is not None:
+            T1, U1 = _inputs(mj, 23, 4, seed=3)
+            for T0_, U_ in ((T1[0], U1[0]), (T1, U1), (T1[:2], U1[:2, :11])):
+                with torch.no_grad():
+                    s = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(T0_), torch.as_tensor(U_), 1.0)[0]
+                ref = np.asarray(mj.rollout(mj.from_numpy(p_np), T0_, U_, 1.0)[0])
+                assert s.shape == ref.shape and np.max(np.abs(s.numpy() - ref)) <= 1e-9
+            runner = next(v for v in mc._jit_cache.values() if hasattr(v, "_fwd"))
+            assert len(runner._fwd) == 1 and not any(k[0] == "torch_scan" for k in mc._jit_cache if type(k) is tuple)
+    assert counters["stats"]["unique_graphs"] == graphs
     _assert_close(_torch_grads(me, p_np, T0, U), got)
     _assert_close(_jax_grads(mj, p_np, T0, U), got)
     _assert_close(_jax_grads(mj, p_np, T0b, Ub), got_b)
-
-
-def test_free_runs_reuse_the_training_forward_scan():
-    """Issue 18: a model's rollouts without gradients (a training's validation free run, its burn-in's batched
-    Jacobian, a free run after it) run through the forward scan that its rollouts with gradients compiled, whatever
-    their batch (two or more; one sequence runs as two) and length: no graph of their own (M2 of the case study
-    compiled four graphs per training, two for its validation). Each gives JAX's states to 1e-9 K."""
-    from torch._dynamo.utils import counters
-
-    net = tnn_dsl.loads(CHAIN, "chain.thn")
-    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
-    p_np = nets.random_params(mj, 1)
-    T0, U = _inputs(mj, 9, 4)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
-        _torch_grads(mc, p_np, T0, U)  # compiles the forward and the adjoint scan
-        graphs = counters["stats"]["unique_graphs"]
-        T1, U1 = _inputs(mj, 23, 3, seed=1)
-        for T0_, U_ in ((T1[0], U1[0]), (T1, U1), (T1[:2, :], U1[:2, :11])):
-            with torch.no_grad():
-                s = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(T0_), torch.as_tensor(U_), 1.0)[0]
-            ref = np.asarray(mj.rollout(mj.from_numpy(p_np), T0_, U_, 1.0)[0])
-            assert s.shape == ref.shape and np.max(np.abs(s.numpy() - ref)) <= 1e-9
-        again = _torch_grads(mc, p_np, T0, U)  # and the training's next step compiles nothing either
-    assert counters["stats"]["unique_graphs"] == graphs
-    runner = next(v for v in mc._jit_cache.values() if hasattr(v, "_fwd"))
-    assert len(runner._fwd) == 1 and not any(isinstance(k, tuple) and k[0] == "torch_scan" for k in mc._jit_cache)
-    _assert_close(_jax_grads(mj, p_np, T0, U), again)
 
 
 @pytest.mark.slow  # the fast suite's compiled-torch tests cover RK4; the slow case-study test covers expeuler too
