@@ -22,6 +22,7 @@ the compilation before it.
     python benchmarks/bench_train.py --only m2 --backends jax
     python benchmarks/bench_train.py --quick              # 40 min / 20 min of data, JAX, M2 only (about a minute)
     python benchmarks/bench_train.py --only m2 --epochs 60   # JAX vs torch on one fixed schedule
+    python benchmarks/bench_train.py --only m3 --backends jax torch-compiled --no-write --curve   # where they part
 
 Results go to the ``training`` section of ``BENCHMARKS.md`` (``--no-write``: print only).
 """
@@ -85,6 +86,9 @@ def _worker(args) -> int:
                       "t_total": total, "compile_s": compile_s, "t_reach_less_compile": reach - compile_before,
                       "n_compiles": len(compiles), "epochs": len(adam), "stopped": tm.meta["stopped"],
                       "rollout": tm.meta["rollout"],
+                      "curve": [(r["epoch"], r["phase"], r["val_mae"]) for r in tm.meta["curve"]
+                                if r.get("val_mae") is not None and r["epoch"] % 50 == 0],
+                      "last_epoch": max((r["epoch"] for r in tm.meta["curve"]), default=0),
                       "first_val_mae": tm.meta["curve"][0]["val_mae"] if tm.meta["curve"] else None}))
     return 0
 
@@ -177,6 +181,25 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
+def _curves(rows: list[dict]) -> str:
+    """``--curve``: per model, the validation MAE (mK) every 50 epochs of each backend's run side by side (the
+    epochs after Adam's are L-BFGS iterations), and the epoch each run ended at."""
+    out = []
+    for m in dict.fromkeys(r["model"] for r in rows):
+        runs = [r for r in rows if r["model"] == m and "curve" in r]
+        if not runs:
+            continue
+        by = [{e: (ph, v) for e, ph, v in r["curve"]} for r in runs]
+        epochs = sorted(set().union(*by))
+        out += [f"{m.upper()} validation MAE (mK) every 50 epochs:", "",
+                "| epoch | " + " | ".join(r["backend"] for r in runs) + " |", "|---|" + "---|" * len(runs)]
+        for e in epochs:
+            cells = [f"{c[e][1] * 1e3:.4f} ({c[e][0]})" if e in c else "" for c in by]
+            out.append(f"| {e} | " + " | ".join(cells) + " |")
+        out += ["| ended at | " + " | ".join(str(r["last_epoch"]) for r in runs) + " |", ""]
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -199,6 +222,8 @@ def main(argv=None) -> int:
                          "False), to compare with the C++ one")
     ap.add_argument("--warm-torch-cache", action="store_true",
                     help="let torch reuse inductor's default on-disk cache (default: an empty one per run)")
+    ap.add_argument("--curve", action="store_true",
+                    help="also print each run's validation MAE every 50 epochs (Adam, then L-BFGS iterations)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--backend", default="jax", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -245,6 +270,8 @@ def main(argv=None) -> int:
                           f"total {r['t_total']:.0f} s"), file=sys.stderr, flush=True)
     md = _table(rows, args.quick, args.epochs)
     print(md)
+    if args.curve:
+        print(_curves(rows))
     if not args.no_write:
         from _report import write_section
 

@@ -210,3 +210,22 @@ def test_bench_diagnose_splits_the_progress_lines_into_phases():
     assert "fitting candidates" in rows[2] and rows[2].startswith("| 5.0 | 4.0 |")
     assert rows[2].endswith("| 450 (320 + 130) |")
     assert "fitting it again" in rows[3]
+
+
+def test_bench_train_curves_put_the_runs_side_by_side():
+    """``bench_train.py --curve``: per model, each backend's validation MAE (mK) at the epochs both logged, a blank
+    where one run had ended, and the epoch each run ended at."""
+    import bench_train
+
+    rows = [{"model": "m3", "backend": "jax", "last_epoch": 1300,
+             "curve": [(0, "start", 0.1), (50, "adam", 0.0142), (1300, "lbfgs", 0.0028)]},
+            {"model": "m3", "backend": "torch-compiled", "curve": [(0, "start", 0.1), (50, "adam", 0.0142)],
+             "last_epoch": 1030},
+            {"model": "m3", "backend": "torch", "error": "not finished within 60 s"}]
+    text = bench_train._curves(rows)
+    lines = text.splitlines()
+    assert lines[0] == "M3 validation MAE (mK) every 50 epochs:"
+    assert "| epoch | jax | torch-compiled |" in lines
+    assert "| 50 | 14.2000 (adam) | 14.2000 (adam) |" in lines
+    assert "| 1300 | 2.8000 (lbfgs) |  |" in lines
+    assert "| ended at | 1300 | 1030 |" in lines
