@@ -4,9 +4,9 @@ heat-pipe resistances depend on ``u1`` and two on temperature), the extension na
 ``u1``, pays at least 5-fold on the held-out set, and every value is within 50 % of the truth or reported as not
 identifiable one by one.
 
-The full 4 h / 2 h data sets are slow (about 5 min, marked slow); the CI variant checks the names, the gain and that
-every value comes with a standard error on 80 / 40 minutes of data, which pin the law's shape but not the split
-between the series resistances (R_hp1 0.068 K/W against the truth's 0.2 there, their sum 0.435 against 0.4).
+The full 4 h / 2 h data sets are slow (about 5 min, marked slow); the CI variant (one round) checks the names, the
+gain and that every value comes with a standard error on 80 / 40 minutes of data, which pin the law's shape but not
+the split between the series resistances (R_hp1 0.068 K/W against the truth's 0.2 there, their sum 0.435 against 0.4).
 """
 
 from __future__ import annotations
@@ -36,18 +36,19 @@ def test_m1_extension_names_the_heat_pipe_with_u1_pays_and_says_what_it_cannot_t
     durations = (80 * 60.0, 40 * 60.0, 60.0) if length == "short" else None
     generate_case_study(tmp_path / "cs", widen=(), n_ood=0, durations=durations)
     # 80 min (noise σ ≈ 1e-4 K) also pin the heat pipe's temperature dependence, which the truth has (−0.02/K on
-    # R_hp1 and R_hp2): round 2 names the three resistances depending on T(hp) too. A third round then took a
+    # R_hp1 and R_hp2): a second round names the three resistances depending on T(hp) too, and a third took a
     # conduction path pc–hp (0.0014 → 0.00063 K, p = 0.054, confirmed by halving; 2026-11-26), a compensation the
-    # 4 h data do not show: the fast variant stops after two rounds, the 4 h one runs them all.
-    rounds = 2 if length == "short" else 4
+    # 4 h data do not show. The fast variant runs round 1 (the u1 law, the finding this test is about: 28 s alone
+    # against 40 s for two rounds, 2026-12-02); the 4 h one runs them all. Rounds after the first are covered by
+    # tests/test_doctor_rounds.py and the hidden-effect suite's look-ahead cases.
+    rounds = 1 if length == "short" else 4
     d = tnn_dsl.diagnose(M1, [str(tmp_path / "cs" / "train.csv")], [str(tmp_path / "cs" / "val.csv")],
                          mlp_check=False, output=str(tmp_path / "m1x.thn"), max_rounds=rounds)
     acc = d.accepted
     assert acc, d.summary()
     assert len({f.words for f in acc}) == len(acc), d.summary()  # no finding said twice
-    # only heat-pipe elements; the first on u1, every one on what the truth's laws read (u1, the heat pipe's
-    # temperatures); the 4 h run names u1 only
-    allowed = [["u1"]] if length == "full" else [["u1"], ["T(hx1)"], ["T(hp)"], ["T(hx2)"]]
+    # only heat-pipe elements, every one on u1 (one round on 80 min; four on 4 h, which name u1 only)
+    allowed = [["u1"]]
     assert acc[0].depends_on == ["u1"], d.summary()
     for f in acc:
         assert f.kind == "param_dependence" and f.depends_on in allowed, d.summary()
@@ -55,7 +56,7 @@ def test_m1_extension_names_the_heat_pipe_with_u1_pays_and_says_what_it_cannot_t
     written = tnn_dsl.load(str(tmp_path / "m1x.thn"))
     for fn in written.learned:
         assert {t.name for t in fn.targets} <= {"R_hp1", "R_hp2", "R_hpa"}, fn
-        assert {i.name for i in fn.inputs} <= ({"u1"} if length == "full" else {"u1", "hx1", "hp", "hx2"}), fn
+        assert {i.name for i in fn.inputs} <= {"u1"}, fn
     assert d.baseline["val_mae"] / d.extended["val_mae"] >= 5, d.summary()
     u = d.extended["uncertainty"]
     assert all(e["se"] > 0 or e["status"] == "not identifiable" for e in u["estimates"]), u
