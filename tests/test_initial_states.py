@@ -188,6 +188,27 @@ def test_burn_in_seconds_and_short_files(backend):
     assert ini.T[0] == pytest.approx(T_true[0], abs=1e-9)
 
 
+@pytest.mark.parametrize("start", [302.0, 310.0])
+def test_the_burn_in_fit_halves_a_step_that_goes_uphill_analytic(start):
+    """Gauss–Newton on readings ``y = 300 K + atan(x − 300 K)`` measured at 300 K: the minimum is x = 300 K, and from
+    more than 1.39 K away every full step overshoots further than it started (``x − atan(d)·(1 + d²)``), so the
+    cost rises each iteration (before the halving, an estimate ended wherever its 20 iterations left it). Halving
+    the uphill steps finds the minimum."""
+    from tnn_dsl.fit.initial import _BurnInFit
+
+    net = tnn_dsl.loads("network one\nnode a C = 1 J/K\nboundary amb = 300 K\nG a -- amb = 1 W/K\n"
+                        "sensor Sa = a\n", "one.thn")
+    model = compile_network(net, backend="numpy", dtype="float64")
+    n = 20
+    fit = object.__new__(_BurnInFit)
+    fit.packable, fit.fyJ = False, None
+    fit.fy = lambda p, U, x: np.full((n, 1), 300.0) + np.arctan(np.asarray(x)[0] - 300.0)
+    fit.fJ = lambda p, U, x: np.full((n, 1, 1), 1.0 / (1.0 + (np.asarray(x)[0] - 300.0) ** 2))
+    Y = np.full((n, 1), 300.0)
+    x, rms = fit.solve(model, {}, np.zeros((n, 0)), Y, np.array([start]), np.array([1e6]))
+    assert abs(x[0] - 300.0) < 1e-6 and rms < 1e-6, (x, rms)
+
+
 # ---------------------------------------------------------------------------------------------
 # 2. the burn-in is not scored
 # ---------------------------------------------------------------------------------------------

@@ -7,7 +7,8 @@ cold. So the state is estimated from the data, never assumed, unless the user as
 ``estimate`` (the default)
     The initial state is fitted to the measurements of a *burn-in* at the start of the file: a maximum a
     posteriori estimate with the parameters fixed (Gauss–Newton on the forward-mode Jacobian of the rollout with
-    respect to the initial state; residuals weighted by each sensor's noise from first differences; a prior
+    respect to the initial state, a step that raises the cost halved; residuals weighted by each sensor's noise
+    from first differences; a prior
     around the ``measured`` state, tight for sensed states — their first reading — and weak for the others, so
     the burn-in decides what it sees and leaves what it cannot see where the network puts it). The burn-in is
     excluded from every score. In training with single shooting the initial state of each training file is a
@@ -59,6 +60,14 @@ MIN_NOISE_K = 0.01
 """Smallest measurement noise (K) assumed when weighting the burn-in's residuals."""
 
 MAX_GN_ITER = 20
+"""Rollouts of the burn-in an estimate may take (a Gauss–Newton iteration, or a halved step tried again)."""
+
+GN_MAX_HALVINGS = 6
+"""A Gauss–Newton step that raises the weighted cost is halved and tried again, at most this many times in a row;
+then the estimate is the last iterate that lowered it. Without the check the burn-in fit of the case study's M4 (an
+MLP Peltier element) on out-of-distribution files went uphill for all its 20 iterations, its cost 4.4·10⁵ →
+2.9·10⁶, and returned the last iterate (2026-12-02, ``benchmarks/bench_free_runs.py``'s files); networks linear in
+the temperatures converge in two iterations and never halve."""
 
 GN_DECREMENT_TOL = 1e-8
 """The burn-in fit stops when a Gauss–Newton step would change the weighted cost (chi-square units: residuals over
@@ -265,7 +274,8 @@ class _BurnInFit:
         with NaN where missing; ``σ_y`` per sensor from the readings' first differences); returns ``x`` and the
         burn-in's RMS error (K). ``bounds`` ``(low, high)`` K: every state is kept inside (a projected step); a
         model that cannot explain the start otherwise pushes an unsensed state there, and :attr:`held` says
-        which."""
+        which. A step that raises the cost is halved (:data:`GN_MAX_HALVINGS`), so the estimate never ends worse
+        than an iterate it has seen."""
         B = backend_of(model)
         Ub = B.asarray(np.asarray(U, dtype=np.float64))
         if self.packable and hasattr(model, "pack_params"):  # one jit argument, not one per constant
@@ -279,18 +289,33 @@ class _BurnInFit:
         if bounds is not None:
             x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
         rms = math.inf
+        best: tuple[float, np.ndarray, float] | None = None  # (cost, x, rms) of the last iterate that went downhill
+        halvings = 0
         for _ in range(MAX_GN_ITER):
             if self.fyJ is not None:  # the readings and their Jacobian from one call
                 y, J = (B.numpy(a) for a in self.fyJ(params, Ub, B.asarray(x)))
             else:
                 y = B.numpy(self.fy(params, Ub, B.asarray(x)))
-            if not np.all(np.isfinite(y[mask])):
-                break
-            if self.fyJ is None:
-                J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
+                J = None
             r = (y - Y)[mask]
+            with np.errstate(over="ignore", invalid="ignore"):
+                cost = float(np.sum((W * r) ** 2) + np.sum((P * (x - prior)) ** 2))
+            if best is not None and not cost <= best[0] * (1.0 + 1e-12):
+                # the last step went uphill (a nonlinear network far from the linearisation, a state projected
+                # onto its bound) or out of the finite: take half of it, at most GN_MAX_HALVINGS times in a row
+                halvings += 1
+                if halvings > GN_MAX_HALVINGS:
+                    x, rms = best[1], best[2]
+                    break
+                x = best[1] + 0.5 * (x - best[1])
+                continue
+            if not math.isfinite(cost):
+                break  # the start itself: nothing better to go back to (the run is checked later)
             with np.errstate(over="ignore"):
                 rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+            best, halvings = (cost, x, rms), 0
+            if J is None:
+                J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
             Jm = J[mask]
             if not (np.all(np.isfinite(Jm)) and np.all(np.isfinite(r))):
                 break  # the model's sensitivities overflow here: keep the last state (the run is checked later)
@@ -310,6 +335,9 @@ class _BurnInFit:
                 decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
             if float(np.max(np.abs(moved), initial=0.0)) < 1e-7 or decrement < GN_DECREMENT_TOL:
                 break
+        else:
+            if best is not None:  # out of iterations: the best iterate seen, not an untried last step
+                x, rms = best[1], best[2]
         self.held = ([] if bounds is None else
                      [i for i in range(ns) if x[i] <= bounds[0] + 1e-9 or x[i] >= bounds[1] - 1e-9])
         return x, rms
