@@ -362,6 +362,46 @@ def test_filter_starts_the_free_run_at_the_end_of_the_burn_in(backend):
     assert err_measured > 2.0 and err_filter < 0.1 * err_measured, (err_filter, err_measured)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("rule", ["estimate", "filter"])
+def test_free_runs_of_files_alike_go_as_one_batch_equal_to_the_runs_one_by_one(backend, rule, monkeypatch):
+    """``free_runs`` over five files: three of N samples, one of N − 40, and one whose heater is driven at 10⁵ W,
+    which leaves the physical range. The files of N samples (the diverging one among them) run as one batched
+    rollout, the shorter file alone; every run equals :func:`free_run` of its file to round-off; ``errors="return"``
+    puts the diverging file's error in its place, ``errors="raise"`` raises it."""
+    import tnn_dsl.fit.simulation as sim
+
+    net, model, params = _model(backend)
+    exps = [_simulated(backend, _prbs_inputs(s), name=f"f{s}")[0] for s in range(3)]
+    exps.append(_simulated(backend, _prbs_inputs(3, N - 40), name="short")[0])
+    hot = _simulated(backend, _prbs_inputs(4), name="hot")[0]
+    U = np.array(hot.inputs)
+    U[60:] = 1e5
+    exps.insert(1, Experiment(name="hot", path="", t=hot.t, dt=1.0, inputs=U, outputs=hot.outputs,
+                              input_names=("P",), output_names=("Sa",)))
+    sizes = []
+    real = sim._batched_rollout
+
+    def counted(model_, packed, params_, exps_, chunk, *a):
+        sizes.append(len(chunk))
+        return real(model_, packed, params_, exps_, chunk, *a)
+
+    monkeypatch.setattr(sim, "_batched_rollout", counted)
+    runs = sim.free_runs(model, params, exps, rule, check=True, errors="return")
+    assert sorted(sizes) == [1, 4]
+    assert isinstance(runs[1], TnnError) and "left the physical range" in str(runs[1])
+    monkeypatch.setattr(sim, "_batched_rollout", real)
+    for exp, run in zip(exps, runs):
+        if exp.name == "hot":
+            continue
+        one = free_run(model, params, exp, rule)
+        assert run.init.rule == one.init.rule == rule and run.burn_in == one.burn_in
+        np.testing.assert_allclose(run.states, one.states, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(run.y, one.y, rtol=0, atol=1e-9)
+    with pytest.raises(TnnError, match="left the physical range.*file hot"):
+        sim.free_runs(model, params, exps, rule, check=True)
+
+
 # ---------------------------------------------------------------------------------------------
 # 5. the command line
 # ---------------------------------------------------------------------------------------------

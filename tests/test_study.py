@@ -93,10 +93,9 @@ def test_out_of_distribution_reports_a_diverged_set_and_goes_on():
     from tnn_dsl.studies.thesis import _out_of_distribution, results_table
 
     class FakeModel:
-        def evaluate(self, paths, backend=None):
-            if paths == ["/d/ood_40_1.csv"]:
-                raise TnnError(Diagnostic("the simulation left the physical range: node `ph` became NaN"))
-            return {"experiments": [{"mae": 0.01, "max_error": 0.02} for _ in paths]}
+        def evaluate_each(self, paths, backend=None):  # a widening's files in one call, an error in a file's place
+            return [TnnError(Diagnostic("the simulation left the physical range: node `ph` became NaN"))
+                    if p == "/d/ood_40_1.csv" else {"experiments": [{"mae": 0.01, "max_error": 0.02}]} for p in paths]
 
     files = {"10": ["/d/ood_10_0.csv", "/d/ood_10_1.csv"], "40": ["/d/ood_40_0.csv", "/d/ood_40_1.csv"]}
     r = _out_of_distribution(FakeModel(), files, "jax")

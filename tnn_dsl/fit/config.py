@@ -29,6 +29,12 @@ section. The case study's M2 (4 h + 2 h at 1 s, 300 epochs: 6.5·10⁶) is over 
 are far under it."""
 
 
+FREE_RUN_BATCH_VALUES = 2**24
+"""At most this many state values (files × samples × states, 128 MiB of float64) in one batched free run
+(:func:`~tnn_dsl.fit.simulation.free_runs`): the demo's ten 2 h files at 1 s of a 7-state model are 504 000; a
+10 000-node network's 7200-sample file (7.2·10⁷ values) runs alone, as it did before batches."""
+
+
 FREE_RUN_COMPILE_MIN_SAMPLES = 10_000
 """Samples (all files of one call together) from which the free runs of a loaded model on torch
 (:meth:`TrainedModel.predict <tnn_dsl.fit.model_files.TrainedModel.predict>`, ``evaluate``, ``tnnc evaluate``)

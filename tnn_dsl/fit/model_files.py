@@ -47,7 +47,7 @@ from ..core import (
 )
 from ..core.htmlview import html_list, html_table, safe_repr_html, view
 from ..ir import Network, Span
-from .simulation import as_experiments, error_metrics, free_run
+from .simulation import FreeRun, as_experiments, error_metrics, free_runs
 
 if TYPE_CHECKING:
     from ..compiler import Model
@@ -537,8 +537,10 @@ class TrainedModel:
 
     def predict(self, data: Any, backend: str | None = None, init: str = "estimate",
                 integrator: str | None = None, burn_in_s: float | None = None,
-                check: bool = True, log: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
-        """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s).
+                check: bool = True, log: Callable[[str], None] | None = None,
+                errors: str = "raise") -> list[Any]:
+        """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s); files alike in sample
+        interval and length run as one batched rollout (:func:`~tnn_dsl.fit.simulation.free_runs`).
 
         ``init``: the initial-state rule (:mod:`tnn_dsl.fit.initial`): ``"estimate"`` (fitted to a burn-in at
         the start of each file, ``burn_in_s`` seconds or a tenth of the file; a training file continues from its
@@ -547,7 +549,8 @@ class TrainedModel:
         missing), ``states`` (N, n_states) K, ``burn_in`` (samples not scored), ``init`` (the rule applied),
         ``notes``, ``sensors``, ``state_names``. A run that leaves the physical range (non-finite, below 0 K,
         or far outside the data's temperatures) raises :class:`TnnError` naming the node and the time, unless
-        ``check`` is false (:func:`~tnn_dsl.fit.simulation.check_rollout`).
+        ``check`` is false (:func:`~tnn_dsl.fit.simulation.check_rollout`); with ``errors="return"`` a file's error
+        (there, or in finding its initial state) takes its place in the list and the other files run.
 
         On torch, a loaded model's rollouts are compiled (``torch.compile``) when the experiments hold
         :data:`~tnn_dsl.fit.config.FREE_RUN_COMPILE_MIN_SAMPLES` samples or more and ``TNN_TORCH_COMPILE`` is not
@@ -567,10 +570,13 @@ class TrainedModel:
                 and free_runs_compile_pay(n_samples) and model.compile_torch_rollouts() and log is not None):
             log(f"torch: compiling the model's rollouts for {n_samples} samples (once; TNN_TORCH_COMPILE=0 runs "
                 "eager)")
-        out = []
-        for exp in exps:
-            run = free_run(model, params, exp, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
-                           check=check, **known)
+        runs = free_runs(model, params, exps, init, integrator=integ, substeps=substeps, burn_in_s=burn_in_s,
+                         check=check, errors=errors, **known)
+        out: list[Any] = []
+        for exp, run in zip(exps, runs):
+            if not isinstance(run, FreeRun):  # errors="return": the file's TnnError in its place
+                out.append(run)
+                continue
             out.append({
                 "name": exp.name, "t": np.asarray(exp.t), "y": run.y, "measured": np.asarray(exp.outputs, dtype=float),
                 "states": run.states, "sensors": list(model.output_names), "state_names": list(model.state_names),
@@ -608,6 +614,15 @@ class TrainedModel:
 
         preds = self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s, log=log)
         return error_metrics(preds, [s.name for s in self.network.sensors])
+
+    def evaluate_each(self, data: Any, backend: str | None = None, init: str = "estimate",
+                      burn_in_s: float | None = None) -> list[Any]:
+        """:meth:`evaluate` of each experiment in ``data`` on its own (one ``error_metrics`` dict a file), or the
+        file's :class:`TnnError` in its place (a run that left the physical range, an initial state that could not
+        be found); the runs go in batches as in :meth:`predict`."""
+        sensors = [s.name for s in self.network.sensors]
+        return [p if isinstance(p, TnnError) else error_metrics([p], sensors)
+                for p in self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s, errors="return")]
 
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
         """Write this model to a directory (atomic; see :func:`save_model` for ``force``)."""

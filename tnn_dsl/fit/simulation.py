@@ -22,7 +22,9 @@ from .ranges import (  # noqa: F401 - re-exported: the ranges' home before they 
     start_range,
 )
 
-__all__ = ["simulate", "free_run", "FreeRun", "error_metrics", "as_experiments", "check_rollout", "plausible_range"]
+__all__ = ["simulate", "free_run", "free_runs", "FreeRun", "error_metrics", "as_experiments", "check_rollout",
+           "plausible_range"]
+
 
 @dataclass
 class FreeRun:
@@ -73,22 +75,96 @@ def free_run(model: Any, params: Mapping[str, Any], exp: Experiment, init: str =
     values per training file (see :func:`~tnn_dsl.fit.initial.initial_state`). With ``check`` a run that
     leaves the physical range raises :class:`~tnn_dsl.core.TnnError` naming the node and the time
     (:func:`check_rollout`); the trainer's own runs are unchecked (it has its divergence guard)."""
+    (run,) = free_runs(model, params, [exp], init, integrator=integrator, substeps=substeps, burn_in_s=burn_in_s,
+                       stored=stored, per_experiment=per_experiment, stored_params=stored_params, check=check)
+    return run
+
+
+def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment], init: str = "estimate", *,
+              integrator: str = "rk4", substeps: int | None = None, burn_in_s: float | None = None,
+              stored: Mapping[str, Any] | None = None, per_experiment: Mapping[str, float] | None = None,
+              stored_params: Mapping[str, Mapping[str, float]] | None = None, check: bool = False,
+              errors: str = "raise") -> list[Any]:
+    """:func:`free_run` of every experiment in ``exps``, in order. Each file's initial state is found on its own;
+    the runs of files with the same sample interval and the same number of samples from their start, and no
+    per-experiment values of their own, then go as one batched rollout (``(B, N, n_inputs)``; at most
+    :data:`~tnn_dsl.fit.config.FREE_RUN_BATCH_VALUES` state values a batch): one compiled call instead of one a
+    file (the demo's 40 out-of-distribution files a model; compiled torch pays its per-step overhead once a
+    batch). The runs are the single runs to round-off: each row of a batch is its own file's arithmetic.
+
+    ``errors``: ``"raise"`` raises the first file's :class:`~tnn_dsl.core.TnnError` (its initial state, or with
+    ``check`` its run leaving the physical range), in file order; ``"return"`` puts the error in that file's
+    place and runs the others."""
+    from ..core import TnnError
+    from .config import FREE_RUN_BATCH_VALUES
+
+    if errors not in ("raise", "return"):
+        raise ValueError(f"errors must be 'raise' or 'return', got {errors!r}")
     ops = backend_of(model)
-    ini = initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s, integrator=integrator,
-                        substeps=substeps, stored=stored, per_experiment=per_experiment, stored_params=stored_params)
-    if ini.params:
-        params = with_values(model, params, ini.params)
-    fn = _sim_fn(model, integrator, float(exp.dt), substeps)
-    U = np.asarray(exp.inputs, dtype=float)
+    out: list[Any] = [None] * len(exps)
+    starts: list[tuple[int, InitialState]] = []
+    for i, exp in enumerate(exps):
+        try:
+            starts.append((i, initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s,
+                                            integrator=integrator, substeps=substeps, stored=stored,
+                                            per_experiment=per_experiment, stored_params=stored_params)))
+        except TnnError as err:
+            out[i] = err  # raised below when it is the first file's error (errors="raise")
+    # batches: files alike in step and length from their start, sharing the model's values
+    groups: dict[Any, list[tuple[int, InitialState]]] = {}
+    for i, ini in starts:
+        exp = exps[i]
+        key = (repr(float(exp.dt)), len(exp.t) - ini.at) if not ini.params else ("alone", i)
+        groups.setdefault(key, []).append((i, ini))
+    n_states = len(model.state_names)
     pack = getattr(model, "pack_params", None)  # a large network: one jit argument, not one per constant
-    states, y = fn(pack(params) if pack else params, ops.asarray(U[ini.at:]), ops.asarray(ini.T))
+    packed = pack(params) if pack else params
+    for key, members in groups.items():
+        n = max(1, key[1] if key[0] != "alone" else 1)
+        per_batch = max(1, FREE_RUN_BATCH_VALUES // max(1, n * n_states))
+        for k in range(0, len(members), per_batch):
+            chunk = members[k:k + per_batch]
+            for (i, ini), (states, y) in zip(chunk, _batched_rollout(model, packed, params, exps, chunk, integrator,
+                                                                    substeps, ops, pack)):
+                exp = exps[i]
+                if ini.at:
+                    states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
+                    y = np.concatenate([ini.prefix_outputs, y])
+                run = FreeRun(states, y, ini)
+                if check:
+                    try:
+                        check_rollout(model, exp, states, y, start=ini.at)
+                    except TnnError as err:
+                        run = err
+                out[i] = run
+    if errors == "raise":
+        for r in out:
+            if isinstance(r, TnnError):
+                raise r
+    return out
+
+
+def _batched_rollout(model, packed, params, exps, chunk, integrator, substeps, ops, pack):
+    """The rollouts of ``chunk`` (``[(index, InitialState)]``, files alike in step and length from their start):
+    one call with a batch axis for two or more, the single-sequence call for one (or a file with values of its
+    own) → ``[(states (N, n_states), y (N, n_outputs))]`` as numpy."""
+    i0, ini0 = chunk[0]
+    fn = _sim_fn(model, integrator, float(exps[i0].dt), substeps)
+    if len(chunk) == 1:
+        p = params
+        if ini0.params:
+            p = with_values(model, params, ini0.params)
+            p = pack(p) if pack else p
+        else:
+            p = packed
+        U = np.asarray(exps[i0].inputs, dtype=float)[ini0.at:]
+        states, y = fn(p, ops.asarray(U), ops.asarray(ini0.T))
+        return [(ops.numpy(states), ops.numpy(y))]
+    U = np.stack([np.asarray(exps[i].inputs, dtype=float)[ini.at:] for i, ini in chunk])
+    T0 = np.stack([np.asarray(ini.T, dtype=float) for _, ini in chunk])
+    states, y = fn(packed, ops.asarray(U), ops.asarray(T0))
     states, y = ops.numpy(states), ops.numpy(y)
-    if ini.at:
-        states = np.concatenate([np.full((ini.at, states.shape[1]), np.nan), states])
-        y = np.concatenate([ini.prefix_outputs, y])
-    if check:
-        check_rollout(model, exp, states, y, start=ini.at)
-    return FreeRun(states, y, ini)
+    return [(states[b], y[b]) for b in range(len(chunk))]
 
 
 def check_rollout(model: Any, exp: Experiment, states: np.ndarray, y: np.ndarray, start: int = 0) -> None:

@@ -233,12 +233,10 @@ def _out_of_distribution(tm, ood_sets: dict[str, list], backend: str) -> dict:
     ood, ood_max, diverged = {}, {}, {}
     for p, sets in ood_sets.items():
         maes, maxes = [], []
-        for one in sets:
-            try:
-                ev = tm.evaluate([one], backend=backend)
-            except TnnError as err:
+        for one, ev in zip(sets, tm.evaluate_each(list(sets), backend=backend)):  # the widening's runs batched
+            if isinstance(ev, TnnError):
                 name = Path(getattr(one, "path", one)).name
-                diverged.setdefault(p, []).append(f"{name}: {err.diagnostics[0].message}")
+                diverged.setdefault(p, []).append(f"{name}: {ev.diagnostics[0].message}")
                 continue
             maes += [e["mae"] for e in ev["experiments"]]
             maxes += [e["max_error"] for e in ev["experiments"]]
