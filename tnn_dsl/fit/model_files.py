@@ -539,8 +539,8 @@ class TrainedModel:
                 integrator: str | None = None, burn_in_s: float | None = None,
                 check: bool = True, log: Callable[[str], None] | None = None,
                 errors: str = "raise") -> list[Any]:
-        """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s); files alike in sample
-        interval and length run as one batched rollout (:func:`~tnn_dsl.fit.simulation.free_runs`).
+        """Free-run simulation of each experiment in ``data`` (paths or ``Experiment``s); on torch, files alike in
+        sample interval and length run as one batched rollout (:func:`~tnn_dsl.fit.simulation.free_runs`).
 
         ``init``: the initial-state rule (:mod:`tnn_dsl.fit.initial`): ``"estimate"`` (fitted to a burn-in at
         the start of each file, ``burn_in_s`` seconds or a tenth of the file; a training file continues from its

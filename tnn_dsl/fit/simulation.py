@@ -86,11 +86,13 @@ def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
               stored_params: Mapping[str, Mapping[str, float]] | None = None, check: bool = False,
               errors: str = "raise") -> list[Any]:
     """:func:`free_run` of every experiment in ``exps``, in order. Each file's initial state is found on its own;
-    the runs of files with the same sample interval and the same number of samples from their start, and no
-    per-experiment values of their own, then go as one batched rollout (``(B, N, n_inputs)``; at most
-    :data:`~tnn_dsl.fit.config.FREE_RUN_BATCH_VALUES` state values a batch): one compiled call instead of one a
-    file (the demo's 40 out-of-distribution files a model; compiled torch pays its per-step overhead once a
-    batch). The runs are the single runs to round-off: each row of a batch is its own file's arithmetic.
+    on torch the runs of files with the same sample interval and the same number of samples from their start, and
+    no per-experiment values of their own, then go as one batched rollout (``(B, N, n_inputs)``; at most
+    :data:`~tnn_dsl.fit.config.FREE_RUN_BATCH_VALUES` state values a batch): torch pays its per-step overhead
+    once a batch (its compiled scan's batch axis is dynamic; eager torch dispatches every operation once a step
+    whatever the batch). On JAX each file runs on its own: a run of a 2 h file at 1 s takes about 8 ms there, and
+    a new batch shape would compile a program of its own (about 0.4 s; ``benchmarks/bench_free_runs.py``,
+    2026-12-02). The runs are the single runs to round-off: each row of a batch is its own file's arithmetic.
 
     ``errors``: ``"raise"`` raises the first file's :class:`~tnn_dsl.core.TnnError` (its initial state, or with
     ``check`` its run leaving the physical range), in file order; ``"return"`` puts the error in that file's
@@ -112,9 +114,10 @@ def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
             out[i] = err  # raised below when it is the first file's error (errors="raise")
     # batches: files alike in step and length from their start, sharing the model's values
     groups: dict[Any, list[tuple[int, InitialState]]] = {}
+    batches = ops.name == "torch"  # JAX: a 2 h file's run takes 8 ms, a new batch shape 0.4 s to compile
     for i, ini in starts:
         exp = exps[i]
-        key = (repr(float(exp.dt)), len(exp.t) - ini.at) if not ini.params else ("alone", i)
+        key = (repr(float(exp.dt)), len(exp.t) - ini.at) if batches and not ini.params else ("alone", i)
         groups.setdefault(key, []).append((i, ini))
     n_states = len(model.state_names)
     pack = getattr(model, "pack_params", None)  # a large network: one jit argument, not one per constant
