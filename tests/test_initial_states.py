@@ -189,11 +189,13 @@ def test_burn_in_seconds_and_short_files(backend):
 
 
 @pytest.mark.parametrize("start", [302.0, 310.0])
-def test_the_burn_in_fit_halves_a_step_that_goes_uphill_analytic(start):
+@pytest.mark.parametrize("jacobian", ["apart", "with the readings"])
+def test_the_burn_in_fit_halves_a_step_that_goes_uphill_analytic(start, jacobian):
     """Gauss–Newton on readings ``y = 300 K + atan(x − 300 K)`` measured at 300 K: the minimum is x = 300 K, and from
     more than 1.39 K away every full step overshoots further than it started (``x − atan(d)·(1 + d²)``), so the
     cost rises each iteration (before the halving, an estimate ended wherever its 20 iterations left it). Halving
-    the uphill steps finds the minimum."""
+    the uphill steps finds the minimum. Where the readings come with their Jacobian from one call (torch's central
+    differences), a halved step is tried on the readings alone."""
     from tnn_dsl.fit.initial import _BurnInFit
 
     net = tnn_dsl.loads("network one\nnode a C = 1 J/K\nboundary amb = 300 K\nG a -- amb = 1 W/K\n"
@@ -204,9 +206,24 @@ def test_the_burn_in_fit_halves_a_step_that_goes_uphill_analytic(start):
     fit.packable, fit.fyJ = False, None
     fit.fy = lambda p, U, x: np.full((n, 1), 300.0) + np.arctan(np.asarray(x)[0] - 300.0)
     fit.fJ = lambda p, U, x: np.full((n, 1, 1), 1.0 / (1.0 + (np.asarray(x)[0] - 300.0) ** 2))
+    calls = {"fy": 0, "fyJ": 0}
+    if jacobian == "with the readings":
+        fy, fJ = fit.fy, fit.fJ
+
+        def counted_fy(p, U, x):
+            calls["fy"] += 1
+            return fy(p, U, x)
+
+        def fyJ(p, U, x):
+            calls["fyJ"] += 1
+            return fy(p, U, x), fJ(p, U, x)
+
+        fit.fy, fit.fJ, fit.fyJ = counted_fy, None, fyJ
     Y = np.full((n, 1), 300.0)
     x, rms = fit.solve(model, {}, np.zeros((n, 0)), Y, np.array([start]), np.array([1e6]))
     assert abs(x[0] - 300.0) < 1e-6 and rms < 1e-6, (x, rms)
+    if jacobian == "with the readings":
+        assert calls["fy"] >= 1 and calls["fyJ"] >= 2, calls  # the halved trials on the readings alone
 
 
 # ---------------------------------------------------------------------------------------------

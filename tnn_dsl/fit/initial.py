@@ -292,9 +292,9 @@ class _BurnInFit:
         best: tuple[float, np.ndarray, float] | None = None  # (cost, x, rms) of the last iterate that went downhill
         halvings = 0
         for _ in range(MAX_GN_ITER):
-            if self.fyJ is not None:  # the readings and their Jacobian from one call
+            if self.fyJ is not None and not halvings:  # the readings and their Jacobian from one call
                 y, J = (B.numpy(a) for a in self.fyJ(params, Ub, B.asarray(x)))
-            else:
+            else:  # a halved step is a trial: its readings alone (torch: one run, not the 2·n + 1 of the batch)
                 y = B.numpy(self.fy(params, Ub, B.asarray(x)))
                 J = None
             r = (y - Y)[mask]
@@ -314,7 +314,9 @@ class _BurnInFit:
             with np.errstate(over="ignore"):
                 rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
             best, halvings = (cost, x, rms), 0
-            if J is None:
+            if J is None and self.fyJ is not None:  # a trial taken: its Jacobian (the readings as they were)
+                J = B.numpy(self.fyJ(params, Ub, B.asarray(x))[1])
+            elif J is None:
                 J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
             Jm = J[mask]
             if not (np.all(np.isfinite(Jm)) and np.all(np.isfinite(r))):
