@@ -64,10 +64,10 @@ MAX_GN_ITER = 20
 
 GN_MAX_HALVINGS = 6
 """A Gauss–Newton step that raises the weighted cost is halved and tried again, at most this many times in a row;
-then the estimate is the last iterate that lowered it. Without the check the burn-in fit of the case study's M4 (an
-MLP Peltier element) on out-of-distribution files went uphill for all its 20 iterations, its cost 4.4·10⁵ →
-2.9·10⁶, and returned the last iterate (2026-12-02, ``benchmarks/bench_free_runs.py``'s files); networks linear in
-the temperatures converge in two iterations and never halve."""
+then the estimate is the last iterate that lowered it. Without the check the burn-in fits of the case study's M4 (an
+MLP Peltier element) on ten out-of-distribution files ran six times to the 20-iteration cap, going uphill (the first
+file's cost 4.36·10⁵ → 2.88·10⁶) and returning the last iterate; with it they take 2–6 steps (2026-12-02,
+``python benchmarks/profile_burn_in_fits.py --model m4 --files 10``). Where no step goes uphill nothing changes."""
 
 GN_DECREMENT_TOL = 1e-8
 """The burn-in fit stops when a Gauss–Newton step would change the weighted cost (chi-square units: residuals over

@@ -90,9 +90,11 @@ def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
     no per-experiment values of their own, then go as one batched rollout (``(B, N, n_inputs)``; at most
     :data:`~tnn_dsl.fit.config.FREE_RUN_BATCH_VALUES` state values a batch): torch pays its per-step overhead
     once a batch (its compiled scan's batch axis is dynamic; eager torch dispatches every operation once a step
-    whatever the batch). On JAX each file runs on its own: a run of a 2 h file at 1 s takes about 8 ms there, and
-    a new batch shape would compile a program of its own (about 0.4 s; ``benchmarks/bench_free_runs.py``,
-    2026-12-02). The runs are the single runs to round-off: each row of a batch is its own file's arithmetic.
+    whatever the batch). On JAX each file runs on its own: a 2 h file's run at 1 s takes about 10 ms there
+    (``benchmarks/profile_burn_in_fits.py``: ten files 0.33 s, 0.23 s of it their initial states) and a new batch
+    shape compiled a program of its own, 0.33–0.37 s (``benchmarks/bench_free_runs.py``, the ten files in one call
+    first and again; 2026-12-02). The runs are the single runs to round-off: each row of a batch is its own file's
+    arithmetic.
 
     ``errors``: ``"raise"`` raises the first file's :class:`~tnn_dsl.core.TnnError` (its initial state, or with
     ``check`` its run leaving the physical range), in file order; ``"return"`` puts the error in that file's
@@ -114,7 +116,7 @@ def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
             out[i] = err  # raised below when it is the first file's error (errors="raise")
     # batches: files alike in step and length from their start, sharing the model's values
     groups: dict[Any, list[tuple[int, InitialState]]] = {}
-    batches = ops.name == "torch"  # JAX: a 2 h file's run takes 8 ms, a new batch shape 0.4 s to compile
+    batches = ops.name == "torch"  # JAX: a 2 h file's run takes ~10 ms, a new batch shape ~0.35 s to compile
     for i, ini in starts:
         exp = exps[i]
         key = (repr(float(exp.dt)), len(exp.t) - ini.at) if batches and not ini.params else ("alone", i)
