@@ -134,6 +134,59 @@ def test_adjoint_matches_eager_and_jax(batch):
     _assert_close(_jax_grads(mj, p_np, T0b, Ub), got_b)
 
 
+def _n_tensors(spec) -> int:
+    """The tensors :func:`flatten`'s key describes."""
+    if type(spec) is not tuple or not spec:
+        return 0
+    if spec[0] == "T" and len(spec) == 4:
+        return 1
+    return sum(_n_tensors(x) for x in spec)
+
+
+def test_the_reverse_scan_differentiates_only_what_autograd_asks_for():
+    """Of a training's prepared tensors most are constants and its inputs need no gradient: the reverse scan
+    differentiates only the tensors autograd asks for (issue 18: M2's 5 of 43, which took its backward pass from
+    35 to 26 ms), and their gradients are still JAX's to 1e-6 relative; the inputs' and the initial state's are not
+    computed at all. A later call that wants every gradient compiles a reverse graph of its own and gets them all."""
+    import jax
+    import jax.numpy as jnp
+
+    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
+    p_np = nets.random_params(mj, 4)
+    T0, U = _inputs(mj, 7, 3)
+    wanted = sorted(k for k in p_np if k.startswith("fn_"))  # the learned conductance's weights only
+    assert wanted and len(wanted) < len(p_np)
+    p = mc.from_numpy(p_np)
+    for k in wanted:
+        p[k] = p[k].requires_grad_(True)
+    T0t, Ut = torch.as_tensor(T0), torch.as_tensor(U)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)
+        s = mc.rollout(p, T0t, Ut, 1.0)[0]
+        (s * torch.linspace(-1.0, 1.0, s.numel(), dtype=s.dtype).reshape(s.shape)).sum().backward()
+    assert _adjoint_used(mc)
+    runner = next(v for v in mc._jit_cache.values() if hasattr(v, "_bwd"))
+    (key, ip, ic), = runner._bwd
+    ckeys = key[1]
+    assert 0 < len(ip) < _n_tensors(key[0])  # some prepared tensors, not all
+    assert ckeys.index(("u", None)) not in ic and len(ic) < len(ckeys)  # the inputs' gradient is not computed
+
+    def loss(pw):
+        s = mj.rollout({**mj.from_numpy(p_np), **pw}, jnp.asarray(T0), jnp.asarray(U), 1.0)[0]
+        return (s * jnp.linspace(-1.0, 1.0, s.size).reshape(s.shape)).sum()
+
+    ref = jax.grad(loss)({k: jnp.asarray(p_np[k]) for k in wanted})
+    for k in wanted:
+        r = np.asarray(ref[k])
+        assert np.max(np.abs(p[k].grad.numpy() - r)) <= 1e-6 * max(float(np.max(np.abs(r))), 1e-12), k
+    # every gradient wanted: a reverse graph of its own, differentiating more
+    got = _torch_grads(mc, p_np, T0, U)
+    assert len(runner._bwd) == 2
+    assert max(len(k[1]) for k in runner._bwd) > len(ip) and max(len(k[2]) for k in runner._bwd) > 0
+    _assert_close(_jax_grads(mj, p_np, T0, U), got)
+
+
 @pytest.mark.slow  # the fast suite's compiled-torch tests cover RK4; the slow case-study test covers expeuler too
 @pytest.mark.parametrize("integrator,substeps", [("expeuler", None), ("euler", 6)])
 def test_adjoint_other_integrators(integrator, substeps):

@@ -218,14 +218,23 @@ class AdjointRollout:
             return make_fx(vjp_step)([t.detach() for t in p], T0.detach(), [c[0].detach() for c in cvals],
                                      T0.detach())
 
-    def backward(self, key, rebuild, ckeys, p, T0, S, cvals, G):
-        """``(dT0, dp, dc)``: the gradients of ``Σ G·S`` with respect to ``T0``, the differentiable tensors of
-        ``p`` (``None`` for the rest) and the context arrays (``(M, ...)``; ``None`` for integer ones)."""
+    def backward(self, key, rebuild, ckeys, p, T0, S, cvals, G, wanted: Sequence[bool] | None = None):
+        """``(dT0, dp, dc)``: the gradients of ``Σ G·S`` with respect to ``T0``, the tensors of ``p`` and the context
+        arrays (``(M, ...)``) that autograd asks for (``wanted``: one flag per tensor of ``p`` then of ``cvals``, the
+        autograd function's ``needs_input_grad``; default every floating-point one); ``None`` for the rest.
+
+        Only those are differentiated: of a training's prepared tensors most are constants (M2 of the case study:
+        5 of 43 need a gradient, and 3 of its 5 context arrays), and a vector-Jacobian product over all of them
+        carried a running sum per constant through the reverse scan and wrote a context gradient per sample that
+        autograd then dropped (issue 18)."""
         import torch
         from torch._higher_order_ops import scan
 
-        ip = tuple(i for i, t in enumerate(p) if _differentiable(t))
-        ic = tuple(i for i, c in enumerate(cvals) if _differentiable(c))
+        if wanted is None:
+            wanted = [True] * (len(p) + len(cvals))
+        ip = tuple(i for i, t in enumerate(p) if _differentiable(t) and wanted[i])
+        ic = tuple(i for i, c in enumerate(cvals) if _differentiable(c) and wanted[len(p) + i])
+        key = (key, ip, ic)
         entry = self._bwd.get(key)
         if entry is None:
             gm = self._vjp_graph(rebuild, ckeys, p, T0, cvals, (ip, ic))
@@ -404,7 +413,7 @@ def _autograd_function():
             T0, S, *flat = ctx.saved_tensors
             n_p = ctx.n_p
             dT0, dp, dc = ctx.runner.backward(ctx.key, ctx.rebuild, ctx.ckeys, list(flat[:n_p]), T0, S,
-                                              list(flat[n_p:]), G)
+                                              list(flat[n_p:]), G, wanted=ctx.needs_input_grad[6:])
             return (None, None, None, None, None, dT0, *dp, *dc)
 
     return _Fn
