@@ -100,6 +100,31 @@ def test_steady_state_and_its_gradient_agree():
         assert float(gj[name]) == pytest.approx(fd, rel=1e-5, abs=1e-9), name
 
 
+def test_torch_newton_difference_jacobian_and_its_steady_state():
+    """torch's steady state iterates Newton with a central-difference Jacobian (one batched call of the right-hand
+    side instead of ``torch.func.jacfwd``, issue 18): on the case study with its MLP heat pipe and radiation the
+    difference Jacobian is the exact one to 1e-5 relative, batched or not, and the steady state is JAX's to 1e-9 K
+    without a gradient (the last step's Jacobian is then the difference one too) as with one."""
+    import torch
+
+    net = nets.case_study("mlp", extra=True)
+    mj, mt = tnn_dsl.compile(net, "jax"), tnn_dsl.compile(net, "torch")
+    p_np = nets.random_params(mj, 3)
+    prep = mt._prepare(mt.from_numpy(p_np))
+    rng = np.random.default_rng(0)
+    T = torch.as_tensor(300.0 + 5.0 * rng.random((2, 3, len(mt.state_names))))
+    u = torch.as_tensor(np.array([2.0, 0.3, 295.15, 298.15, 298.15]) * (1 + 0.1 * rng.random((2, 3, 5))))
+    with torch.no_grad():
+        exact, diff = mt._jac(prep, T, u), mt._jac(prep, T, u, exact=False)
+    assert diff.shape == exact.shape == (2, 3, len(mt.state_names), len(mt.state_names))
+    assert float((diff - exact).abs().max()) <= 1e-5 * float(exact.abs().max())
+    uu = np.array([[2.0, 0.3, 295.15, 298.15, 298.15], [1.0, 0.8, 290.0, 300.0, 298.0]])
+    Tj = np.asarray(mj.steady_state(mj.from_numpy(p_np), uu))
+    with torch.no_grad():
+        Tt = mt.steady_state(mt.from_numpy(p_np), uu)
+    np.testing.assert_allclose(Tt.numpy(), Tj, rtol=0, atol=1e-9)
+
+
 def test_parsed_networks_agree():
     """The shipped case-study files compile to the same model on both backends."""
     import os
