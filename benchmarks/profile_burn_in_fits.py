@@ -32,7 +32,11 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="m4")
     ap.add_argument("--files", type=int, default=10)
     ap.add_argument("--backend", choices=("jax", "torch"), default="jax")
-    ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "tnn_bench_free_runs"))
+    ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "tnn_bench_free_runs"),
+                    help="where the model (models/MODEL) and the +40 %% files (data/ood_40_*.csv) are: "
+                         "bench_free_runs.py's cache, or a `tnnc demo --out DIR`")
+    ap.add_argument("--every-file", action="store_true",
+                    help="print every file's weighted cost at each Gauss–Newton step, not only the first file's")
     a = ap.parse_args(argv)
 
     import tnn_dsl.fit.initial as initial
@@ -100,6 +104,9 @@ def main(argv=None) -> int:
         c = fit["costs"] or [float("nan")]
         print(f"| {Path(f).name} | {len(fit['costs'])} | {fit['readings']} | {fit['jacobian']} | {fit['both']} | "
               f"{c[0]:.4g} | {c[-1]:.4g} | {e['mae'] * 1e3:.2f} |")
+    if a.every_file:
+        for f, fit in zip(files, fits):
+            print(f"weighted cost at each step of {Path(f).name}: " + ", ".join(f"{c:.8g}" for c in fit["costs"]))
     print("weighted cost at each step of the first file: " + ", ".join(f"{c:.4g}" for c in fits[0]["costs"]))
     print(f"mean MAE {np.mean([e['mae'] for e in ev['experiments']]) * 1e3:.2f} mK; the call {total:.2f} s, of it "
           f"{spent[0]:.2f} s finding the initial states")

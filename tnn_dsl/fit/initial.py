@@ -78,7 +78,7 @@ error. Measured that way, directions the burn-in cannot see (an unsensed state h
 keep it going. On a model far out of its range the fit converges only linearly, and a tighter tolerance paid for
 Jacobians that changed nothing: the case study's M5 on ten +40 % files took 2–14 steps a file with 1e-8, the
 cost moving by less than 0.03 chi-square a step over the last half of them (2026-12-02, ``python
-benchmarks/profile_burn_in_fits.py --model m5 --files 10 --cache DIR``, DIR a ``tnnc demo --out DIR``)."""
+benchmarks/profile_burn_in_fits.py --model m5 --files 10 --cache DIR --every-file``, DIR a ``tnnc demo --out DIR``)."""
 
 
 @dataclass
