@@ -156,7 +156,6 @@ def _batched_rollout(model, packed, params, exps, chunk, integrator, substeps, o
     i0, ini0 = chunk[0]
     fn = _sim_fn(model, integrator, float(exps[i0].dt), substeps)
     if len(chunk) == 1:
-        p = params
         if ini0.params:
             p = with_values(model, params, ini0.params)
             p = pack(p) if pack else p
