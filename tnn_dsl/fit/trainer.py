@@ -42,6 +42,7 @@ from ..ir import Network
 from .config import TrainConfig
 from .initial import check_rule
 from .model_files import load_model
+from .prefit import PREFIT_POINTS, fit_weights
 from .rollouts import _Rollouts, _safe
 from .simulation import START_PENALTY, free_run, simulate
 from .transforms import _from_z, _make_slot, _NumpyOps, _sigmoid_to_tanh, _Slot, _tanh_to_sigmoid, _to_z
@@ -304,16 +305,15 @@ class _Trainer(_Rollouts):
         return 1.0
 
     def prefit_replace(self, params, nom, nom_params, runs) -> None:
-        """``replace``-mode flow functions: least squares on the nominal physics flow along the nominal run."""
+        """``replace``-mode flow functions: least squares on the nominal physics flow along the nominal run
+        (:mod:`.prefit`: Levenberg–Marquardt, the same weights on both backends to round-off)."""
         fns = [fn for fn in self.net.learned if fn.replace and not fn.frozen
                and not any(k.startswith(fn.name + ".") for k in self.loaded) and fn.name not in self.cfg.freeze]
         if not fns or not self.cfg.prefit:
             return
-        from scipy.optimize import minimize
-
         U = np.concatenate([np.asarray(e.inputs, dtype=float) for e in self.exps])
         T = np.concatenate(runs)
-        idx = np.linspace(0, len(T) - 1, min(len(T), 4000)).astype(int)
+        idx = np.linspace(0, len(T) - 1, min(len(T), PREFIT_POINTS)).astype(int)
         target = self._nominal_flows(nom, nom_params, T[idx], U[idx], max_points=len(idx))
         Tb, Ub = self.ops.asarray(T[idx]), self.ops.asarray(U[idx])
         specs = self.model.param_specs
@@ -330,26 +330,24 @@ class _Trainer(_Rollouts):
             ysc = {t: max(float(np.sqrt(np.mean(target[t] ** 2))), 1e-6) for t in tnames if t in target}
             if not ysc:
                 continue
-            tgt = {t: self.ops.asarray(target[t]) for t in ysc}
+            # residual (q − q_nominal) / (rms(q_nominal) · √points): ‖r‖² is the sum over flows of the mean
+            # squared relative error
+            tgt = {t: self.ops.asarray(target[t] / (ysc[t] * math.sqrt(len(idx)))) for t in ysc}
+            div = {t: 1.0 / (ysc[t] * math.sqrt(len(idx))) for t in ysc}
             ops, model = self.ops, self.model
 
-            def loss(z, data, slots=slots, fixed=fixed, tgt=tgt, ysc=ysc):
+            def residuals(z, slots=slots, fixed=fixed, tgt=tgt, div=div):
                 p = dict(fixed)
                 for s in slots:
                     p[s.name] = _from_z(s, z[s.start:s.start + s.size], ops)
                 hf = model.heat_flows(p, Tb, Ub)
-                tot = 0.0
-                for t, y in tgt.items():
-                    tot = tot + ops.sum(((hf[t] - y) / ysc[t]) ** 2) / y.shape[0]
-                return tot
+                return ops.xp.concat([hf[t] * div[t] - y for t, y in tgt.items()])
 
-            vg = ops.value_and_grad(loss)
-            res = minimize(lambda z: _safe(vg(z, None)), z0, jac=True, method="L-BFGS-B",
-                           options={"maxiter": 500})
+            z, norm, method = fit_weights(residuals, z0, ops)
             for s, k in zip(slots, names):
-                params[k] = _from_z(s, res.x[s.start:s.start + s.size], _NumpyOps)
-            self.log(f"pre-fitted {fn.name} to the nominal {', '.join(tnames)} (relative RMS error "
-                     f"{math.sqrt(max(res.fun, 0.0) / max(len(tgt), 1)):.3g})")
+                params[k] = _from_z(s, z[s.start:s.start + s.size], _NumpyOps)
+            self.log(f"pre-fitted {fn.name} to the nominal {', '.join(tnames)} by {method} (relative RMS error "
+                     f"{norm / math.sqrt(len(tgt)):.3g})")
 
     # -- layout and loss -----------------------------------------------------------------
     def layout(self, params: dict[str, np.ndarray]) -> None:

@@ -325,6 +325,16 @@ class Backend:
         except Exception:  # noqa: BLE001 - no forward-mode rule: reverse mode
             return self.numpy(torch.autograd.functional.jacobian(fn, xb))
 
+    def jacobian_program(self, fn: Callable) -> Callable[[np.ndarray], np.ndarray]:
+        """``J(x)``: the forward-mode Jacobian of ``fn`` (backend vector → backend array) at a numpy vector ``x``,
+        as a numpy array of shape ``fn(x).shape + (len(x),)``, for many calls at different ``x``: JAX traces and
+        compiles ``jacfwd(fn)`` once (:meth:`jacobian` traces it at each call); torch as :meth:`jacobian`."""
+        self._autodiff()
+        if self.name != "jax":
+            return lambda x: self.jacobian(fn, x)
+        jac = self.jit(self.jax.jacfwd(fn))
+        return lambda x: np.asarray(jac(self.asarray(np.asarray(x, dtype=float))), dtype=float)
+
     def jacobian_fn(self, f: Callable, n_out: int, *, batched: bool = True) -> Callable:
         """``J(x, *rest) = ∂f(x, *rest)/∂x (n_out, n)`` as a backend function (used inside filters).
 
