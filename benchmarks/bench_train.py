@@ -23,6 +23,12 @@ the compilation before it.
     python benchmarks/bench_train.py --quick              # 40 min / 20 min of data, JAX, M2 only (about a minute)
     python benchmarks/bench_train.py --only m2 --epochs 60   # JAX vs torch on one fixed schedule
     python benchmarks/bench_train.py --only m3 --backends jax torch-compiled --no-write --curve   # where they part
+    python benchmarks/bench_train.py --only m3 --backends jax torch-compiled --no-write \
+        --polish-jitter 1e-12 --repeats 3
+
+``--polish-jitter REL --repeats N``: N runs per backend, run k with the L-BFGS polish's starting point multiplied by
+``1 + REL·ε`` (ε standard normal, seed k): how far round-off alone moves where the polish ends (the final MAE's
+spread on one backend, against the spread between backends).
 
 Results go to the ``training`` section of ``BENCHMARKS.md`` (``--no-write``: print only).
 """
@@ -65,6 +71,18 @@ def _worker(args) -> int:
         if b is not None and b == b:
             trace.append((time.perf_counter() - t0, float(b)))
 
+    if args.polish_jitter:
+        import numpy as np
+
+        from tnn_dsl.fit.trainer import _Trainer
+
+        polish, rel, seed = _Trainer.polish, float(args.polish_jitter), int(args.jitter_seed)
+
+        def jittered(self, z, *a, **k):  # the polish from Adam's end, moved by about REL relative
+            eps = np.random.default_rng(seed).standard_normal(np.shape(z))
+            return polish(self, np.asarray(z) * (1.0 + rel * eps), *a, **k)
+
+        _Trainer.polish = jittered
     fixed = {} if not args.epochs else {"epochs": args.epochs, "val_every": 10, "lbfgs_iters": 0, "patience": 0}
     if args.backend == TORCH_COMPILED:
         fixed["torch_compile"] = True
@@ -81,7 +99,8 @@ def _worker(args) -> int:
     compile_s = sum(d for _, d in compiles)
     compile_before = sum(d for end, d in compiles if end <= reach + 1e-9)
     adam = [r for r in tm.meta["curve"] if r["phase"] == "adam"]
-    label = args.backend + (" (Python wrapper)" if args.torch_python_wrapper and args.backend != "jax" else "")
+    label = args.backend + (" (Python wrapper)" if args.torch_python_wrapper and args.backend != "jax" else "") + (
+        f" (polish start × (1 + {args.polish_jitter:g}·ε), seed {args.jitter_seed})" if args.polish_jitter else "")
     print(json.dumps({"model": args.worker, "backend": label, "final_val_mae": final, "t_reach": reach,
                       "t_total": total, "compile_s": compile_s, "t_reach_less_compile": reach - compile_before,
                       "n_compiles": len(compiles), "epochs": len(adam), "stopped": tm.meta["stopped"],
@@ -181,6 +200,22 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
+def _spread(rows: list[dict]) -> str:
+    """``--repeats``: per model and backend, the final validation MAEs of the runs, their range and median."""
+    import statistics
+
+    out = ["", "Final validation MAE over the repeated runs (mK):", "",
+           "| model | backend | runs | min | median | max | max / min |", "|---|---|---|---|---|---|---|"]
+    groups: dict[tuple[str, str], list[float]] = {}
+    for r in rows:
+        if "final_val_mae" in r:
+            groups.setdefault((r["model"], r["backend"].split(" (polish")[0]), []).append(1e3 * r["final_val_mae"])
+    for (m, b), v in groups.items():
+        out.append(f"| {m.upper()} | {b} | {', '.join(f'{x:.3f}' for x in v)} | {min(v):.3f} | "
+                   f"{statistics.median(v):.3f} | {max(v):.3f} | {max(v) / min(v):.2f} |")
+    return "\n".join(out)
+
+
 def _curves(rows: list[dict]) -> str:
     """``--curve``: per model, the validation MAE (mK) every 50 epochs of each backend's run side by side (the
     epochs after Adam's are L-BFGS iterations), and the epoch each run ended at."""
@@ -224,6 +259,10 @@ def main(argv=None) -> int:
                     help="let torch reuse inductor's default on-disk cache (default: an empty one per run)")
     ap.add_argument("--curve", action="store_true",
                     help="also print each run's validation MAE every 50 epochs (Adam, then L-BFGS iterations)")
+    ap.add_argument("--polish-jitter", type=float, default=0.0, metavar="REL",
+                    help="move the L-BFGS polish's start by REL relative (random, seeded); with --repeats")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per model and backend (seeds 1..N of --polish-jitter)")
+    ap.add_argument("--jitter-seed", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--backend", default="jax", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -233,15 +272,18 @@ def main(argv=None) -> int:
     backends = args.backends or (["jax"] if args.quick else ["jax", "torch", TORCH_COMPILED])
     cache = args.cache + ("_quick" if args.quick else "")
     rows = []
+    runs = range(1, args.repeats + 1) if args.polish_jitter else range(args.repeats)
     for model in models:
-        for backend in backends:
+        for backend, rep in ((b, k) for b in backends for k in runs):
             if f"{model}:{backend}" in args.skip:
                 rows.append({"model": model, "backend": backend, "skipped": True})
                 continue
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", model, "--backend", backend,
                    "--cache", cache] + (["--quick"] if args.quick else []) + (
                       ["--torch-python-wrapper"] if args.torch_python_wrapper else []) + (
-                      ["--epochs", str(args.epochs)] if args.epochs else [])
+                      ["--epochs", str(args.epochs)] if args.epochs else []) + (
+                      ["--polish-jitter", str(args.polish_jitter), "--jitter-seed", str(rep)]
+                      if args.polish_jitter else [])
             print(f"training {model} on {backend} ...", file=sys.stderr, flush=True)
             env = dict(os.environ)
             cold = None if args.warm_torch_cache else tempfile.TemporaryDirectory(prefix="tnn_bench_inductor_")
@@ -270,6 +312,8 @@ def main(argv=None) -> int:
                           f"total {r['t_total']:.0f} s"), file=sys.stderr, flush=True)
     md = _table(rows, args.quick, args.epochs)
     print(md)
+    if args.repeats > 1:
+        print(_spread(rows))
     if args.curve:
         print(_curves(rows))
     if not args.no_write:
