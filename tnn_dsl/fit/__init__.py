@@ -2,7 +2,8 @@
 
 Owns: the training options (``config``), the flat parameter vector and its transforms (``transforms``), windows of
 multiple shooting (``windows``), the rollouts fitted (``rollouts``: single or multiple shooting), the trainer
-(``trainer``: loss, Adam, divergence guard, L-BFGS polish) and its entry points (``training``: ``train``,
+(``trainer``: loss, Adam, divergence guard, L-BFGS polish), the pre-fit of ``replace``-mode flows to the nominal law
+(``prefit``: Levenberg–Marquardt) and its entry points (``training``: ``train``,
 ``evaluate``), initial states by one rule (``initial``), free runs and error metrics (``simulation``), model
 directories (``model_files``: JSON + safetensors, atomic writes).
 May import: ``core``, ``ir``, ``lang``, ``compiler``, ``data``, ``estimation``.
