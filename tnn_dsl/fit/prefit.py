@@ -11,9 +11,10 @@ good weights; a quasi-Newton method (L-BFGS, used here until 2026-12-02) wanders
 depends on the last digits of the gradient, so JAX and torch started training the same network from weights
 10–30 % apart (BENCHMARKS.md, "The demos after the reverse scan's change"). The damped Gauss–Newton steps do not
 amplify round-off along the valley: the two backends' fits agree to about 1e-12 relative
-(``tests/test_train_prefit.py``), and they fit better in the same time (relative RMS error 3e-4 against 1.4e-3 for
-the case study's M4, 2026-12-02). Functions with more than ``PREFIT_LM_MAX_WEIGHTS`` weights, whose Jacobian would
-not fit in memory comfortably, are fitted by L-BFGS-B on the same residuals instead.
+(``tests/test_train_prefit.py``), and they fit closer (relative RMS error 2.5e-4 against 1.4e-3 for the case study's
+M4, 2026-12-02), in 2.0 s against 0.8 s on JAX and 3.9–4.7 s against 1.9 s on torch. Functions with more than
+``PREFIT_LM_MAX_WEIGHTS`` weights, whose Jacobian would not fit in memory comfortably, are fitted by L-BFGS-B on the
+same residuals instead.
 """
 
 from __future__ import annotations
@@ -28,19 +29,19 @@ PREFIT_POINTS = 1000
 study's 4 h run, and ``PREFIT_POINTS × n_flows`` residuals against the 122 weights of its 3→8→8→2 MLP."""
 
 PREFIT_MAX_EVALUATIONS = 60
-"""Residual evaluations of the Levenberg–Marquardt fit (about 40 Jacobians): the case study's M4 reaches a relative
-RMS error of 3.0e-4 (20: 4.0e-3, 40: 5.3e-4, 100: 2.5e-5 at 4000 points), in 1.6 s on JAX and 3.9 s on torch
-(the Intel host, 2026-12-02). A fixed budget, not a tolerance, ends it: the start of training needs the nominal
-law closely, not exactly."""
+"""Residual evaluations of the Levenberg–Marquardt fit (about 45 Jacobians): the case study's M4 reaches a relative
+RMS error of 2.5e-4 (20: 1.2e-3, 40: 4.6e-4, 100: 1.5e-4), in 2.0 s on JAX (20: 1.4 s, 100: 2.9 s) and 3.9–4.7 s on
+torch (the Intel host, 2026-12-02, with ``PREFIT_RIDGE``). A fixed budget, not a tolerance, ends it: the start of
+training needs the nominal law closely, not exactly."""
 
 PREFIT_RIDGE = 1e-7
 """Weight decay of the pre-fit: ``ridge · ‖w‖²`` is added to the sum over flows of the mean squared relative error
 (both dimensionless: the weights act on normalised inputs and outputs), so a weight of 1 costs as much as a relative
 error of 3e-4 at every sample. Without it Levenberg–Marquardt follows the valley to large weights that cancel (the
-case study's M4: 3.8 at a relative error of 1.3e-4), a fit Adam's first steps of training throw far off (the
-validation MAE of a short M4 training 91 → 1142 mK after one epoch, against 91 → 196 mK with it, 2026-12-02); with
-it the fit is also unique, not only reproducible. 1e-6: a relative error of 1.9e-3; 1e-8: 5.8e-4 with weights up to
-3.1."""
+case study's M4: last-layer weights up to 3.8 against 0.57 with it), a fit that Adam's first steps of training throw
+far off: on the 40-minute case study of ``tests/test_train.py`` the validation MAE of M4 went 91 → 1142 mK in the
+first epoch without it, 91 → 196 mK with it (2026-12-02; 1e-6: relative error 1.9e-3; 1e-8: 5.8e-4 with weights up
+to 3.1). It also makes the least-squares problem better posed, so the fit depends less on the path to it."""
 
 PREFIT_LM_MAX_WEIGHTS = 2000
 """Above this many weights the pre-fit uses L-BFGS-B (its Jacobian would hold ``PREFIT_POINTS × n_flows ×
