@@ -304,11 +304,11 @@ def test_case_study_acceptance(tmp_path):
     M2 ≤ M1/3; M3 within 25 % of M2 (2.24 and 2.75 mK on 2026-12-02, the Intel host; 2.46 and 2.70 on the AMD
     host: M3's sigmoid MLP trains in tanh coordinates and the L-BFGS polish runs from Adam's last state). M3's final
     MAE moves by up to ±20 % with round-off (a 1e-12 perturbation of the polish's start: BENCHMARKS.md, "M3's final
-    MAE is round-off's"), so the 25 % bound can fail on a processor whose round-off ends the polish elsewhere. M4 (MLP Peltier) and M5 (M4's net frozen + M3's
-    heat-pipe net) are trained and reported (M5 must beat M4). Backends: the default torch run takes ~45 min
-    on a 2-core CPU (torch rollouts are ~60x slower than JAX there), so torch and JAX train M2 on one fixed
-    schedule (60 Adam epochs, validation every 10, no polish) and must end within 5 % of each other (they
-    agree to ~1e-12)."""
+    MAE is round-off's"), so the 25 % bound can fail on a processor whose round-off ends the polish elsewhere.
+    M4 (MLP Peltier) and M5 (M4's net frozen + M3's heat-pipe net) are trained and reported (M5 must beat M4).
+    Backends: the default torch run takes ~45 min on a 2-core CPU (torch rollouts are ~60x slower than JAX there),
+    so torch and JAX train M2 on one fixed schedule (60 Adam epochs, validation every 10, no polish) and must end
+    within 5 % of each other (they agree to ~1e-12)."""
     import shutil
 
     import tnn_dsl
