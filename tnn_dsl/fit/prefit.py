@@ -10,11 +10,13 @@ backend's forward-mode Jacobian of the residuals. An MLP fitted to a smooth law 
 good weights; a quasi-Newton method (L-BFGS, used here until 2026-12-02) wanders along it, and where it stops
 depends on the last digits of the gradient, so JAX and torch started training the same network from weights
 10–30 % apart (BENCHMARKS.md, "The demos after the reverse scan's change"). The damped Gauss–Newton steps do not
-amplify round-off along the valley: the two backends' fits agree to about 1e-12 relative
-(``tests/test_train_prefit.py``), and they fit closer (relative RMS error 2.5e-4 against 1.4e-3 for the case study's
-M4, 2026-12-02), in 2.0 s against 0.8 s on JAX and 3.9–4.7 s against 1.9 s on torch. Functions with more than
-``PREFIT_LM_MAX_WEIGHTS`` weights, whose Jacobian would not fit in memory comfortably, are fitted by L-BFGS-B on the
-same residuals instead.
+amplify round-off along the valley: the two backends' fits agree to about 1e-12 (``tests/test_train_prefit.py``),
+and they fit closer. ``python benchmarks/profile_prefit.py`` (the case study's M4 on the demo's data, 2026-12-02,
+the Intel host): relative RMS error over the whole run 3.0e-4 (Q_hot) and 2.0e-4 (Q_cold) on both backends, the
+weights 7.7e-13 apart, in 2.1 s on JAX and 3.6–4.2 s on torch; the L-BFGS pre-fit before (the same script in a
+worktree of 556c60a) 1.8e-3 and 1.1e-3 on JAX, 1.5e-3 and 1.3e-3 on torch, weights 0.16 apart, 0.9 and 1.8 s.
+Functions with more than ``PREFIT_LM_MAX_WEIGHTS`` weights, whose Jacobian would not fit in memory comfortably, are
+fitted by L-BFGS-B on the same residuals instead.
 """
 
 from __future__ import annotations
@@ -29,19 +31,20 @@ PREFIT_POINTS = 1000
 study's 4 h run, and ``PREFIT_POINTS × n_flows`` residuals against the 122 weights of its 3→8→8→2 MLP."""
 
 PREFIT_MAX_EVALUATIONS = 60
-"""Residual evaluations of the Levenberg–Marquardt fit (about 45 Jacobians): the case study's M4 reaches a relative
-RMS error of 2.5e-4 (20: 1.2e-3, 40: 4.6e-4, 100: 1.5e-4), in 2.0 s on JAX (20: 1.4 s, 100: 2.9 s) and 3.9–4.7 s on
-torch (the Intel host, 2026-12-02, with ``PREFIT_RIDGE``). A fixed budget, not a tolerance, ends it: the start of
-training needs the nominal law closely, not exactly."""
+"""Residual evaluations of the Levenberg–Marquardt fit (about 45 Jacobians). ``python benchmarks/profile_prefit.py
+--backends jax --evaluations 20 40 100`` (M4, 2026-12-02): relative RMS error (Q_hot) 1.6e-3 after 20, 5.5e-4 after
+40, 3.0e-4 after 60, 1.7e-4 after 100, in 1.1, 1.4, 2.1 and 2.3 s. A fixed budget, not a tolerance, ends it: the
+start of training needs the nominal law closely, not exactly."""
 
 PREFIT_RIDGE = 1e-7
 """Weight decay of the pre-fit: ``ridge · ‖w‖²`` is added to the sum over flows of the mean squared relative error
 (both dimensionless: the weights act on normalised inputs and outputs), so a weight of 1 costs as much as a relative
-error of 3e-4 at every sample. Without it Levenberg–Marquardt follows the valley to large weights that cancel (the
-case study's M4: last-layer weights up to 3.8 against 0.57 with it), a fit that Adam's first steps of training throw
-far off: on the 40-minute case study of ``tests/test_train.py`` the validation MAE of M4 went 91 → 1142 mK in the
-first epoch without it, 91 → 196 mK with it (2026-12-02; 1e-6: relative error 1.9e-3; 1e-8: 5.8e-4 with weights up
-to 3.1). It also makes the least-squares problem better posed, so the fit depends less on the path to it."""
+error of 3e-4 at every sample. Without it Levenberg–Marquardt follows the valley to large weights that cancel, a fit
+that Adam's first steps of training throw far off. ``python benchmarks/profile_prefit.py --backends jax --ridge 0
+1e-8 1e-6`` (M4, 2026-12-02): largest weight 3.78 without it, 2.14 at 1e-8, 1.53 at 1e-7, 0.85 at 1e-6 (relative RMS
+error 3.5e-4, 1.8e-4, 3.0e-4, 5.7e-4); ``--first-epochs --ridge 0 1e-7`` (M4 on the 40-minute case study of
+``tests/test_train.py``): validation MAE 91 → 1142 mK after the first epoch without it, 91 → 196 mK with it. It also
+makes the least-squares problem better posed, so the fit depends less on the path to it."""
 
 PREFIT_LM_MAX_WEIGHTS = 2000
 """Above this many weights the pre-fit uses L-BFGS-B (its Jacobian would hold ``PREFIT_POINTS × n_flows ×
