@@ -229,3 +229,18 @@ def test_bench_train_curves_put_the_runs_side_by_side():
     assert "| 50 | 14.2000 (adam) | 14.2000 (adam) |" in lines
     assert "| 1300 | 2.8000 (lbfgs) |  |" in lines
     assert "| ended at | 1300 | 1030 |" in lines
+
+
+def test_bench_train_spread_groups_the_repeated_runs_by_backend():
+    """``bench_train.py --polish-jitter REL --repeats N``: the final MAEs of each backend's runs (mK), their range,
+    median and max / min, whatever the seed in the row's label; failed runs left out."""
+    import bench_train
+
+    label = " (polish start × (1 + 1e-12·ε), seed {})"
+    rows = [{"model": "m3", "backend": "jax" + label.format(k), "final_val_mae": v}
+            for k, v in ((1, 0.003351), (2, 0.003321), (3, 0.002915))]
+    rows += [{"model": "m3", "backend": "torch-compiled" + label.format(1), "final_val_mae": 0.0028},
+             {"model": "m3", "backend": "torch-compiled" + label.format(2), "error": "not finished within 60 s"}]
+    lines = bench_train._spread(rows).splitlines()
+    assert "| M3 | jax | 3.351, 3.321, 2.915 | 2.915 | 3.321 | 3.351 | 1.15 |" in lines
+    assert "| M3 | torch-compiled | 2.800 | 2.800 | 2.800 | 2.800 | 1.00 |" in lines
