@@ -72,6 +72,10 @@ class StudyConfig:
     models: tuple[str, ...] = ("M1", "M2", "M3", "M4", "M5")
     seed: int = 0
     train_options: dict = field(default_factory=dict)
+    compile_ahead: bool | None = None
+    """torch: compile the later models' programs in a helper process while the first ones train
+    (:mod:`tnn_dsl.fit.compile_ahead`); ``None``: where it can pay (torch, two cores or more, ``TNN_COMPILE_AHEAD``
+    not ``0``)."""
 
 
 def _networks_dir() -> Path:
@@ -143,9 +147,10 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
     say(f"[2/3] training {', '.join(order)} ({cfg.backend}, ≤ {cfg.epochs} epochs"
         + (f", ≤ {cfg.time_limit:g} s of training each" if cfg.time_limit else "") + ")")
     trained = {}
-    for i, name in enumerate(order):
-        say(f"      {name} ({MODELS[name][1]}) [{i + 1}/{len(order)}]")
-        trained[name], results["models"][name] = _train_model(name, cfg, data, out, say)
+    with _compile_ahead(order, cfg, data):
+        for i, name in enumerate(order):
+            say(f"      {name} ({MODELS[name][1]}) [{i + 1}/{len(order)}]")
+            trained[name], results["models"][name] = _train_model(name, cfg, data, out, say)
     if cfg.n_ood > 0 and cfg.widen:
         say(f"[3/3] out of distribution: {len(cfg.widen)} widenings × {cfg.n_ood} sets × {len(order)} models")
         sets_for = _read_once(data["ood"])
@@ -166,6 +171,30 @@ def run_study(out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = N
     results["seconds"] = time.perf_counter() - t_start
     write_text_atomic(out / "results.json", json.dumps(results, indent=2, default=float) + "\n")
     return results
+
+
+def _compile_ahead(order: list[str], cfg: StudyConfig, data: dict):
+    """The helper process that compiles the later models' torch programs while the first ones train
+    (:mod:`tnn_dsl.fit.compile_ahead`; ``StudyConfig.compile_ahead``): every model after the first. M5's frozen
+    Peltier network is M4's trained one, which does not exist before M4 has trained: the helper gives it the
+    M4 of its own one-epoch warm-up (the weights are inputs of the compiled graphs, not part of them). A no-op
+    context where it does not apply (JAX, one core, ``TNN_COMPILE_AHEAD=0``)."""
+    import contextlib
+
+    from ..fit.compile_ahead import CompileAhead, Job, wanted
+
+    later = order[1:]
+    on = cfg.compile_ahead if cfg.compile_ahead is not None else wanted(cfg.backend, len(later))
+    if not (on and cfg.backend == "torch" and later):
+        return contextlib.nullcontext()
+    paths = [data["train"]] if isinstance(data["train"], (str, os.PathLike)) else list(data["train"])
+    val = data.get("val")
+    vals = None if val is None else [val] if isinstance(val, (str, os.PathLike)) else list(val)
+    options = {"seed": cfg.seed, **cfg.train_options}
+    jobs = [Job(str(_networks_dir() / MODELS[m][0]), [str(p) for p in paths],
+                None if vals is None else [str(v) for v in vals], options,
+                init_from=later.index("M4") if m == "M5" and "M4" in later else None) for m in later]
+    return CompileAhead([j for j, m in zip(jobs, later) if m != "M5" or j.init_from is not None])
 
 
 def _train_model(name: str, cfg: StudyConfig, data: dict, out: Path, say: Callable[[str], None]):
