@@ -4,7 +4,8 @@ tracing, AOT autograd, inductor's passes, lowering, scheduling and code generati
 summed over every graph the process compiled) and its cache counters (inductor's FX graph cache and AOT
 autograd's: hits, misses, bypasses).
 
-    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/profile_demo_compile.py --backend torch --no-diagnose --out DIR
+    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python benchmarks/profile_demo_compile.py --backend torch \
+        --no-diagnose --out DIR
 
 ``TNN_COMPILE_AHEAD=0`` in front compiles every model in this process (no helper process,
 ``tnn_dsl.fit.compile_ahead``). Nothing is written but the demo's own ``--out``."""
