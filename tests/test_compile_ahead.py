@@ -62,12 +62,17 @@ def _listing(d: Path) -> dict:
 def test_wanted_only_on_torch_with_jobs_and_a_second_core_unless_switched_off(monkeypatch):
     monkeypatch.delenv(CA.ENV, raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(CA, "_available_bytes", lambda: CA.MIN_AVAILABLE_BYTES)
     assert CA.wanted("torch", 3)
     assert not CA.wanted("jax", 3)
     assert not CA.wanted("torch", 0)
     monkeypatch.setenv(CA.ENV, "0")
     assert not CA.wanted("torch", 3)
     monkeypatch.setenv(CA.ENV, "1")
+    monkeypatch.setattr(CA, "_available_bytes", lambda: CA.MIN_AVAILABLE_BYTES - 1)
+    assert not CA.wanted("torch", 3)  # not enough memory to spare
+    monkeypatch.setattr(CA, "_available_bytes", lambda: None)
+    assert CA.wanted("torch", 3)  # the system does not tell: started
     monkeypatch.setattr(os, "cpu_count", lambda: 1)
     assert not CA.wanted("torch", 3)
 
