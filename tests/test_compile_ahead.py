@@ -104,16 +104,32 @@ def test_closing_stops_the_helper_and_it_leaves_no_files(tmp_path, monkeypatch):
     ahead.close()  # a second close is a no-op
 
 
+def _helper_run(cache: Path, jobs: list) -> None:
+    data_before = _listing(DATA)
+    with CA.CompileAhead(jobs) as ahead:
+        assert ahead.proc is not None and ahead.proc.wait(timeout=900) == 0
+    assert _listing(DATA) == data_before  # the data read, not written
+
+
 @pytest.mark.skipif(not PRBS.exists(), reason="shared TCLab data not present")
-def test_the_helper_compiles_the_graphs_the_next_training_loads(tmp_path, monkeypatch):
-    torch = pytest.importorskip("torch")  # noqa: F841
+def test_the_helper_fills_torchs_cache_with_the_trainings_scans(tmp_path, monkeypatch):
+    """The fast variant of the next test: the helper's one-epoch training leaves the forward and the adjoint scan in
+    the FX graph cache (that a later process loads them is checked there, and within one process by
+    ``tests/test_torch_compile_cache.py``)."""
+    pytest.importorskip("torch")
     cache = tmp_path / "inductor"
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(cache))
-    data_before = _listing(DATA)
-    with CA.CompileAhead([CA.Job(str(TCLAB), [str(PRBS)], None, OPTIONS)]) as ahead:
-        assert ahead.proc is not None and ahead.proc.wait(timeout=900) == 0
-    assert cache.is_dir() and any(cache.iterdir())
-    assert _listing(DATA) == data_before  # the data read, not written
+    _helper_run(cache, [CA.Job(str(TCLAB), [str(PRBS)], None, OPTIONS)])
+    assert len([p for p in (cache / "fxgraph").rglob("*") if p.is_file()]) >= 2
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not PRBS.exists(), reason="shared TCLab data not present")
+def test_the_helper_compiles_the_graphs_the_next_training_loads(tmp_path, monkeypatch):
+    pytest.importorskip("torch")
+    cache = tmp_path / "inductor"
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(cache))
+    _helper_run(cache, [CA.Job(str(TCLAB), [str(PRBS)], None, OPTIONS)])
     # the full training (another schedule) compiles nothing: its forward and adjoint scans come from the cache
     (hits,) = _main_process([{"network": str(TCLAB), "train": [str(PRBS)], "options": OPTIONS, "epochs": 4}], cache)
     assert hits >= 2
