@@ -1,13 +1,15 @@
 """Compile the next trainings' torch programs ahead, in a process of their own, while this one trains.
 
 A job that trains several networks one after the other on torch (``tnnc demo``: the thesis's M1–M5) pays each
-network's compilation before its first epoch: 12–22 s per model of the case study on the Intel host (2026-12-02),
-two thirds of it inductor and the C++ compiler, while the training itself runs on one core (``torch.set_num_threads
-(1)``) and the machine's second core idles. torch keeps compiled scans in its on-disk caches
-(:data:`tnn_dsl.compiler.model.TORCH_CACHE_SCANS`, keyed by the graph, not by the process), so a helper process that
-trains the *later* networks for one epoch on the same data and options compiles the very graphs the main process
-will ask for, and the main process then loads them instead of compiling (M2 of the case study: 13.8 → 4.6 s of
-compiling; ``tests/test_compile_ahead.py``).
+network's compilation before its first epoch: 11–25 s per model of the case study on the Intel host (2026-12-02),
+four fifths of it inductor and the C++ compiler (dynamo's tracing the rest; ``benchmarks/profile_demo_compile.py``),
+while the training itself runs on one core (``torch.set_num_threads(1)``) and the machine's second core idles. torch
+keeps compiled scans in its on-disk caches (:data:`tnn_dsl.compiler.model.TORCH_CACHE_SCANS`, keyed by the graph,
+not by the process), so a helper process that trains the *later* networks for one epoch on the same data and options
+compiles the very graphs the main process will ask for, and the main process then loads them instead of compiling
+(``tests/test_compile_ahead.py``). ``tnnc demo --backend torch`` (BENCHMARKS.md, "The demos with torch's compiled
+scans cached and compiled ahead"): M2–M5 compiled for 4.7, 4.4, 3.7 and 5.8 s against 12.1, 17.6, 17.1 and 24.8 s
+with the helper off.
 
 The helper only warms caches: it writes no model (``out=None``), prints nothing, runs at a lower priority
 (``nice`` 10), and a failure in it changes nothing but the time the main process spends compiling. What the main

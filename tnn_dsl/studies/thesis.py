@@ -74,8 +74,8 @@ class StudyConfig:
     train_options: dict = field(default_factory=dict)
     compile_ahead: bool | None = None
     """torch: compile the later models' programs in a helper process while the first ones train
-    (:mod:`tnn_dsl.fit.compile_ahead`); ``None``: where it can pay (torch, two cores or more, ``TNN_COMPILE_AHEAD``
-    not ``0``)."""
+    (:mod:`tnn_dsl.fit.compile_ahead`); ``None``: where it can pay (torch, two cores or more, 2 GB of memory
+    available, ``TNN_COMPILE_AHEAD`` not ``0``)."""
 
 
 def _networks_dir() -> Path:
