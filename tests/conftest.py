@@ -47,6 +47,19 @@ def _inductor_cache_dir(config) -> str:
     return os.path.join(tempfile.gettempdir(), f"tnn_dsl_test_inductor_cache_{owner}")
 
 
+def _share_jax_cache_with_children(config) -> None:
+    """The session's JAX cache for the processes the tests start as well (``tnnc`` and the benchmark scripts in
+    subprocesses; JAX reads these variables when it is imported): a child then reads what the session already
+    compiled instead of compiling it again. Measured (2026-12-02, Intel Xeon, a slow hour: `CI=true pytest -n 2 -m
+    "not slow" tests/test_real_data_defaults.py tests/test_benchmarks_smoke.py tests/test_cli_train.py
+    tests/test_objective.py tests/test_train.py`, with and without, one after the other): 245.6 against 267.3 s,
+    ``bench_real_data_fits.py``'s smoke run 12.7 against 31.9 s (the fits of ``test_real_data_defaults.py`` read
+    back). A variable the user set is left as it is; a fleet sets its own cache for its Ray workers."""
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _jax_cache_dir(config))
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(JAX_CACHE_MAX_BYTES))
+
+
 def pytest_configure(config):
     # set before torch is imported (inductor reads it when it first needs its cache); the workers inherit the
     # controlling process's value; a directory the user named is left to the user
@@ -57,6 +70,7 @@ def pytest_configure(config):
         jax.config.update("jax_compilation_cache_dir", _jax_cache_dir(config))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_compilation_cache_max_size", JAX_CACHE_MAX_BYTES)
+        _share_jax_cache_with_children(config)
     # The networks are small: torch's intra-op threads only add synchronisation (measured 47× slower per
     # batched step with 2 threads than with 1 on the 2-core CI machine, benchmarks/bench_rollout.py
     # --torch-threads), and pytest-xdist already runs one worker per core.
