@@ -15,7 +15,8 @@ apart and reported as warm-up; torch compiles cold, into an empty inductor cache
   default ``steps // batch``), forward and forward + gradient;
 * JAX and torch through the public model API (torch eager, and with ``torch_compile=True``: a forward
   rollout is one ``torch.compile``d ``scan`` over the samples, a rollout with gradients a forward and an
-  adjoint scan, both with inductor's C++ wrapper); the numpy reference backend (forward only, it has no
+  adjoint scan, both with inductor's C++ wrapper; ``torchv``: the batch again with inductor's SIMD kernels, the
+  model's ``TORCH_VECTORIZE``); the numpy reference backend (forward only, it has no
   autodiff); a C loop of the same equations (``_c_loop.py``, ``cc -O3 -march=native``), checked against
   JAX to ``1e-9 K`` on every state before it is timed.
 
@@ -231,24 +232,31 @@ def bench_jax(case, args, rows, results, dtype="float64"):
     return model
 
 
-def bench_torch(case, args, rows, results, compiled=False):
+def bench_torch(case, args, rows, results, compiled=False, vectorize=False):
     """torch through the model API, eager or with ``torch_compile=True`` (forward: one compiled ``scan``;
     with gradients: a forward and an adjoint scan), run with ``--torch-threads`` intra-op threads (default
     1: on this workload of tiny tensors, OpenMP threads cost far more than they give, most of all on a busy
     machine); the eager batch
-    forward is also timed with torch's default thread count to show the difference."""
+    forward is also timed with torch's default thread count to show the difference. ``vectorize``: compiled
+    with inductor's SIMD kernels (the model's ``TORCH_VECTORIZE`` on while this runs), the batch only."""
     import torch
 
     import tnn_dsl
+    import tnn_dsl.compiler.model as compiled_model
 
     model = tnn_dsl.compile(case.net, "torch", torch_compile=compiled)
     impl, tag = ("torch (torch_compile=True)", "torchc_") if compiled else ("torch (eager)", "torch_")
+    if vectorize:
+        impl, tag = "torch (torch_compile=True, SIMD kernels)", "torchv_"
+    cases = [("single", case.T0, case.U[:case.slow_steps], 1),
+             ("batch", case.T0b, case.Ub[:, :case.window], case.batch)][1 if vectorize else 0:]
     dt, integ = case.dt, case.integrator
     default_threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
+    vectorize_before = compiled_model.TORCH_VECTORIZE
+    compiled_model.TORCH_VECTORIZE = bool(vectorize) or vectorize_before
     try:
-        for label, T0, U, windows in (("single", case.T0, case.U[:case.slow_steps], 1),
-                                      ("batch", case.T0b, case.Ub[:, :case.window], case.batch)):
+        for label, T0, U, windows in cases:
             T0t, Ut = torch.as_tensor(T0), torch.as_tensor(U)
             p = model.from_numpy(case.params)
 
@@ -281,6 +289,7 @@ def bench_torch(case, args, rows, results, compiled=False):
                                 wf - tf, None, note="torch's default thread count", cpu=cf))
     finally:
         torch.set_num_threads(default_threads)
+        compiled_model.TORCH_VECTORIZE = vectorize_before
     return model
 
 
@@ -644,6 +653,12 @@ def targets(rows):
         if v is not None:
             out.append(("torch (torch_compile=True) / JAX, batch forward+gradient (issue 18)", v, "≤ 2×",
                         v <= TARGET_TORCH_OVER_JAX_BATCH_GRAD))
+    tvb = find(rows, "torch (torch_compile=True, SIMD kernels)", "batch")
+    if tvb and jb:
+        v = ratio(tvb.us(tvb.grad), jb.us(jb.grad))
+        if v is not None:
+            out.append(("torch (torch_compile=True, SIMD kernels) / JAX, batch forward+gradient (issue 18)", v,
+                        "≤ 2×", v <= TARGET_TORCH_OVER_JAX_BATCH_GRAD))
     for r, how in ((tcb, "torch (torch_compile=True)"), (tb, "torch eager")):
         if r and jb:
             v = ratio(r.us(r.fwd), jb.us(jb.fwd))
@@ -695,6 +710,8 @@ def markdown(case, args, rows, results, load_before, load_after, wall):
             lines.append(f"{key.replace('_', ' ')}: {results[key]}")
     if "torch_compile_error" in results:
         lines += ["", f"torch with torch_compile=True: not measured ({results['torch_compile_error']})."]
+    if "torch_vectorize_error" in results:
+        lines += ["", f"torch with SIMD kernels: not measured ({results['torch_vectorize_error']})."]
     if "xla_elementwise_ns" in results:
         ns = results["xla_elementwise_ns"]
         n_eval, n_act, n_sp = results["xla_counts"]
@@ -710,7 +727,7 @@ def markdown(case, args, rows, results, load_before, load_after, wall):
 def agreement(results):
     """torch vs JAX on the common prefix of states; gradients on equal lengths only (batch windows)."""
     out = {}
-    for tag in ("torch", "torchc"):
+    for tag in ("torch", "torchc", "torchv"):
         for label in ("single", "batch"):
             a, b = results.get(f"{tag}_states_{label}"), results.get(f"jax_states_{label}")
             if a is not None and b is not None:
@@ -757,8 +774,9 @@ def parse(argv=None):
     ap.add_argument("--dt", type=float, default=1.0, help="sample time, s (default 1, the case study's)")
     ap.add_argument("--integrator", choices=("rk4", "euler"), default="rk4")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--only", default="jax,f32,torch,torchc,numpy,c,proto",
+    ap.add_argument("--only", default="jax,f32,torch,torchc,torchv,numpy,c,proto",
                     help="comma list of jax, f32 (JAX in float32), torch (eager), torchc (torch_compile=True), "
+                         "torchv (torch_compile=True with inductor's SIMD kernels, the batch only), "
                          "numpy, c, proto (prototypes), unrolled "
                          "(the slow unrolled-rhs prototypes; off by default); jax is always run")
     ap.add_argument("--quick", action="store_true",
@@ -832,6 +850,12 @@ def main(argv=None):
         except Exception as e:  # noqa: BLE001 - inductor needs a C++ toolchain; report instead of failing
             results["torch_compile_error"] = f"{type(e).__name__}: {str(e)[:300]}"
         print("torch (torch_compile=True) done", file=sys.stderr)
+    if "torchv" in only:
+        try:
+            bench_torch(case, args, rows, results, compiled=True, vectorize=True)
+        except Exception as e:  # noqa: BLE001 - as above
+            results["torch_vectorize_error"] = f"{type(e).__name__}: {str(e)[:300]}"
+        print("torch (torch_compile=True, SIMD kernels) done", file=sys.stderr)
     if "numpy" in only:
         bench_numpy(case, args, rows, results)
         print("numpy done", file=sys.stderr)

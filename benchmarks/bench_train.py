@@ -90,6 +90,10 @@ def _worker(args) -> int:
         from tnn_dsl.compiler import model as compiled_model
 
         compiled_model.TORCH_CPP_WRAPPER, compiled_model.TORCH_CHUNK = False, 4
+    if args.torch_vectorize:  # inductor's SIMD kernels for the compiled scans
+        from tnn_dsl.compiler import model as compiled_model
+
+        compiled_model.TORCH_VECTORIZE = True
     tm = tnn_dsl.train(ROOT / "networks" / "peltier_heatpipe" / f"{args.worker}.thn", cs["train"], cs["val"],
                        backend="torch" if args.backend == TORCH_COMPILED else args.backend, seed=0, callback=cb,
                        **fixed)
@@ -100,6 +104,7 @@ def _worker(args) -> int:
     compile_before = sum(d for end, d in compiles if end <= reach + 1e-9)
     adam = [r for r in tm.meta["curve"] if r["phase"] == "adam"]
     label = args.backend + (" (Python wrapper)" if args.torch_python_wrapper and args.backend != "jax" else "") + (
+        " (SIMD kernels)" if args.torch_vectorize and args.backend != "jax" else "") + (
         f" (polish start × (1 + {args.polish_jitter:g}·ε), seed {args.jitter_seed})" if args.polish_jitter else "")
     print(json.dumps({"model": args.worker, "backend": label, "final_val_mae": final, "t_reach": reach,
                       "t_total": total, "compile_s": compile_s, "t_reach_less_compile": reach - compile_before,
@@ -255,6 +260,8 @@ def main(argv=None) -> int:
     ap.add_argument("--torch-python-wrapper", action="store_true",
                     help="torch's compiled scans with inductor's Python wrapper (the model's TORCH_CPP_WRAPPER = "
                          "False), to compare with the C++ one")
+    ap.add_argument("--torch-vectorize", action="store_true",
+                    help="torch's compiled scans with inductor's SIMD kernels (the model's TORCH_VECTORIZE = True)")
     ap.add_argument("--warm-torch-cache", action="store_true",
                     help="let torch reuse inductor's default on-disk cache (default: an empty one per run)")
     ap.add_argument("--curve", action="store_true",
@@ -281,6 +288,7 @@ def main(argv=None) -> int:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", model, "--backend", backend,
                    "--cache", cache] + (["--quick"] if args.quick else []) + (
                       ["--torch-python-wrapper"] if args.torch_python_wrapper else []) + (
+                      ["--torch-vectorize"] if args.torch_vectorize else []) + (
                       ["--epochs", str(args.epochs)] if args.epochs else []) + (
                       ["--polish-jitter", str(args.polish_jitter), "--jitter-seed", str(rep)]
                       if args.polish_jitter else [])

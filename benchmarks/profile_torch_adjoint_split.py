@@ -24,9 +24,28 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
+def _option(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--inductor-option`` as ``(key, value)``."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"error: --inductor-option wants KEY=VALUE, got {text!r}")
+    low = raw.strip().lower()
+    if low in ("true", "false"):
+        return key.strip(), low == "true"
+    for kind in (int, float):
+        try:
+            return key.strip(), kind(raw)
+        except ValueError:
+            pass
+    return key.strip(), raw
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--vectorize", action="store_true", help="inductor's SIMD kernels on (TORCH_VECTORIZE)")
+    ap.add_argument("--inductor-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="an extra inductor option for both scans (repeatable; VALUE read as int, float, "
+                         "true/false or text), e.g. cpp.simdlen=256")
     ap.add_argument("--batch", type=int, default=256, help="windows (default 256)")
     ap.add_argument("--steps", type=int, default=100000, help="samples the windows are cut from (default 100000)")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls after the first (default 3)")
@@ -39,6 +58,10 @@ def main(argv=None) -> int:
     import tnn_dsl.compiler.model as compiled_model
 
     compiled_model.TORCH_VECTORIZE = bool(args.vectorize)
+    extra = dict(_option(o) for o in args.inductor_option)
+    if extra:
+        base = compiled_model._inductor_options
+        compiled_model._inductor_options = lambda: {**base(), **extra}
     torch.set_num_threads(1)
     case = br.Case(br.parse(["--steps", str(args.steps), "--batch", str(args.batch)]))
     model = tnn_dsl.compile(case.net, "torch", torch_compile=True)
@@ -67,8 +90,8 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     with_gradient()
     print(f"first forward + gradient (compiling the adjoint scan): {time.perf_counter() - t:.1f} s")
-    print(f"M3, {case.batch} windows × {case.window} samples, vectorised kernels {'on' if args.vectorize else 'off'}; "
-          "µs per window-step:")
+    print(f"M3, {case.batch} windows × {case.window} samples, vectorised kernels {'on' if args.vectorize else 'off'}"
+          f"{'; ' + ', '.join(args.inductor_option) if args.inductor_option else ''}; µs per window-step:")
     for _ in range(args.repeats):
         t = time.perf_counter()
         forward()

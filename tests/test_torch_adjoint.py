@@ -385,3 +385,45 @@ def test_adjoint_float32_two_samples_and_no_second_derivative():
     s, _ = mc.rollout(p, torch.as_tensor(T0), torch.as_tensor(U), 1.0)
     with pytest.raises(NotImplementedError, match="second derivatives.*torch_compile=False"):
         torch.autograd.grad(s.sum(), [p["fn_G_ab.W0"]], create_graph=True)
+
+
+@pytest.mark.parametrize("lead", [(), (5,), (4, 3)], ids=["vector", "batch", "two batch axes"])
+def test_small_products_are_batch_last_and_equal_matmul(lead):
+    """The compiled scans' product of vectors by a small matrix (``FusedTorchXP.matmul``) equals ``torch.matmul``
+    to round-off for one vector and for any leading batch axes, and a batch comes back with the batch axis
+    contiguous (stride 1): inductor lays what follows out that way and its SIMD kernels run along the windows
+    (issue 18)."""
+    from tnn_dsl.compiler.backends.torch_ops import SMALL_MATMUL, fused_matmul
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(*lead, 6, generator=g, dtype=torch.float64)
+    for n_out in (1, 8, SMALL_MATMUL // 6):
+        b = torch.randn(6, n_out, generator=g, dtype=torch.float64)
+        got = fused_matmul(a, b)
+        ref = torch.matmul(a, b)
+        assert got.shape == ref.shape
+        assert torch.max(torch.abs(got - ref)) <= 1e-13 * max(1.0, float(torch.max(torch.abs(ref))))
+        if lead:
+            assert got.stride(-2) == 1, got.stride()
+    big = torch.randn(6, SMALL_MATMUL, generator=g, dtype=torch.float64)  # past the limit: torch.matmul itself
+    assert torch.equal(fused_matmul(a, big), torch.matmul(a, big))
+
+
+@pytest.mark.slow  # SIMD kernels compile for a minute; the fast suite's batch-last test checks the product
+def test_simd_kernels_match_jax():
+    """With inductor's SIMD kernels (``TORCH_VECTORIZE`` on, ``TORCH_SIMD_BITS`` wide) a batch's states and
+    gradients are JAX's (1e-9 K, 1e-6 relative)."""
+    import tnn_dsl.compiler.model as compiled_model
+
+    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
+    p_np = nets.random_params(mj, 2)
+    T0, U = _inputs(mj, 9, 16)
+    before = compiled_model.TORCH_VECTORIZE
+    compiled_model.TORCH_VECTORIZE = True
+    try:
+        got = _torch_grads(mc, p_np, T0, U)
+        assert _adjoint_used(mc)
+    finally:
+        compiled_model.TORCH_VECTORIZE = before
+    _assert_close(_jax_grads(mj, p_np, T0, U), got)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+import platform
 import types
 import warnings
 from dataclasses import dataclass
@@ -127,7 +128,27 @@ twice, scalar and vectorised, was most of inductor's code generation. Cold compi
 final MAE after 53 → 39 s, M3 169 → 131 s (``python benchmarks/bench_train.py``); batched forward + gradient 2.75
 → 2.84 µs per window-step, batched forward 0.79 → 0.96, single sequence 9.6 → 9.2 µs/step (``python
 benchmarks/bench_rollout.py --only jax,torchc``, one after the other). :class:`~.torch_adjoint.CompiledScan` keeps
-the option from leaking into the process's other graphs. ``True``: inductor's default."""
+the option from leaking into the process's other graphs. ``True``: SIMD kernels, :data:`TORCH_SIMD_BITS` wide.
+
+Since the small products run batch-last (:func:`~.backends.torch_ops.fused_matmul`, 2026-12-03) the SIMD kernels
+run along the windows and ``True`` is the faster runtime, but not the faster training from a cold start: case study
+M3, 256 windows × 390 samples, forward + gradient 6.63 against 10.3 µs per window-step (JAX 4.03: 1.65× against
+2.56×), after 96 against 31 s of compiling the batch's two scans (``python benchmarks/bench_rollout.py --only
+jax,torchc,torchv``, 02:50–02:54 UTC); training to within 10 % of the final validation MAE, cold inductor cache
+(``python benchmarks/bench_train.py --only m2 m3 --backends torch-compiled [--torch-vectorize]``, 02:55–03:12 UTC):
+M2 106 against 62 s, M3 253 against 230 s, of it compiling 75 against 35 and 101 against 37 s (M3 less its
+compilation 153 against 193 s). Worth turning on for long trainings, fleets of one template, or where inductor's
+on-disk cache already holds the network's scans (BENCHMARKS.md, "SIMD kernels along the windows")."""
+
+
+TORCH_SIMD_BITS = 256
+"""The vector width in bits of the compiled scans' SIMD kernels where :data:`TORCH_VECTORIZE` is on (x86-64 only;
+elsewhere inductor's choice): AVX2's. On an AVX-512 host inductor's own choice processes 16 float64 values per
+vector operation (two registers); over the batch axis (:func:`~.backends.torch_ops.fused_matmul`) the loops of 24–256
+windows then end in long masked tails. Case study M3, 256 windows × 390 samples, forward + gradient, one process
+(``python benchmarks/profile_torch_adjoint_split.py --vectorize``, then with ``--inductor-option cpp.simdlen=256``,
+one after the other, 2026-12-03 02:01–02:06 UTC, Intel Xeon with AVX-512): the forward and the backward 6.5–7.2 µs
+per window-step with 256 bits against 7.6–8.9 with inductor's 512."""
 
 
 TORCH_CACHE_SCANS = True
@@ -153,6 +174,8 @@ def _inductor_options() -> dict:
         opts["unsafe_marked_cacheable_functions"] = {"torch.ops.higher_order.scan": torch.__version__}
     if not TORCH_VECTORIZE:
         opts["cpp.vec_isa_ok"] = False  # part of inductor's cache key; see torch_adjoint.CompiledScan for its probe
+    elif platform.machine().lower() in ("x86_64", "amd64"):
+        opts["cpp.simdlen"] = TORCH_SIMD_BITS
     return opts
 
 
@@ -711,7 +734,7 @@ class Model:
         rollouts with gradients (:meth:`_torch_adjoint_rollout`) and those without (:meth:`_forward_scan`)."""
         from .torch_adjoint import AdjointRollout
 
-        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE)
+        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, TORCH_SIMD_BITS)
         runner = self._jit_cache.get(key)
         if runner is None:
             core = self._fused_core()
@@ -810,7 +833,8 @@ class Model:
             flat, rebuild, pkey = flatten(prep)
         except Unsupported:
             flat, rebuild, pkey = None, None, None
-        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, pkey)
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, TORCH_SIMD_BITS,
+               pkey)
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan
