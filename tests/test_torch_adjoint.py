@@ -410,20 +410,35 @@ def test_small_products_are_batch_last_and_equal_matmul(lead):
 
 
 @pytest.mark.slow  # SIMD kernels compile for a minute; the fast suite's batch-last test checks the product
-def test_simd_kernels_match_jax():
-    """With inductor's SIMD kernels (``TORCH_VECTORIZE`` on, ``TORCH_SIMD_BITS`` wide) a batch's states and
+def test_simd_kernels_match_jax(monkeypatch):
+    """With inductor's SIMD kernels (``TNN_TORCH_SIMD=1``, ``TORCH_SIMD_BITS`` wide) a batch's states and
     gradients are JAX's (1e-9 K, 1e-6 relative)."""
-    import tnn_dsl.compiler.model as compiled_model
-
+    monkeypatch.setenv("TNN_TORCH_SIMD", "1")
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
     p_np = nets.random_params(mj, 2)
     T0, U = _inputs(mj, 9, 16)
-    before = compiled_model.TORCH_VECTORIZE
-    compiled_model.TORCH_VECTORIZE = True
-    try:
-        got = _torch_grads(mc, p_np, T0, U)
-        assert _adjoint_used(mc)
-    finally:
-        compiled_model.TORCH_VECTORIZE = before
+    got = _torch_grads(mc, p_np, T0, U)
+    assert _adjoint_used(mc)
+    assert any(type(k) is tuple and k[0] == "torch_adjoint" and k[6] is True for k in mc._jit_cache)
     _assert_close(_jax_grads(mj, p_np, T0, U), got)
+
+
+def test_simd_kernels_follow_the_environment(monkeypatch):
+    """``TNN_TORCH_SIMD=1`` turns the compiled scans' SIMD kernels on (no ``cpp.vec_isa_ok = False`` in inductor's
+    options), ``0`` or unset leaves the module's default, and a malformed value is a clear error when the model is
+    compiled, not a traceback at its first rollout."""
+    import tnn_dsl.compiler.model as compiled_model
+
+    monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", False)
+    monkeypatch.delenv("TNN_TORCH_SIMD", raising=False)
+    assert compiled_model._inductor_options().get("cpp.vec_isa_ok") is False
+    monkeypatch.setenv("TNN_TORCH_SIMD", "1")
+    opts = compiled_model._inductor_options()
+    assert "cpp.vec_isa_ok" not in opts
+    monkeypatch.setenv("TNN_TORCH_SIMD", "0")
+    monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", True)
+    assert compiled_model._inductor_options().get("cpp.vec_isa_ok") is False
+    monkeypatch.setenv("TNN_TORCH_SIMD", "yes")
+    with pytest.raises(tnn_dsl.TnnError, match="TNN_TORCH_SIMD must be 0 or 1"):
+        tnn_dsl.compile(tnn_dsl.loads(CHAIN, "chain.thn"), "torch", torch_compile=True)

@@ -128,7 +128,8 @@ twice, scalar and vectorised, was most of inductor's code generation. Cold compi
 final MAE after 53 → 39 s, M3 169 → 131 s (``python benchmarks/bench_train.py``); batched forward + gradient 2.75
 → 2.84 µs per window-step, batched forward 0.79 → 0.96, single sequence 9.6 → 9.2 µs/step (``python
 benchmarks/bench_rollout.py --only jax,torchc``, one after the other). :class:`~.torch_adjoint.CompiledScan` keeps
-the option from leaking into the process's other graphs. ``True``: SIMD kernels, :data:`TORCH_SIMD_BITS` wide.
+the option from leaking into the process's other graphs. ``True``: SIMD kernels, :data:`TORCH_SIMD_BITS` wide. The
+environment variable ``TNN_TORCH_SIMD`` (``1``/``0``) overrides it (:func:`_torch_vectorize`).
 
 Since the small products run batch-last (:func:`~.backends.torch_ops.fused_matmul`, 2026-12-03) the SIMD kernels
 run along the windows and ``True`` is the faster runtime, but not the faster training from a cold start: case study
@@ -164,6 +165,17 @@ miss, a tensor input's value is not part of the key, and the reused program comp
 6.5 and 5.8 s (dynamo still traces; inductor and the C++ compiler are skipped). ``False``: no caching."""
 
 
+def _torch_vectorize() -> bool:
+    """Whether the compiled scans get SIMD kernels: the environment variable ``TNN_TORCH_SIMD`` (``1``/``0``) where
+    set, else :data:`TORCH_VECTORIZE`. Read when a scan is looked up or compiled, so a process (``tnnc train
+    --backend torch --torch-compile`` under ``TNN_TORCH_SIMD=1``) can turn them on without code."""
+    env = os.environ.get("TNN_TORCH_SIMD", "").strip()
+    if env not in ("", "0", "1"):
+        raise TnnError([Diagnostic(f"TNN_TORCH_SIMD must be 0 or 1, got {env!r}",
+                                   hint="unset it for the default (scalar kernels), or set 1 for SIMD kernels")])
+    return TORCH_VECTORIZE if not env else env == "1"
+
+
 def _inductor_options() -> dict:
     """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`, :data:`TORCH_VECTORIZE`,
     :data:`TORCH_CACHE_SCANS`)."""
@@ -172,7 +184,7 @@ def _inductor_options() -> dict:
         import torch
 
         opts["unsafe_marked_cacheable_functions"] = {"torch.ops.higher_order.scan": torch.__version__}
-    if not TORCH_VECTORIZE:
+    if not _torch_vectorize():
         opts["cpp.vec_isa_ok"] = False  # part of inductor's cache key; see torch_adjoint.CompiledScan for its probe
     elif platform.machine().lower() in ("x86_64", "amd64"):
         opts["cpp.simdlen"] = TORCH_SIMD_BITS
@@ -734,7 +746,8 @@ class Model:
         rollouts with gradients (:meth:`_torch_adjoint_rollout`) and those without (:meth:`_forward_scan`)."""
         from .torch_adjoint import AdjointRollout
 
-        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, TORCH_SIMD_BITS)
+        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, _torch_vectorize(),
+               TORCH_SIMD_BITS)
         runner = self._jit_cache.get(key)
         if runner is None:
             core = self._fused_core()
@@ -833,8 +846,8 @@ class Model:
             flat, rebuild, pkey = flatten(prep)
         except Unsupported:
             flat, rebuild, pkey = None, None, None
-        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, TORCH_VECTORIZE, TORCH_SIMD_BITS,
-               pkey)
+        key = ("torch_scan", dt, integrator, sub, chunk, unbatched, TORCH_CPP_WRAPPER, _torch_vectorize(),
+               TORCH_SIMD_BITS, pkey)
         compiled = self._jit_cache.get(key)
         if compiled is None:
             from torch._higher_order_ops import scan
@@ -1133,6 +1146,7 @@ def compile(net: Network, backend: str = "jax", dtype: str = "float64",  # noqa:
 
             if torch.get_num_threads() != int(torch_threads):
                 torch.set_num_threads(int(torch_threads))
+        _torch_vectorize()  # a malformed TNN_TORCH_SIMD is reported here, not at the first rollout
     if torch_compile is None:
         env = os.environ.get("TNN_TORCH_COMPILE", "").strip()
         if env not in ("", "0", "1"):
