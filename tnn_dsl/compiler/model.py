@@ -148,7 +148,7 @@ elsewhere inductor's choice): AVX2's. On an AVX-512 host inductor's own choice p
 vector operation (two registers); over the batch axis (:func:`~.backends.torch_ops.fused_matmul`) the loops of 24–256
 windows then end in long masked tails. Case study M3, 256 windows × 390 samples, forward + gradient, one process
 (``python benchmarks/profile_torch_adjoint_split.py --vectorize``, then with ``--inductor-option cpp.simdlen=256``,
-one after the other, 2026-12-03 02:01–02:06 UTC, Intel Xeon with AVX-512): the forward and the backward 6.5–7.2 µs
+one after the other, 2026-12-03 02:01–02:06 UTC, Intel Xeon with AVX-512): the forward and the backward 6.7–7.4 µs
 per window-step with 256 bits against 7.6–8.9 with inductor's 512."""
 
 
