@@ -176,3 +176,30 @@ def test_warm_compiles_what_a_fit_calls_first_and_changes_nothing(backend):
     cold.release_programs()
     want = cold.fit(free, max_iter=3, init_delta=np.full(len(free), -0.2), tol=1e-12)
     assert got["sse"] == want["sse"] and got["jacobians"] == want["jacobians"] == 3
+
+
+def test_fitted_initial_states_stay_in_the_datas_start_range(tmp_path):
+    """A training file's fitted initial state is a Levenberg–Marquardt column bounded by
+    :func:`tnn_dsl.fit.ranges.start_range` (the trainer's penalty and the burn-in estimate keep theirs there too).
+    Unbounded, the case study's nominal fit from M1 (the heat pipe's u1 law missing) started ``ph`` at −301 K, ``hx1``
+    at −80 K and ``hs`` at 815 K, the transients standing in for the missing law (4 h data, 2026-12-03)."""
+    from tnn_dsl.doctor.session import _Session
+    from tnn_dsl.fit.ranges import start_range
+    from tnn_dsl.studies.casestudy import generate_case_study
+
+    generate_case_study(tmp_path / "cs", widen=(), n_ood=0, durations=(80 * 60.0, 40 * 60.0, 60.0))
+    m1 = os.path.join(ROOT, "networks", "peltier_heatpipe", "m1.thn")
+    s = _Session(m1, [str(tmp_path / "cs" / "train.csv")], [str(tmp_path / "cs" / "val.csv")], None, "jax",
+                 None, top=5, max_rounds=1, output=None, kinds=None, mlp_check=False, mlp_time=60.0, force=False)
+    s.read_data()
+    s.fit_baseline()
+    eng = s.eng
+    lo, hi = start_range(eng.model, eng.exps[0])
+    x0 = [j for j, c in enumerate(eng.cols) if c.key.startswith(E.X0_PREFIX + "0:")]
+    assert len(x0) == len(eng.model.state_names)
+    assert all((eng.cols[j].lower, eng.cols[j].upper) == (lo, hi) for j in x0)
+    fitted = {eng.cols[j].key: float(eng.params[eng.cols[j].key]) for j in x0}
+    assert all(lo <= v <= hi for v in fitted.values()), (lo, hi, fitted)
+    # a step far below the range lands on its edge
+    p = eng.apply(eng.params, x0, np.full(len(x0), -1e4), trust=False)
+    assert all(float(p[eng.cols[j].key]) == lo for j in x0)

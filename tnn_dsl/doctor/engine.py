@@ -13,6 +13,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..compiler import backend_of
+from ..fit.ranges import start_range
 from ..ir import Input, Network, Param
 from .base import Candidate, Extended
 
@@ -83,7 +84,8 @@ def x0_key(i: int, state: str) -> str:
 class _InitPlan:
     """Where the doctor's free runs start (the rule of :mod:`tnn_dsl.fit.initial`).
 
-    ``estimate``: each training file's initial state is fitted with the parameters (Levenberg–Marquardt columns,
+    ``estimate``: each training file's initial state is fitted with the parameters (Levenberg–Marquardt columns
+    bounded to :func:`~tnn_dsl.fit.ranges.start_range`,
     so the score test treats it as a nuisance); a held-out file's is estimated from its first ``burn[i]`` samples
     with the parameters fixed, and those samples are not scored. ``measured``: the steady state of the first
     inputs with the sensed nodes at their first readings, fixed. ``steady``: the steady state of the first inputs
@@ -889,10 +891,12 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     if plan.rule != "steady":  # each experiment's initial state: training files' free (``estimate``)
         has_train = [bool(m.any()) for m in np.split(train_mask, np.cumsum([e.n_steps for e in exps])[:-1])]
         for i, h in enumerate(has_train):
+            # a fitted start stays where the trainer's penalty and the burn-in estimate keep theirs (start_range)
+            lo, hi = start_range(model, exps[i]) if h and plan.rule == "estimate" else (None, None)
             for n in model.state_names:
                 params0[x0_key(i, n)] = np.asarray(0.0)
                 if h and plan.rule == "estimate":
-                    free_cols.append(_Col(x0_key(i, n), 0, False))
+                    free_cols.append(_Col(x0_key(i, n), 0, False, lo, hi))
     cand_cols: list[_Col] = []
     seen: dict[tuple[str, int], int] = {(c.key, c.index): i for i, c in enumerate(free_cols)}
     cols_of: dict[str, list[int]] = {}
