@@ -101,6 +101,29 @@ def test_the_second_start_puts_only_the_moved_constants_back_at_their_written_va
     assert written_values(eng, start, ["R_hp1"]) is None
 
 
+def test_the_second_start_puts_the_users_learned_functions_back_at_their_nominal_values():
+    """M1's ``learn R_hp1, R_hp2, R_hpa as const`` absorbs the missing u1 law in the baseline fit (``R_hp2`` 0.2 →
+    0.0074 K/W): the written start puts the fitted arrays of the user's learned functions (the engine's columns) back
+    at their initial values, where every target is its written value; a candidate's own columns, the normalisation
+    statistics and the initial states are kept, and nothing moves when no constant moved far."""
+    col = lambda key: SimpleNamespace(key=key)  # noqa: E731
+    eng = SimpleNamespace(params0={"pe.resistance": np.array(2.0), "fn_R_hp1.b": np.zeros(3),
+                                   "fn_R_hp1.W": np.zeros((1, 3)), "fn_R_hp1.x_mean": np.array([0.0]),
+                                   "dx_params.b": np.zeros(2)},
+                          cols=[col("pe.resistance"), col("fn_R_hp1.b"), col("fn_R_hp1.W"), col("dx_params.b")])
+    start = {"pe.resistance": np.array(7.2), "fn_R_hp1.b": np.array([1.01, -1.46, 0.24]),
+             "fn_R_hp1.W": np.array([[1.3, 0.0, 0.26]]), "fn_R_hp1.x_mean": np.array([0.475]),
+             "dx_params.b": np.array([0.1, 0.2]), "x0:0:hp": np.array(309.4)}
+    w = written_values(eng, start, ["pe.resistance"], ["fn_R_hp1"])
+    assert float(w["pe.resistance"]) == 2.0
+    assert not w["fn_R_hp1.b"].any() and not w["fn_R_hp1.W"].any() and w["fn_R_hp1.W"].shape == (1, 3)
+    assert float(w["fn_R_hp1.x_mean"][0]) == 0.475  # a statistic, not a column
+    assert list(w["dx_params.b"]) == [0.1, 0.2] and float(w["x0:0:hp"]) == 309.4  # not the user's function
+    assert list(start["fn_R_hp1.b"]) == [1.01, -1.46, 0.24]  # the round's start is not touched
+    assert written_values(eng, start, [], ["fn_R_hp1"]) is None
+    assert written_values(eng, start, ["R_hp1"], ["fn_R_hp1"]) is None
+
+
 class _Bowl:
     """An engine with two basins: from ``pe.resistance`` near its written 2 Ω the fit reaches a lower training SSE."""
 

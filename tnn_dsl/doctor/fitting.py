@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time as _time
+from typing import Iterable
 
 import numpy as np
 from scipy import stats
@@ -18,9 +19,11 @@ from .engine import FIT_ITER_FIRST, _alias, _Engine, _make_engine
 from .structural import apply_structural
 
 
-def written_values(eng: _Engine, params: dict, names: list[str]) -> dict | None:
-    """``params`` with the free constants ``names`` put back at the values written in the file (``eng.params0``);
-    ``None`` when none of them is in the engine."""
+def written_values(eng: _Engine, params: dict, names: list[str], learned: Iterable[str] = ()) -> dict | None:
+    """``params`` with the free constants ``names`` put back at the values written in the file (``eng.params0``),
+    and the fitted arrays (the engine's columns) of the learned functions ``learned`` (the user's ``learn`` clauses,
+    by function name) at their initial values, where every target equals its written nominal value; ``None`` when
+    none of the constants is in the engine."""
     p = {k: np.array(v, copy=True) for k, v in params.items()}
     n = 0
     for name in names:
@@ -28,7 +31,13 @@ def written_values(eng: _Engine, params: dict, names: list[str]) -> dict | None:
         if kk is not None and kk in eng.params0:
             p[kk] = np.array(eng.params0[kk], dtype=float, copy=True)
             n += 1
-    return p if n else None
+    if not n:
+        return None
+    own = set(learned)
+    for key in {c.key for c in eng.cols if c.key.split(".", 1)[0] in own} if own else ():
+        if key in eng.params0 and key in p:
+            p[key] = np.array(eng.params0[key], dtype=float, copy=True).reshape(p[key].shape)
+    return p
 
 
 def continue_fit(eng: _Engine, act: list[int], info: dict, max_iter: int, deadline, tol: float,
@@ -44,19 +53,24 @@ def continue_fit(eng: _Engine, act: list[int], info: dict, max_iter: int, deadli
 
 
 def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, names: list[str], max_iter: int,
-                       deadline, say) -> dict:
+                       deadline, say, learned: Iterable[str] = ()) -> dict:
     """After a fit from ``start`` (``info``, ``eng.params`` its result): the same fit again from ``start`` with the
     free constants ``names`` at the values written in the file (the fit so far moved them far:
-    :func:`tnn_dsl.doctor.session._moved`); the lower training SSE wins and is left in ``eng.params``. Returns the
+    :func:`tnn_dsl.doctor.session._moved`) and the user's learned functions ``learned`` at their written nominal
+    values (:func:`written_values`); the lower training SSE wins and is left in ``eng.params``. Returns the
     winner's info (``"start": "written"`` when the second start won). The compensation of the baseline is a basin
     the candidate's fit may not leave: a 0.3 K offset of the case study's only sensor drove ``pe.resistance`` to the
     edge of its prior range (−99 %) and ``pe.seebeck`` −41 %, and every candidate fitted from there, the offset too,
-    stayed in it (suite case ``casestudy/sensor_offset``).
+    stayed in it (suite case ``casestudy/sensor_offset``). The user's learned functions go back too: M1's ``learn
+    R_hp1, R_hp2, R_hpa as const`` had absorbed the missing u1 law in the baseline fit (``R_hp2`` 0.2 → 0.0074 K/W),
+    and with only the Peltier's constants reset the three resistances depending on u1 converged at a training SSE
+    of 1.24 K² with ``R_hp2`` still 0.0074 K/W; from the written resistances they reach 0.33 K² after four
+    Jacobians, the three near the truth's values and slopes (the case study's 4 h, 2026-12-03; BENCHMARKS.md).
 
     Successive halving between the two starts: the second one gets :data:`FIT_ITER_FIRST` Jacobians first and goes
     on to ``max_iter`` only if its training SSE is then below the first start's (on the case study's 4 h, a probe's
     second start had crawled to its cap of 80 Jacobians, 12 s, and lost: 184.8 against 138.9 K²)."""
-    start = written_values(eng, start, names) if names else None
+    start = written_values(eng, start, names, learned) if names else None
     if start is None or (deadline is not None and _time.monotonic() > deadline):
         return info
     first = eng.params

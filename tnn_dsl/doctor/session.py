@@ -674,7 +674,8 @@ class _Session:
             info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4, stall=True)
             tell(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, "
                  f"{info['jacobians']} Jacobians{note})")
-            info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline, tell)
+            info = refit_from_written(e_s, act, info, start_params, self.moved_names, max_iter, self.deadline, tell,
+                                      learned=[fn.name for fn in self.net.learned])
         f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
         f.update(act=act, train_sse=info["sse"], more=bool(info["capped"]), parts=parts,
                  cand_cols={p.key: list(c_s.get(p.key, [])) for p in parts})
