@@ -5,6 +5,7 @@ otherwise (with more, the sums overlap).
 
     python benchmarks/profile_diagnose.py --dir /tmp/cs_profile                       # as shipped
     python benchmarks/profile_diagnose.py --dir /tmp/cs_profile --jacobian forward    # exact Jacobians steering
+    python benchmarks/profile_diagnose.py --dir /tmp/cs_profile --backend torch --rounds 1 --budget 300
 
 Prints the doctor's progress lines with their time, then one line per wrapped call (count, seconds, ms per call),
 the compilation sums and the session's own timings; nothing is written but the generated data under ``--dir``.
@@ -48,6 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--jacobian", choices=("difference", "forward"), default=None,
                     help="how the Levenberg–Marquardt steps take their Jacobians (default: the doctor's LM_JACOBIAN)")
+    ap.add_argument("--backend", choices=("jax", "torch"), default="jax")
+    ap.add_argument("--budget", type=float, default=None, help="the doctor's budget_s (default: none)")
     a = ap.parse_args(argv)
 
     from jax import monitoring
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
     monitoring.register_event_duration_secs_listener(on_event)
     t0 = time.perf_counter()
     d = diagnose(str(M1), [str(data / "train.csv")], val=[str(data / "val.csv")], threads=a.threads,
-                 max_rounds=a.rounds, mlp_check=False,
+                 max_rounds=a.rounds, mlp_check=False, backend=a.backend, budget_s=a.budget,
                  progress=lambda s: print(f"[{time.perf_counter() - t0:6.1f}] {s}", flush=True))
     print(f"total {time.perf_counter() - t0:.1f} s; gain ÷{d.baseline['val_mae'] / d.extended['val_mae']:.2f}; "
           f"accepted: {'; '.join(f.words[:70] for f in d.accepted) or 'nothing'}")

@@ -203,3 +203,55 @@ def test_fitted_initial_states_stay_in_the_datas_start_range(tmp_path):
     # a step far below the range lands on its edge
     p = eng.apply(eng.params, x0, np.full(len(x0), -1e4), trust=False)
     assert all(float(p[eng.cols[j].key]) == lo for j in x0)
+
+
+@pytest.mark.slow  # compiling: ~40-60 s; the fast variant is the next test
+def test_torchs_compiled_rollouts_give_the_doctor_the_same_simulations_and_jacobians(monkeypatch):
+    """On torch the doctor compiles its models' rollouts once its files are long enough (``doctor_model``): a
+    simulation is one compiled scan instead of a Python call per sample, and the forward-difference Jacobian runs its
+    simulations one after another (``Backend.batched(..., loop=True)``: under ``vmap`` the rollout would run eager).
+    The compiled engine gives the eager engine's simulation to 1e-9 K and its Jacobian to 1e-6 of each column's
+    largest entry (issue 18: the case study's nominal fit spent 117 s of the demo's 120 s doctor budget eager)."""
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+    monkeypatch.setattr(E, "DOCTOR_COMPILE_MIN_SAMPLES", 10**9)
+    eager, free = _nominal_engine("torch")
+    assert not eager.model.torch_compile
+    monkeypatch.setattr(E, "DOCTOR_COMPILE_MIN_SAMPLES", 1)
+    compiled, free_c = _nominal_engine("torch")
+    assert compiled.model.torch_compile and free_c == free
+    compiled.params = {k: np.array(v, copy=True) for k, v in eager.params.items()}
+    y_e, x_e = eager.simulate()
+    y_c, x_c = compiled.simulate()
+    assert np.abs(y_c - y_e).max() <= 1e-9 and np.abs(x_c - x_e).max() <= 1e-9
+    cols = free + [j for j, c in enumerate(eager.cols) if c.key.startswith(E.X0_PREFIX)]
+    j_e = eager.jacobian(cols, method="difference")
+    j_c = compiled.jacobian(cols, method="difference")
+    assert np.all(np.abs(j_c - j_e).max(0) <= 1e-6 * np.abs(j_e).max(0)), np.abs(j_c - j_e).max(0)
+
+
+def test_the_doctor_compiles_torch_rollouts_for_long_files_unless_told_otherwise(monkeypatch):
+    """The fast variant of the test above: which torch models compile (the files' samples against
+    ``DOCTOR_COMPILE_MIN_SAMPLES``; ``TNN_TORCH_COMPILE`` decides where set; JAX untouched), and the difference
+    Jacobian's one-simulation-at-a-time batch gives what ``vmap`` gives."""
+    import torch
+
+    from tnn_dsl.compiler import backend_of
+
+    net = tnn_dsl.load(TCLAB)
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+    assert E.doctor_model(net, "torch", E.DOCTOR_COMPILE_MIN_SAMPLES).torch_compile
+    assert not E.doctor_model(net, "torch", E.DOCTOR_COMPILE_MIN_SAMPLES - 1).torch_compile
+    assert not getattr(E.doctor_model(net, "jax", 10**9), "torch_compile", False)
+    monkeypatch.setenv("TNN_TORCH_COMPILE", "0")
+    assert not E.doctor_model(net, "torch", 10**9).torch_compile
+    monkeypatch.setenv("TNN_TORCH_COMPILE", "1")
+    assert E.doctor_model(net, "torch", 1).torch_compile
+    B = backend_of(E.doctor_model(net, "torch", 1))
+    a = torch.linspace(0.0, 1.0, 12, dtype=torch.float64).reshape(4, 3)
+    b = torch.arange(4.0, dtype=torch.float64)
+
+    def f(x, s):
+        return torch.stack([x.sum() * s, (x**2).sum()])
+
+    want = B.batched(f)(a, b)
+    assert torch.equal(B.batched(f, loop=True)(a, b), want) and B.batched(f, loop=True)(a, b).shape == (4, 2)

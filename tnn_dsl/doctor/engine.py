@@ -109,6 +109,28 @@ apart and its diagnosis accepted two more terms (BENCHMARKS.md, 2026-11-29), so 
 doctor's answers were measured with. The forward-mode tangents, tried the same way once, gained nothing from chunks
 (each chunk recomputes the primal), so they stay one batch."""
 
+DOCTOR_COMPILE_MIN_SAMPLES = 2_000
+"""Samples (every training and held-out file together) from which the doctor's torch models compile their rollouts
+(:func:`doctor_model`): a fit simulates the files tens to hundreds of times, and torch's eager rollout costs a Python
+call per sample."""
+
+
+def doctor_model(net: Network, backend: str, n_samples: int):
+    """``net`` compiled for the doctor's engines (float64). On torch its rollouts are compiled (``torch.compile``:
+    one scan per simulation instead of a Python call per sample) when the files hold at least
+    :data:`DOCTOR_COMPILE_MIN_SAMPLES` samples together, unless the environment variable ``TNN_TORCH_COMPILE``
+    decides (``tnn_dsl.compile``)."""
+    import os
+
+    from ..compiler import compile as _compile
+
+    model = _compile(net, backend=backend, dtype="float64")
+    if (backend == "torch" and not os.environ.get("TNN_TORCH_COMPILE", "").strip()
+            and int(n_samples) >= DOCTOR_COMPILE_MIN_SAMPLES):
+        model.compile_torch_rollouts()
+    return model
+
+
 def _even_chunk(m: int, most: int | None) -> int | None:
     """The chunk size that splits a batch of ``m`` into even chunks of at most ``most`` (None: no chunks)."""
     if not most or m <= most:
@@ -134,12 +156,11 @@ class _Engine:
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
                  params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0,
                  init: _InitPlan | None = None):
-        from ..compiler import compile as _compile
-
         self.net = net
         self.init = init or _InitPlan()
         self.backend = backend
-        self.model = model if model is not None else _compile(net, backend=backend, dtype="float64")
+        self.model = model if model is not None else doctor_model(
+            net, backend, sum(int(e.n_steps) for e in experiments))
         self.exps = experiments
         self.n_force = n_force  # trailing forcing inputs (W, one per node; zero in every simulation)
         # the experiments holding training rows come first: the score test simulates only those
@@ -331,7 +352,9 @@ class _Engine:
             """Forward differences ``(y(θ = s) − y(0)) / h`` along each row ``s`` of ``steps`` (m, n_θ), one
             coordinate ``h`` ≠ 0 per row (a zero row gives zeros) → (m, len(idx)); the unperturbed simulation rides
             in the same batch, so both come from one compiled program."""
-            ys = B.batched(lambda th: out_flat(base, th, idx), chunk=_even_chunk(int(steps.shape[0]) + 1, JAC_BATCH))(
+            # torch with compiled rollouts: one simulation after another, each the compiled scan (vmap runs eager)
+            ys = B.batched(lambda th: out_flat(base, th, idx), chunk=_even_chunk(int(steps.shape[0]) + 1, JAC_BATCH),
+                           loop=bool(getattr(model, "torch_compile", False)))(
                 xp.concat([steps[:1] * 0.0, steps], 0))
             h = steps.sum(1)
             return (ys[1:] - ys[:1]) / B.where(h == 0, h + 1.0, h)[:, None]
@@ -879,11 +902,9 @@ def _make_engine(ext_s: Extended, net_x: Network, exps, train_mask, val_mask, ba
     """Compile ``ext_s`` and set up an engine whose columns are the nominal free scalars followed by the
     candidate columns of ``keys``; parameters from ``state``; learned-function statistics from the reference
     nominal run (the same for every network, so values carry over)."""
-    from ..compiler import compile as _compile
-
     n_force = 0 if with_candidates else len(ext_s.network.nodes)
-    model = _compile(ext_s.network if with_candidates else _with_forcing(ext_s.network), backend=backend,
-                     dtype="float64")
+    model = doctor_model(ext_s.network if with_candidates else _with_forcing(ext_s.network), backend,
+                         sum(int(e.n_steps) for e in exps))
     specs = model.param_specs
     params0 = {k: np.array(v, dtype=float) for k, v in model.to_numpy(model.init_params(seed=0)).items()}
     free_cols = _free_columns(net_x, ext_s, specs, params0)
