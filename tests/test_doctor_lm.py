@@ -20,15 +20,18 @@ TCLAB = os.path.join(ROOT, "networks", "tclab", "tclab.thn")
 BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}
 
 
-def _nominal_engine(backend: str):
+def _nominal_engine(backend: str, init: str = "steady"):
     """The nominal TCLab network's engine on data with a planted heat load (the nominal model cannot fit it
-    exactly: a least-squares problem with a non-zero residual), and its free columns."""
+    exactly: a least-squares problem with a non-zero residual), and its free columns; its free runs start by the
+    rule ``init`` (``measured``: fixed starts, each file's steady state at its first readings)."""
     net = tnn_dsl.load(TCLAB)
     pl = plant(net, BOUNDS, "heat_load", "Q[h2]", "Q1", 0.3, noise=0.0, seed=2, n_train=300, n_val=10,
                backend="jax", hold=(20, 60))  # the data; the engine below runs on ``backend``
     exps, tm, vm = E._split_masks(pl.train, pl.val)
     ext0 = build_extended(net, ["Q1", "Q2"], kinds=("sensor_offset",), only=set())
-    eng, _, free, _ = E._make_engine(ext0, net, exps, tm, vm, backend, E._State(), {}, [])
+    eng, _, free, _ = E._make_engine(ext0, net, exps, tm, vm, backend, E._State(E._InitPlan(init)), {}, [])
+    if init != "steady":
+        eng.initial_states(range(len(exps)), init)
     return eng, [j for j in free if not eng.cols[j].key.startswith(E.X0_PREFIX)]
 
 
@@ -214,10 +217,10 @@ def test_torchs_compiled_rollouts_give_the_doctor_the_same_simulations_and_jacob
     largest entry (issue 18: the case study's nominal fit spent 117 s of the demo's 120 s doctor budget eager)."""
     monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
     monkeypatch.setattr(E, "DOCTOR_COMPILE_MIN_SAMPLES", 10**9)
-    eager, free = _nominal_engine("torch")
+    eager, free = _nominal_engine("torch", "measured")
     assert not eager.model.torch_compile
     monkeypatch.setattr(E, "DOCTOR_COMPILE_MIN_SAMPLES", 1)
-    compiled, free_c = _nominal_engine("torch")
+    compiled, free_c = _nominal_engine("torch", "measured")
     assert compiled.model.torch_compile and free_c == free
     compiled.params = {k: np.array(v, copy=True) for k, v in eager.params.items()}
     y_e, x_e = eager.simulate()
@@ -227,6 +230,36 @@ def test_torchs_compiled_rollouts_give_the_doctor_the_same_simulations_and_jacob
     j_e = eager.jacobian(cols, method="difference")
     j_c = compiled.jacobian(cols, method="difference")
     assert np.all(np.abs(j_c - j_e).max(0) <= 1e-6 * np.abs(j_e).max(0)), np.abs(j_c - j_e).max(0)
+    # the exact derivatives: torch.func's forward mode (eager) against central differences of compiled simulations
+    assert compiled.by_differences and not eager.by_differences
+    _same_derivatives(eager, compiled, free)
+
+
+def _same_derivatives(exact, central, cols, tol=1e-7):
+    """``central``'s ``jacobian(method="forward")`` and ``forced_jacobian`` (columns and two forcing series) agree with
+    ``exact``'s within ``tol`` of each column's largest entry."""
+    want = exact.jacobian(cols, method="forward")
+    got = central.jacobian(cols, method="forward")
+    assert np.all(np.abs(got - want).max(0) <= tol * np.abs(want).max(0)), np.abs(got - want).max(0)
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(2, exact.n_score_rows, exact.n_force)) * np.array([1.0, 50.0])[:, None, None]
+    want = exact.forced_jacobian(cols[:3], F, chunk=4)
+    got = central.forced_jacobian(cols[:3], F, chunk=4)
+    assert got.shape == want.shape == (exact.train_idx.size, 5)
+    assert np.all(np.abs(got - want).max(0) <= tol * np.abs(want).max(0)), np.abs(got - want).max(0)
+
+
+def test_central_differences_give_the_exact_derivatives(monkeypatch):
+    """The fast variant of the derivative check above, on JAX: the same engine's central differences (what a torch
+    engine with compiled rollouts takes, :attr:`_Engine.by_differences`) against its exact forward mode."""
+    exact, free = _nominal_engine("jax", "measured")
+    central, _ = _nominal_engine("jax", "measured")
+    monkeypatch.setattr(E._Engine, "by_differences", property(lambda self: self is central))
+    assert central.by_differences and not exact.by_differences and exact.n_force > 0
+    calls = []
+    monkeypatch.setattr(central, "_forced_central", lambda *a, f=central._forced_central: calls.append(1) or f(*a))
+    _same_derivatives(exact, central, free)
+    assert calls, "the forcing columns were taken by central differences"
 
 
 def test_the_doctor_compiles_torch_rollouts_for_long_files_unless_told_otherwise(monkeypatch):

@@ -39,6 +39,15 @@ DIFF_STEP = 1e-6
 change of 1e-6), else times max(1, |value|). The truncation error (step × curvature) and the round-off of outputs
 near 300 K (2e-16 · 300 K / step) are both about 1e-6 relative."""
 
+CENTRAL_STEP = 1e-5
+"""The central-difference step of a torch engine's exact derivatives (:attr:`_Engine.by_differences`): in a log
+column (a relative change), else times max(1, |value|). Truncation (step² × the third derivative) and round-off
+(2e-16 · 300 K / step) both near 1e-10 relative."""
+
+FORCED_STEP_W = 1e-3
+"""The peak heat flow (W) of a forcing series in :meth:`_Engine.forced_jacobian`'s central differences (torch with
+compiled rollouts): the response is linear in it up to terms of its square."""
+
 FIT_ITER_FIRST = 4  # ... all shortlisted candidates get this many Jacobians first; the FIT_CONTINUE best go on
 
 STALL_JACOBIANS = 4
@@ -138,7 +147,7 @@ def _even_chunk(m: int, most: int | None) -> int | None:
     return -(-m // -(-m // most))
 
 
-_PROGRAMS = ("_sim", "_sim_train", "_jac", "_jac_diff", "_jac_forced", "_point", "_inv_cap")
+_PROGRAMS = ("_sim", "_sim_train", "_jac", "_jac_diff", "_jac_forced", "_forced_diff", "_point", "_inv_cap")
 """The engine's compiled programs (:meth:`_Engine._setup_backend`), let go by :meth:`_Engine.release_programs` and
 built again on first use."""
 
@@ -364,6 +373,24 @@ class _Engine:
             return B.batched_jvp(lambda th, F: out_forced(base, th, F, idx), (zeros(tan_theta.shape[1]), F0),
                                  (tan_theta, tan_F))
 
+        def forced_diff(base, F, eps, idx):
+            """Central differences of the training outputs along forcing series: ``(y(ε_k·F_k) − y(−ε_k·F_k)) / 2ε_k``
+            for ``F (m, N_score, n_force)`` W and steps ``eps (m,)`` → (m, len(idx)). The parameters are shared, only
+            the inputs differ: the 2m simulations of a file are one batched rollout (torch's compiled scan takes a
+            batch of input sequences). Only for fitted starts (the ``x0`` keys; a steady start would move with
+            F's first sample)."""
+            m = int(F.shape[0])
+            FF = xp.concat([F * eps[:, None, None], -F * eps[:, None, None]], 0)
+            ys, s0 = [], 0
+            for i, (u, dt, n) in enumerate(zip(u_list[:n_sc], dts[:n_sc], lens)):
+                ub = u[:, : u.shape[1] - nf]
+                uu = xp.concat([xp.broadcast_to(ub, (2 * m, *tuple(ub.shape))), FF[:, s0: s0 + n]], -1)
+                s0 += n
+                _, y = model.rollout(base, start(base, i, ub), uu, dt)
+                ys.append(y)
+            Y = xp.concat(ys, 1).reshape(2 * m, -1)[:, idx]
+            return (Y[:m] - Y[m:]) / (2.0 * eps[:, None])
+
         def point(base, tangents, X, U):
             """∂rhs/∂θ and ∂outputs/∂θ at given states/inputs (no time loop): (m, N, ns), (m, N, n_out)."""
             def f(th):
@@ -388,6 +415,7 @@ class _Engine:
         self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
         self._jac_diff = lambda base, steps, idx: jac_diff_j(base, steps, B.asarray(idx))  # noqa: E731
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
+        self._forced_diff = B.no_grad(forced_diff)
         self._point = jit(point)
         self._inv_cap = jit(inv_cap)
         self._to = B.tree
@@ -425,6 +453,8 @@ class _Engine:
         the Levenberg–Marquardt directions of :meth:`fit`)."""
         if method not in ("forward", "difference"):
             raise ValueError(f"method must be 'forward' or 'difference', got {method!r}")
+        if method == "forward" and self.by_differences:
+            return self._central_jacobian(active)
         base = self._arg(self.params)
         n = len(self.cols)
         out = []
@@ -438,6 +468,35 @@ class _Engine:
             jac = self._jac if method == "forward" else self._jac_diff
             jc = np.asarray(self._np(jac(base, tan_b, self.train_idx)))
             out.append(jc[: len(part)].T)
+        return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    @property
+    def by_differences(self) -> bool:
+        """Whether this engine takes its exact derivatives (:meth:`jacobian`'s ``"forward"``, :meth:`forced_jacobian`)
+        by central differences of compiled simulations: torch with compiled rollouts (:func:`doctor_model`), where
+        ``torch.func``'s forward mode would run the rollout eager, a Python call per sample and tangent batch (the
+        case study's score test ran for over 20 minutes so). Central differences with :data:`CENTRAL_STEP` agree with
+        JAX's forward mode to about 1e-8 of a column's largest entry (``tests/test_doctor_lm.py``)."""
+        return bool(getattr(self.model, "torch_compile", False))
+
+    def _central_jacobian(self, active: list[int]) -> np.ndarray:
+        """∂ y_model[train rows] / ∂θ_active by central differences, (n_train, len(active)): the average of a forward
+        and a backward difference of :data:`CENTRAL_STEP` (in a log column; times max(1, |value|) in another), the
+        simulations one after another (:meth:`jacobian`'s ``"difference"`` program, twice)."""
+        base = self._arg(self.params)
+        n = len(self.cols)
+        out = []
+        size = 4 * max(1, -(-len(active) // 4))
+        for s0 in range(0, len(active), size):
+            part = active[s0: s0 + size]
+            tan = np.zeros((size, n))
+            for r, j in enumerate(part):
+                c = self.cols[j]
+                v = float(self.params[c.key].reshape(-1)[c.index])
+                tan[r, j] = CENTRAL_STEP if c.log else CENTRAL_STEP * max(1.0, abs(v))
+            up = np.asarray(self._np(self._jac_diff(base, self._arg({"t": tan})["t"], self.train_idx)))
+            down = np.asarray(self._np(self._jac_diff(base, self._arg({"t": -tan})["t"], self.train_idx)))
+            out.append((0.5 * (up + down))[: len(part)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
 
     def _diff_step(self, j: int) -> float:
@@ -460,6 +519,8 @@ class _Engine:
         """∂ y_model[train rows] w.r.t. the columns ``active`` (first block) and w.r.t. the forcing heat-flow
         time series ``forcing (m, N_score, n_force)`` W (second block): shape (n_train, len(active) + m).
         One compiled shape: ``chunk`` tangents per call."""
+        if self.by_differences and self.init.rule != "steady":
+            return self._forced_central(active, forcing, chunk)
         base = self._arg(self.params)
         n = len(self.cols)
         nsr, nf = self.n_score_rows, self.n_force
@@ -481,6 +542,23 @@ class _Engine:
             jc = np.asarray(self._np(self._jac_forced(base, t["a"], t["f"], self.train_idx)))
             out.append(jc[: min(chunk, total - s0)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    def _forced_central(self, active: list[int], forcing: np.ndarray | None, chunk: int) -> np.ndarray:
+        """:meth:`forced_jacobian` by central differences (:attr:`by_differences`): the columns ``active`` as
+        :meth:`_central_jacobian`, the forcing series each scaled to a peak of :data:`FORCED_STEP_W` W, ``chunk`` of
+        them (2·``chunk`` simulations) in one batched rollout per file."""
+        blocks = [self._central_jacobian(list(active))] if len(active) else []
+        if forcing is not None and forcing.shape[0]:
+            base = self._arg(self.params)
+            for s0 in range(0, forcing.shape[0], chunk):
+                F = np.zeros((chunk, *forcing.shape[1:]))
+                F[: min(chunk, forcing.shape[0] - s0)] = forcing[s0: s0 + chunk]
+                peak = np.abs(F).reshape(chunk, -1).max(1)
+                eps = FORCED_STEP_W / np.where(peak > 0, peak, 1.0)
+                t = self._arg({"f": F, "e": eps})
+                jc = np.asarray(self._np(self._forced_diff(base, t["f"], t["e"], self.train_idx)))
+                blocks.append(jc[: min(chunk, forcing.shape[0] - s0)].T)
+        return np.concatenate(blocks, axis=1) if blocks else np.zeros((self.train_idx.size, 0))
 
     def point_derivs(self, active: list[int], X: np.ndarray, U: np.ndarray, chunk: int = 32):
         """(∂rhs/∂θ (m, N, ns), ∂outputs/∂θ (m, N, n_out)) for the columns ``active`` at states ``X (N, ns)`` K
