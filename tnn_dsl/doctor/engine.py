@@ -458,7 +458,9 @@ class _Engine:
         base = self._arg(self.params)
         n = len(self.cols)
         out = []
-        size = min(chunk, 4 * max(1, -(-len(active) // 4)))
+        # a compiled shape per size (JAX): rounded up to a multiple of 4; torch's compiled rollouts run one after
+        # another (``by_differences``), where a padding row would be one more simulation
+        size = min(chunk, len(active) if self.by_differences else 4 * max(1, -(-len(active) // 4)))
         for s in range(0, len(active), size):
             part = active[s: s + size]
             tan = np.zeros((size, n))
@@ -482,22 +484,21 @@ class _Engine:
     def _central_jacobian(self, active: list[int]) -> np.ndarray:
         """∂ y_model[train rows] / ∂θ_active by central differences, (n_train, len(active)): the average of a forward
         and a backward difference of :data:`CENTRAL_STEP` (in a log column; times max(1, |value|) in another), the
-        simulations one after another (:meth:`jacobian`'s ``"difference"`` program, twice)."""
+        simulations one after another (:meth:`jacobian`'s ``"difference"`` program, once for the steps up and down
+        together: 2·len(active) + 1 simulations, the unperturbed one shared)."""
         base = self._arg(self.params)
         n = len(self.cols)
-        out = []
-        size = 4 * max(1, -(-len(active) // 4))
-        for s0 in range(0, len(active), size):
-            part = active[s0: s0 + size]
-            tan = np.zeros((size, n))
-            for r, j in enumerate(part):
-                c = self.cols[j]
-                v = float(self.params[c.key].reshape(-1)[c.index])
-                tan[r, j] = CENTRAL_STEP if c.log else CENTRAL_STEP * max(1.0, abs(v))
-            up = np.asarray(self._np(self._jac_diff(base, self._arg({"t": tan})["t"], self.train_idx)))
-            down = np.asarray(self._np(self._jac_diff(base, self._arg({"t": -tan})["t"], self.train_idx)))
-            out.append((0.5 * (up + down))[: len(part)].T)
-        return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+        m = len(active)
+        if not m:
+            return np.zeros((self.train_idx.size, 0))
+        tan = np.zeros((m, n))
+        for r, j in enumerate(active):
+            c = self.cols[j]
+            v = float(self.params[c.key].reshape(-1)[c.index])
+            tan[r, j] = CENTRAL_STEP if c.log else CENTRAL_STEP * max(1.0, abs(v))
+        d = np.asarray(self._np(self._jac_diff(base, self._arg({"t": np.concatenate([tan, -tan])})["t"],
+                                               self.train_idx)))
+        return (0.5 * (d[:m] + d[m:])).T
 
     def _diff_step(self, j: int) -> float:
         """Column ``j``'s forward-difference step in its coordinate (``value·e^h`` in a log column, ``value + h`` in
