@@ -212,7 +212,7 @@ def test_fitted_initial_states_stay_in_the_datas_start_range(tmp_path):
 def test_torchs_compiled_rollouts_give_the_doctor_the_same_simulations_and_jacobians(monkeypatch):
     """On torch the doctor compiles its models' rollouts once its files are long enough (``doctor_model``): a
     simulation is one compiled scan instead of a Python call per sample, and the forward-difference Jacobian runs its
-    simulations one after another (``Backend.batched(..., loop=True)``: under ``vmap`` the rollout would run eager).
+    simulations as one compiled scan vmapped over the parameter sets (``Model.rollouts_of``).
     The compiled engine gives the eager engine's simulation to 1e-9 K and its Jacobian to 1e-6 of each column's
     largest entry (issue 18: the case study's nominal fit spent 117 s of the demo's 120 s doctor budget eager)."""
     monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
@@ -264,12 +264,8 @@ def test_central_differences_give_the_exact_derivatives(monkeypatch):
 
 def test_the_doctor_compiles_torch_rollouts_for_long_files_unless_told_otherwise(monkeypatch):
     """The fast variant of the test above: which torch models compile (the files' samples against
-    ``DOCTOR_COMPILE_MIN_SAMPLES``; ``TNN_TORCH_COMPILE`` decides where set; JAX untouched), and the difference
-    Jacobian's one-simulation-at-a-time batch gives what ``vmap`` gives."""
-    import torch
-
-    from tnn_dsl.compiler import backend_of
-
+    ``DOCTOR_COMPILE_MIN_SAMPLES``; ``TNN_TORCH_COMPILE`` decides where set; JAX untouched). The compiled rollouts
+    of many parameter sets (the difference Jacobians') are checked in ``tests/test_torch_compile.py``."""
     net = tnn_dsl.load(TCLAB)
     monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
     assert E.doctor_model(net, "torch", E.DOCTOR_COMPILE_MIN_SAMPLES).torch_compile
@@ -279,12 +275,3 @@ def test_the_doctor_compiles_torch_rollouts_for_long_files_unless_told_otherwise
     assert not E.doctor_model(net, "torch", 10**9).torch_compile
     monkeypatch.setenv("TNN_TORCH_COMPILE", "1")
     assert E.doctor_model(net, "torch", 1).torch_compile
-    B = backend_of(E.doctor_model(net, "torch", 1))
-    a = torch.linspace(0.0, 1.0, 12, dtype=torch.float64).reshape(4, 3)
-    b = torch.arange(4.0, dtype=torch.float64)
-
-    def f(x, s):
-        return torch.stack([x.sum() * s, (x**2).sum()])
-
-    want = B.batched(f)(a, b)
-    assert torch.equal(B.batched(f, loop=True)(a, b), want) and B.batched(f, loop=True)(a, b).shape == (4, 2)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import tnn_dsl
+import tnn_dsl.compiler.model as M
 from tnn_dsl import TnnError
 
 torch = pytest.importorskip("torch")
@@ -107,6 +108,85 @@ def test_compiled_torch_matches_eager_and_jax_and_recompiles_for_new_windows():
     assert mc.torch_compile
     for s_ref, y_ref in ((s_e.numpy(), y_e.numpy()), (np.asarray(s_j), np.asarray(y_j))):
         assert np.max(np.abs(s.numpy() - s_ref)) <= 1e-9 and np.max(np.abs(y.numpy() - y_ref)) <= 1e-9
+
+
+def _param_sets_case():
+    """The compiled, eager and JAX models of ``SMALL``, random parameter sets, their initial states and inputs, and
+    ``want(n_sets, n)``: JAX's rollout of each of the first sets over the first ``n`` samples, stacked."""
+    net = tnn_dsl.loads(SMALL, "small.thn")
+    mc, mj, me = (tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax"),
+                  tnn_dsl.compile(net, "torch"))
+    sets = [nets.random_params(mj, seed) for seed in range(3, 5 + M.TORCH_PARAM_BATCH)]
+    T0s, U = _batch(mj, 40, B=len(sets))
+    U = U[0]
+
+    def want(n_sets, n):
+        runs = [mj.rollout(mj.from_numpy(p), T0s[b], U[:n], 1.0) for b, p in enumerate(sets[:n_sets])]
+        return np.stack([np.asarray(r[0]) for r in runs]), np.stack([np.asarray(r[1]) for r in runs])
+
+    return net, (mc, me, mj), sets, T0s, U, want
+
+
+def _compiled_sets(mc, sets, T0s, U, want, cases):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)  # it really compiled
+        warnings.filterwarnings("error", message="There is a performance drop")  # vmap tracing's, not the user's
+        for n_sets, n in cases:
+            with torch.no_grad():
+                s, y = mc.rollouts_of([mc.from_numpy(p) for p in sets[:n_sets]], torch.as_tensor(T0s[:n_sets]),
+                                      torch.as_tensor(U[:n]), 1.0)
+            s_w, y_w = want(n_sets, n)
+            assert s.shape == s_w.shape and y.shape == y_w.shape
+            assert np.abs(s.numpy() - s_w).max() <= 1e-9 and np.abs(y.numpy() - y_w).max() <= 1e-9
+    assert mc.torch_compile
+
+
+def test_rollouts_of_many_parameter_sets_are_one_rollout_each():
+    """``rollouts_of``: one simulation per parameter set over one input sequence (the doctor's difference Jacobians
+    on torch). Compiled, the sets run as one scan of the step vmapped over them, ``TORCH_PARAM_BATCH`` at a time
+    (fewer padded, more in chunks: one graph); each row is JAX's rollout of its set to 1e-9 K; JAX's and eager torch's
+    ``rollouts_of`` (one rollout after another) agree; a wrong ``T0`` is an error that says what it wanted. The slow
+    variant below adds a second length and the fallback where the graph cannot compile."""
+    _, (mc, me, mj), sets, T0s, U, want = _param_sets_case()
+    _compiled_sets(mc, sets, T0s, U, want, ((3, 40), (2 + M.TORCH_PARAM_BATCH, 40)))
+    sets, T0s = sets[:4], T0s[:4]
+    s_j, y_j = mj.rollouts_of([mj.from_numpy(p) for p in sets], T0s, U, 1.0)
+    s_e, _ = me.rollouts_of([me.from_numpy(p) for p in sets], torch.as_tensor(T0s), torch.as_tensor(U), 1.0)
+    s_w, y_w = want(4, 40)
+    assert np.abs(np.asarray(s_j) - s_w).max() <= 1e-12 and np.abs(np.asarray(y_j) - y_w).max() <= 1e-12
+    assert np.abs(s_e.numpy() - s_w).max() <= 1e-9
+    with pytest.raises(tnn_dsl.TnnError, match="one row per parameter set"):
+        mj.rollouts_of([mj.from_numpy(p) for p in sets], T0s[:2], U, 1.0)
+
+
+@pytest.mark.slow  # three compilations, ~45 s; the fast variant is the test above
+def test_rollouts_of_compiles_each_length_and_falls_back_where_it_cannot_compile():
+    """A second rollout length gets a graph of its own (not stale shapes); where the vmapped graph cannot be
+    compiled, one warning and the sets one after another, the compiled model's own rollouts untouched."""
+    net, (mc, _, _), sets, T0s, U, want = _param_sets_case()
+    _compiled_sets(mc, sets, T0s, U, want, ((3, 40), (2, 25)))
+    m2 = tnn_dsl.compile(net, "torch", torch_compile=True)
+    real = m2._compiled_torch_param_batch
+
+    def broken(*a):
+        import tnn_dsl.compiler.torch_adjoint as ta
+
+        orig = ta.CompiledScan.__call__
+        ta.CompiledScan.__call__ = lambda self, *args: (_ for _ in ()).throw(RuntimeError("cannot vmap here"))
+        try:
+            return real(*a)
+        finally:
+            ta.CompiledScan.__call__ = orig
+
+    m2._compiled_torch_param_batch = broken
+    sets, T0s = sets[:4], T0s[:4]
+    with torch.no_grad(), pytest.warns(tnn_dsl.TorchCompileWarning, match="cannot vmap here"):
+        s2, _ = m2.rollouts_of([m2.from_numpy(p) for p in sets], torch.as_tensor(T0s), torch.as_tensor(U), 1.0)
+    assert np.abs(s2.numpy() - want(4, 40)[0]).max() <= 1e-9 and m2.torch_compile
+    m2._compiled_torch_param_batch = real
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)  # warned once: the loop, silently
+        m2.rollouts_of([m2.from_numpy(p) for p in sets], torch.as_tensor(T0s), torch.as_tensor(U), 1.0)
 
 
 def test_models_do_not_share_compiled_steps():

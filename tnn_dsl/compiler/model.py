@@ -34,7 +34,7 @@ import platform
 import types
 import warnings
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -150,6 +150,13 @@ windows then end in long masked tails. Case study M3, 256 windows × 390 samples
 (``python benchmarks/profile_torch_adjoint_split.py --vectorize``, then with ``--inductor-option cpp.simdlen=256``,
 one after the other, 2026-12-03 02:01–02:06 UTC, Intel Xeon with AVX-512): the forward and the backward 6.7–7.4 µs
 per window-step with 256 bits against 7.6–8.9 with inductor's 512."""
+
+TORCH_PARAM_BATCH = 16
+"""Parameter sets per call of the compiled, vmapped step's scan of :meth:`Model.rollouts_of` (torch 2.13 compiles it
+for one batch size; more sets run in chunks, fewer are padded). ``python benchmarks/profile_param_batch.py --sizes 8
+16`` (case study M1, 14 401 samples; 2026-12-03 17:06 UTC, the Intel host in a slow hour): one compiled rollout 173
+ms; 27.0 ms a set in chunks of 8 (6.4×), 16.9 ms in chunks of 16 (10.3×), each graph compiled in 11–14 s. The
+doctor's Jacobians take 13–17 sets (forward differences) or 25–33 (central): 16 runs them in one or two calls."""
 
 
 TORCH_CACHE_SCANS = True
@@ -604,6 +611,47 @@ class Model:
                 return self._run_jitted("rollout", (dt, integrator, sub), self._packed(params), T0, inputs)
             return self._rollout_impl(params, T0, inputs, dt, integrator, sub)
 
+    def rollouts_of(self, params_list: Sequence[Mapping[str, Any]], T0: Any, inputs: Any, dt: float,
+                    integrator: str = "rk4", substeps: int | None = None) -> tuple[Any, Any]:
+        """One simulation per parameter set of ``params_list`` (``B`` of them), each from its row of ``T0 (B,
+        n_states)`` K, all over the same ``inputs (N, n_inputs)``: ``(states (B, N, n_states), outputs (B, N,
+        n_outputs))``, each row what :meth:`rollout` gives for its parameters (no gradients).
+
+        torch with compiled rollouts runs them as one compiled ``scan`` over the samples, ``torch.func.vmap``-ed over
+        the parameter sets (:meth:`_compiled_torch_param_batch`): the per-step cost of the compiled scan (its C++
+        wrapper's call, the kernels' launches: ~10 µs a step on the case study) is paid once for the batch, not
+        once per set. Elsewhere (JAX, numpy, eager torch) one :meth:`rollout` per set; JAX code vmaps
+        :meth:`rollout` itself. The model doctor's difference Jacobians on torch (``doctor.engine``) run through
+        here."""
+        tau, where = self.fastest_time_constant()
+        dt = float(dt)
+        sub = check_step(integrator, dt, tau, substeps, where)
+        T0 = self._arr(T0)
+        inputs = self._arr(inputs)
+        B, ns, ni = len(params_list), len(self.state_names), len(self.input_names)
+        if tuple(self.xp.shape(T0)) != (B, ns):
+            raise TnnError(f"T0 must have shape ({B}, {ns}) (one row per parameter set; states: "
+                           f"{', '.join(self.state_names)}), got {self.xp.shape(T0)}")
+        if len(self.xp.shape(inputs)) != 2 or self.xp.shape(inputs)[-1] != ni:
+            raise TnnError(f"inputs must have shape (N, {ni}) (inputs: {', '.join(self.input_names)}), "
+                           f"got {self.xp.shape(inputs)}")
+        N = self.xp.shape(inputs)[0]
+        if (self.backend == "torch" and self.torch_compile and N > 1 and B > 0 and not _functorch_active()
+                and not any(_needs_grad(p, T0, inputs) for p in params_list)):
+            import torch
+
+            with collector_paused():
+                preps = [self._prepare(p) for p in params_list]
+                rest = self._compiled_torch_param_batch(preps, T0, inputs[: N - 1], dt, integrator, sub)
+                if rest is not None:
+                    states = torch.cat([T0[:, None, :], rest], 1)
+                    outputs = torch.stack([self._core.outputs(pr, states[b], inputs) for b, pr in enumerate(preps)])
+                    return states, outputs
+        runs = [self.rollout(p, T0[b], inputs, dt, integrator, sub) for b, p in enumerate(params_list)]
+        if not runs:
+            return (self.xp.zeros((0, N, ns)), self.xp.zeros((0, N, len(self.output_names))))
+        return self.xp.stack([r[0] for r in runs]), self.xp.stack([r[1] for r in runs])
+
     def _stepper(self, prep, dt, integrator, sub, core=None, traced=False):
         """``step(T, ctx) -> T_next`` over one sample interval; ``ctx`` is one sample of
         :meth:`_Core.rhs_u` (the input-only work is done once per sample, not per stage). ``core``: the
@@ -893,6 +941,90 @@ class Model:
             return None
         ys = ys.reshape(n_chunks * chunk, *ys.shape[2:])[:M]
         return torch.movedim(ys, 0, -2)
+
+    def _compiled_torch_param_batch(self, preps, T0, inputs, dt, integrator, sub):
+        """The states after ``T0 (B, n_states)`` for the ``M`` samples of ``inputs (M, n_inputs)`` (all but the
+        last of the rollouts'), ``(B, M, n_states)``, one parameter set per row (``preps``, each prepared by
+        :meth:`_prepare`), through ``torch.compile`` of one ``scan`` over the samples whose body is the step
+        ``torch.func.vmap``-ed over the sets (:meth:`rollouts_of`); the sets' prepared tensors enter flat, stacked on
+        a new first axis, and their input-only contexts (:meth:`_Core.rhs_u`, vmapped too) are laid out time-major
+        before the scan. The other nesting, ``vmap`` around the ``scan``, compiles too but leaves the context
+        batched along the scanned axis: on the doctor's networks, whose candidate laws of an input live in that
+        context, a Jacobian of 16 sets ran 31–34 s against 0.9 s so (BENCHMARKS.md, "a Jacobian's parameter sets").
+        torch 2.13 specialises the graph on its batch size and its length (``maybe_mark_dynamic`` is ignored, each
+        new size compiled again), so the sets run :data:`TORCH_PARAM_BATCH` at a time, the last chunk padded with
+        copies of its last set: one graph per ``(dt, integrator, sub, the prepared values' structure)`` and rollout
+        length. ``None`` where the sets' structures differ or hold a large network's packed table, and (after a
+        warning, once per graph) where torch cannot compile it: :meth:`rollouts_of` then runs the sets one after
+        another."""
+        import torch
+
+        from .torch_adjoint import CompiledScan, Unsupported, flatten, scalar_slots, scalars_as_vectors, scalars_back
+
+        try:
+            flats = [flatten(p) for p in preps]
+        except Unsupported:
+            return None
+        flat0, rebuild, pkey = flats[0]
+        if any(f[2] != pkey for f in flats[1:]):
+            return None
+        key = ("torch_param_batch", dt, integrator, sub, TORCH_CPP_WRAPPER, _torch_vectorize(), TORCH_SIMD_BITS, pkey)
+        compiled = self._jit_cache.get(key)
+        if compiled is False:  # failed before: the sets one after another
+            return None
+        if compiled is None:
+            from torch._higher_order_ops import scan
+
+            core = self._fused_core()
+            slots = scalar_slots(flat0)
+
+            def prep_of(flat):
+                return rebuild(scalars_back(flat, slots))
+
+            def roll(P, T0, U):
+                # the input-only context of every set, then time-major: the scan runs outside vmap, its body is
+                # the step vmapped over the sets
+                xs = torch.func.vmap(lambda flat: core.rhs_u(prep_of(flat), U))(P)
+                xs = {"s": {k: v.movedim(0, 1).contiguous() for k, v in xs["s"].items()},
+                      "v": {k: v.movedim(0, 1).contiguous() for k, v in xs["v"].items()},
+                      "u": xs["u"].movedim(0, 1).contiguous()}
+
+                def step_one(flat, T, c):
+                    return self._stepper(prep_of(flat), dt, integrator, sub, core, traced=True)(T, c)
+
+                vstep = torch.func.vmap(step_one)
+
+                def body(T, c):
+                    Tn = vstep(P, T, c)
+                    return Tn, Tn.clone()  # a scan's carry and output may not alias
+
+                return scan(body, T0, xs)[1].movedim(0, 1)
+
+            compiled = self._jit_cache[key] = CompiledScan(
+                roll, f"tnn_param_batch_{id(self):x}_{len(self._jit_cache)}", _inductor_options())
+        B, k = len(preps), TORCH_PARAM_BATCH
+        P = [torch.stack(ts) for ts in zip(*(scalars_as_vectors(f[0]) for f in flats))]
+        T0 = T0.contiguous()
+        pad = -B % k
+        if pad:  # the last set repeated; its rollouts are dropped
+            P = [torch.cat([t, t[-1:].expand(pad, *t.shape[1:])]) for t in P]
+            T0 = torch.cat([T0, T0[-1:].expand(pad, T0.shape[-1])])
+        U = inputs.contiguous()
+        out = []
+        try:
+            with warnings.catch_warnings():
+                # tracing vmap over the step meets a copy without a batching rule of its own (``select_copy``,
+                # functorch's generic rule serves it; tests/test_torch_compile.py checks the results against JAX):
+                # the warning would reach the user as noise
+                warnings.filterwarnings("ignore", message="There is a performance drop because we have not yet")
+                for s in range(0, B + pad, k):
+                    out.append(compiled([t[s: s + k].contiguous() for t in P], T0[s: s + k].contiguous(), U))
+        except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+            self._jit_cache[key] = False
+            warnings.warn(f"torch.compile failed for a batch of parameter sets ({type(e).__name__}: {str(e)[:200]});"
+                          " they run one after another", TorchCompileWarning, stacklevel=4)
+            return None
+        return torch.cat(out)[:B]
 
     def _rollout_impl(self, params, T0, inputs, dt, integrator, sub):
         xp = self.xp

@@ -361,10 +361,17 @@ class _Engine:
             """Forward differences ``(y(θ = s) − y(0)) / h`` along each row ``s`` of ``steps`` (m, n_θ), one
             coordinate ``h`` ≠ 0 per row (a zero row gives zeros) → (m, len(idx)); the unperturbed simulation rides
             in the same batch, so both come from one compiled program."""
-            # torch with compiled rollouts: one simulation after another, each the compiled scan (vmap runs eager)
-            ys = B.batched(lambda th: out_flat(base, th, idx), chunk=_even_chunk(int(steps.shape[0]) + 1, JAC_BATCH),
-                           loop=bool(getattr(model, "torch_compile", False)))(
-                xp.concat([steps[:1] * 0.0, steps], 0))
+            thetas = xp.concat([steps[:1] * 0.0, steps], 0)
+            if getattr(model, "torch_compile", False):
+                # torch with compiled rollouts: every set of a file in one compiled scan vmapped over the sets
+                # (``rollouts_of``); a ``torch.func`` transform around the rollout would run it eager
+                ps = [with_theta(base, th) for th in thetas.unbind(0)]
+                ys = xp.concat([model.rollouts_of(ps, xp.stack([start(p, i, u) for p in ps]), u, dt)[1]
+                                for i, (u, dt) in enumerate(zip(u_list[:n_sc], dts[:n_sc]))], 1)
+                ys = ys.reshape(len(ps), -1)[:, idx]
+            else:
+                ys = B.batched(lambda th: out_flat(base, th, idx),
+                               chunk=_even_chunk(int(steps.shape[0]) + 1, JAC_BATCH))(thetas)
             h = steps.sum(1)
             return (ys[1:] - ys[:1]) / B.where(h == 0, h + 1.0, h)[:, None]
 
@@ -458,8 +465,8 @@ class _Engine:
         base = self._arg(self.params)
         n = len(self.cols)
         out = []
-        # a compiled shape per size (JAX): rounded up to a multiple of 4; torch's compiled rollouts run one after
-        # another (``by_differences``), where a padding row would be one more simulation
+        # a compiled shape per size (JAX): rounded up to a multiple of 4; torch's compiled rollouts of many
+        # parameter sets (``Model.rollouts_of``) pad to their own chunk size
         size = min(chunk, len(active) if self.by_differences else 4 * max(1, -(-len(active) // 4)))
         for s in range(0, len(active), size):
             part = active[s: s + size]
@@ -484,8 +491,8 @@ class _Engine:
     def _central_jacobian(self, active: list[int]) -> np.ndarray:
         """∂ y_model[train rows] / ∂θ_active by central differences, (n_train, len(active)): the average of a forward
         and a backward difference of :data:`CENTRAL_STEP` (in a log column; times max(1, |value|) in another), the
-        simulations one after another (:meth:`jacobian`'s ``"difference"`` program, once for the steps up and down
-        together: 2·len(active) + 1 simulations, the unperturbed one shared)."""
+        simulations of a file in one batch (:meth:`jacobian`'s ``"difference"`` program, the steps up and down
+        together: 2·len(active) + 1 simulations)."""
         base = self._arg(self.params)
         n = len(self.cols)
         m = len(active)

@@ -271,13 +271,13 @@ class Backend:
                 return tuple(torch.stack([o[i] for o in outs]) for i in range(len(outs[0])))
             return torch.stack(outs)
 
-    def batched(self, f: Callable, chunk: int | None = None, loop: bool = False) -> Callable:
+    def batched(self, f: Callable, chunk: int | None = None) -> Callable:
         """``f`` over a leading batch axis of every argument (outputs stacked likewise). torch falls back to one
         call per batch element where ``f`` cannot be vmapped. ``chunk``: at most that many elements at a time
         (JAX: ``lax.map`` with ``batch_size``, one program; torch: one vectorised call per slice), for a long
-        rollout whose intermediates grow with the batch (the doctor's forward-difference Jacobians). ``loop=True``
-        (torch; JAX ignores it): one call per element, no ``vmap`` — for an ``f`` running a model's compiled torch
-        rollout, which a ``torch.func`` transform would make run eager (one Python call per sample)."""
+        rollout whose intermediates grow with the batch (the doctor's forward-difference Jacobians). An ``f`` that
+        runs a model's compiled torch rollout would run it eager under ``vmap``: many parameter sets of such a
+        model go through ``Model.rollouts_of``."""
         if self.name == "jax":
             if chunk is None:
                 return self.jax.vmap(f)
@@ -285,8 +285,6 @@ class Backend:
         if self.name == "numpy":
             return lambda *args: np.stack([f(*a) for a in zip(*args)])
         torch = self.torch
-        if loop:
-            return lambda *args: torch.stack([f(*a) for a in zip(*args)])
 
         def whole(*args):
             try:
