@@ -617,12 +617,12 @@ class Model:
         n_states)`` K, all over the same ``inputs (N, n_inputs)``: ``(states (B, N, n_states), outputs (B, N,
         n_outputs))``, each row what :meth:`rollout` gives for its parameters (no gradients).
 
-        torch with compiled rollouts runs them as one compiled ``scan`` over the samples, ``torch.func.vmap``-ed over
-        the parameter sets (:meth:`_compiled_torch_param_batch`): the per-step cost of the compiled scan (its C++
-        wrapper's call, the kernels' launches: ~10 µs a step on the case study) is paid once for the batch, not
-        once per set. Elsewhere (JAX, numpy, eager torch) one :meth:`rollout` per set; JAX code vmaps
-        :meth:`rollout` itself. The model doctor's difference Jacobians on torch (``doctor.engine``) run through
-        here."""
+        torch with compiled rollouts runs them as one compiled ``scan`` over the samples whose step is
+        ``torch.func.vmap``-ed over the parameter sets (:meth:`_compiled_torch_param_batch`): the per-step cost of the
+        compiled scan (its C++ wrapper's call, the kernels' launches: ~10 µs a step on the case study) is paid once
+        for the batch, not once per set. Elsewhere (JAX, numpy, eager torch) one :meth:`rollout` per set; JAX code
+        vmaps :meth:`rollout` itself. The model doctor's difference Jacobians on torch (``doctor.engine``) run
+        through here."""
         tau, where = self.fastest_time_constant()
         dt = float(dt)
         sub = check_step(integrator, dt, tau, substeps, where)

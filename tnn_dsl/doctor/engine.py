@@ -363,7 +363,7 @@ class _Engine:
             in the same batch, so both come from one compiled program."""
             thetas = xp.concat([steps[:1] * 0.0, steps], 0)
             if getattr(model, "torch_compile", False):
-                # torch with compiled rollouts: every set of a file in one compiled scan vmapped over the sets
+                # torch with compiled rollouts: a file's sets in one compiled scan of the step vmapped over them
                 # (``rollouts_of``); a ``torch.func`` transform around the rollout would run it eager
                 ps = [with_theta(base, th) for th in thetas.unbind(0)]
                 ys = xp.concat([model.rollouts_of(ps, xp.stack([start(p, i, u) for p in ps]), u, dt)[1]
