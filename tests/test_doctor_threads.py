@@ -70,3 +70,63 @@ def test_torch_fits_one_candidate_at_a_time():
     assert run.threads == 1
     assert _Session(TCLAB, [], None, None, "jax", None, top=1, max_rounds=1, output=None, kinds=None,
                     mlp_check=False, mlp_time=1.0, force=False, threads=2).threads == 2
+
+
+class _FakeEngine:
+    """What :meth:`_Session.fit_apart` does with a round's engine: clone it, let its programs go."""
+
+    def __init__(self, log: list, name: str = "engine"):
+        self.log, self.name, self.released = log, name, False
+
+    def clone(self) -> "_FakeEngine":
+        self.log.append("clone")
+        return _FakeEngine(self.log, f"clone {self.log.count('clone')}")
+
+    def release_programs(self) -> None:
+        self.released = True
+
+
+def _cand(target: str):
+    from tnn_dsl.doctor.base import Candidate
+
+    return Candidate("param_dependence", target, ["u1"], [object()], element={"shape": "linear"})
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("partners", [False, True])
+def test_a_rounds_extra_fits_run_side_by_side_unless_one_would_take_the_others_fit(monkeypatch, threads, partners):
+    """The sub-models, twins, replacements and probes of a round (``_Session.fit_apart``): with two threads each on
+    its own clone of the round's engine, side by side, their progress lines said in job order; one thread, or two
+    fits of one model written on two parameters that enter only as a product (``f1.mdot`` and ``f1.cp``: the second
+    takes the first's fit, ``same_model_fit``), one after the other on the engine itself. Every engine's programs
+    are let go at the end."""
+    import threading
+
+    from tnn_dsl.doctor import session as S
+
+    run = S._Session.__new__(S._Session)
+    run.threads, run.accepted, run.net_x = threads, [], None
+    said: list[str] = []
+    run.say = said.append
+    monkeypatch.setattr(S, "product_partners", lambda net: {"f1.mdot": "f1.cp", "f1.cp": "f1.mdot"})
+    log: list = []
+    engine = _FakeEngine(log)
+    names = ["f1.mdot", "f1.cp"] if partners else ["f1.mdot", "f2.UA"]
+    both = threading.Barrier(2, timeout=5) if threads == 2 and not partners else None
+
+    def job(i: int):
+        def fit(say, eng):
+            say(f"fitting {names[i]} ...")
+            if both is not None:
+                both.wait()  # both jobs running at once, or this times out
+            say(f"fitted {names[i]} on {eng.name}")
+            return (names[i], eng)
+        return fit
+
+    done = run.fit_apart([job(0), job(1)], (engine, None, None, None), [[_cand(n)] for n in names])
+    assert [d[0] for d in done] == names
+    apart = threads == 2 and not partners
+    assert log.count("clone") == (2 if apart else 0)
+    assert all((d[1] is not engine) is apart for d in done)
+    assert all(d[1].released for d in done)
+    assert said == [line for n, (_, e) in zip(names, done) for line in (f"fitting {n} ...", f"fitted {n} on {e.name}")]

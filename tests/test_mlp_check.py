@@ -155,3 +155,40 @@ def test_a_training_whose_other_route_the_time_limit_cut_is_reported_as_cut(monk
         tr, z, info, compile_s = T._best_route(None, [], [], T.make_config(None, {}), None, None, None)
         assert tr is first and tr.stopped == expect and info["single_stopped"] == second
         assert compile_s == 1.0  # both routes' compilation
+
+
+@pytest.mark.parametrize("beats", [False, True])
+@pytest.mark.parametrize("cut", [False, True])
+def test_the_mlp_is_trained_first_and_the_linear_law_only_where_the_mlp_could_be_chosen(monkeypatch, beats, cut):
+    """``compare(..., bar=)``: the doctor keeps an MLP only if it beats the doctor's own linear fit (``bar``, K held
+    out) by ``MIN_GAIN``. The MLP is trained first; one that does not clear the bar cannot be chosen, so the linear
+    clauses are not trained (on the case study that training never decided anything, and side by side with the MLP's
+    it was the diagnosis' peak memory). Cut by the time limit there, the answer is not decided; an MLP that clears
+    it goes on to the two-sided comparison as before."""
+    from tnn_dsl.doctor.selection import MIN_GAIN
+
+    rng = np.random.default_rng(1)
+    e_lin = rng.normal(0.0, 0.05, 2000)
+    e_mlp = e_lin * 0.3
+    mae_mlp = float(np.mean(np.abs(e_mlp)))
+    bar = mae_mlp / (1 - MIN_GAIN) * (1.01 if beats else 0.99)
+    trained: list[str] = []
+
+    def fake_train(variant, train, val, **kw):
+        form = "mlp" if any(fn.kind == "mlp" for fn in variant.learned) else "linear"
+        trained.append(form)
+        stopped = "time_limit" if cut and form == "mlp" else "completed"
+        return _Trained(e_mlp if form == "mlp" else e_lin, stopped, 45 if form == "mlp" else 8)
+
+    monkeypatch.setattr("tnn_dsl.fit.train", fake_train)
+    r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0, threads=2, bar=bar)
+    if beats:
+        assert trained == ["mlp", "linear"] and "linear" in r and r["p_value"] < 0.05
+        assert r["choice"] == "mlp" and r["decided"], r["reason"]  # a cut MLP that pays is still an answer
+    else:
+        assert trained == ["mlp"] and "linear" not in r and "p_value" not in r
+        assert r["choice"] == "linear" and r["network"] is EXTENDED
+        assert "does not beat the doctor's own linear fit" in r["reason"]
+        assert r["decided"] is (not cut)
+        assert ("not decided" in r["reason"] and "--mlp-time" in r["reason"]) if cut else (
+            "the linear clauses were not trained" in r["reason"])

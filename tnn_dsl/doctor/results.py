@@ -153,6 +153,8 @@ class Diagnosis:
         if mc and "linear" in mc:
             return (f"trained both (held-out MAE linear {mc['linear']['val_mae']:.4g} K, "
                     f"MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}")
+        if mc and "mlp" in mc:
+            return f"trained the MLP (held-out MAE {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}"
         return mc["reason"] if mc else None
 
     def summary(self) -> str:

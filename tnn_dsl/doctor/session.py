@@ -74,6 +74,14 @@ def _same_model(a: Candidate, b: Candidate, partners: dict[str, str]) -> bool:
             and a.element.get("shape") == b.element.get("shape") and partners.get(a.target) == b.target)
 
 
+def _partners_now(net_x: Network, accepted: list[Candidate]) -> dict[str, str]:
+    """:func:`.candidates.product_partners` of the current network ``net_x``, less the parameters an ``accepted``
+    finding took (:meth:`_Session.same_model_fit`'s pairs)."""
+    partners = product_partners(net_x)
+    taken = {m.target for a in accepted for m in a.members}
+    return {a: b for a, b in partners.items() if a not in taken and b not in taken}
+
+
 def _beats(mae: float, other: float) -> bool:
     """A held-out MAE (K) better than ``other`` by more than ``MIN_GAIN`` and by more than round-off."""
     return mae * (1 + MIN_GAIN) < other and other - mae > ROUNDOFF_MAE_K
@@ -693,11 +701,9 @@ class _Session:
         second round ``f1.cp`` and ``f1.mdot`` depending on I were each fitted from scratch, as were their
         sub-models and their probes, every pair along the same path to the same values (about 13 s of a 126 s
         diagnosis). Returns ``(that fit, the parameters, their training SSE K²)`` or None."""
-        partners = product_partners(self.net_x)
+        partners = _partners_now(self.net_x, self.accepted)
         if not partners:
             return None
-        taken = {m.target for a in self.accepted for m in a.members}
-        partners = {a: b for a, b in partners.items() if a not in taken and b not in taken}
         for src in self.round_fits:
             sp = src.get("parts") or []
             if (len(sp) != len(parts) or not all(_same_model(a, b, partners) for a, b in zip(sp, parts))
@@ -723,24 +729,51 @@ class _Session:
                 return src, p, sse
         return None
 
+    def fit_apart(self, jobs: list[Callable[[Callable[[str], None], "_Engine"], object]], small,
+                  parts: list[list[Candidate]]) -> list:
+        """Fits on one small network (``small``: :meth:`small`'s engine, extension, columns), one job per entry of
+        ``parts`` (the candidates each fits), each job called with its progress function and its engine; results
+        in job order. With more than one thread they run side by side, each on its own clone of the engine (the
+        compiled programs shared), their progress lines said in order — unless two of them fit one model written
+        two ways (:func:`_same_model`): then one after the other, so that the second takes the first's fit as
+        :meth:`same_model_fit` does. One thread: one after the other on the engine itself, as before. Either way
+        each fit starts from the same values and runs the same arithmetic, so the results do not depend on the
+        threads. The engines' programs are let go at the end (fitted and judged: the next phase compiles its own).
+        The round's sub-models, twins, replacements and probes had run one at a time on 2 cores (issue 18)."""
+        partners = _partners_now(self.net_x, self.accepted) if self.threads > 1 and len(jobs) > 1 else {}
+        alike = any(len(a) == len(b) and all(_same_model(x, y, partners) or _same_model(y, x, partners)
+                                             for x, y in zip(a, b))
+                    for i, a in enumerate(parts) for b in parts[i + 1:])
+        apart = self.threads > 1 and len(jobs) > 1 and not alike
+        engines = [small[0].clone() if apart else small[0] for _ in jobs]
+        bound = [lambda say, job=job, eng=eng: job(say, eng) for job, eng in zip(jobs, engines)]
+        done = self.side_by_side(bound) if apart else [job(self.say) for job in bound]
+        for eng in {id(e): e for e in engines}.values():
+            eng.release_programs()
+        return done
+
     def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
-        """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence one after the
-        other on one small network and judged; ``why`` ends the progress line ("the twin of …")."""
+        """Exactly-null candidates (score-test entries) the shortlist left out, fitted to convergence on one small
+        network (side by side where threads allow: :meth:`fit_apart`) and judged; ``why`` ends the progress line
+        ("the twin of …")."""
         if not todo or self.spent():
             return []
         acc_keys = self.acc_keys()
         small = self.small(acc_keys + [t["cand"].key for t in todo])
         start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
-        out = []
-        for t in todo:
-            if self.spent():
-                break
-            self.say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), {why} ...")
-            f = self.fit_exact(t, small, start, acc_keys, FIT_ITER)
-            self.judge(f, current)
-            out.append(f)
-        small[0].release_programs()  # fitted and judged: its network's programs go before the next phase's
-        return out
+
+        def fit_one(t: dict):
+            def run(say: Callable[[str], None], eng: _Engine) -> dict | None:
+                if self.spent():
+                    return None
+                say(f"  fitting {t['cand'].describe()} (k={t['cand'].k}), {why} ...")
+                f = self.fit_exact(t, (eng, *small[1:]), start, acc_keys, FIT_ITER, say=say)
+                self.judge(f, current)
+                return f
+            return run
+
+        done = self.fit_apart([fit_one(t) for t in todo], small, [[t["cand"]] for t in todo])
+        return [f for f in done if f is not None]
 
     def fit_twins(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> list[dict]:
         """A shortlisted candidate stands for its exact twins (the same linearised correction, ``same`` of
@@ -854,21 +887,31 @@ class _Session:
         acc_keys = self.acc_keys()
         small = self.small(acc_keys + [k for f in lines for k in (f["cand"].key, square[f["cand"].key].key)])
         start = {k: np.array(v, copy=True) for k, v in small[0].params.items()}
+
+        def probe_of(f: dict):
+            def run(say: Callable[[str], None], eng: _Engine) -> dict | None:
+                if self.spent():
+                    return None
+                sq = square[f["cand"].key]
+                say(f"  fitting {f['cand'].describe()} with its curvature {', '.join(sq.depends_on)} (a probe) ...")
+                probe = self.fit_exact(f["score"], (eng, *small[1:]), start, acc_keys, FIT_ITER, say=say, extra=sq)
+                self.judge(probe, current)
+                return probe
+            return run
+
+        # the probes fitted (side by side where threads allow) and judged; their network's programs let go
+        probes = self.fit_apart([probe_of(f) for f in lines], small,
+                                [[f["cand"], square[f["cand"].key]] for f in lines])
         line, best_probe = None, None
-        for f in lines:
-            if self.spent():
+        for f, probe in zip(lines, probes):
+            if probe is None:
                 break
-            sq = square[f["cand"].key]
-            self.say(f"  fitting {f['cand'].describe()} with its curvature {', '.join(sq.depends_on)} (a probe) ...")
-            probe = self.fit_exact(f["score"], small, start, acc_keys, FIT_ITER, extra=sq)
-            self.judge(probe, current)
-            f["probe"] = {"with": sq.depends_on, "val_mae": probe["val_mae"]}
+            f["probe"] = {"with": square[f["cand"].key].depends_on, "val_mae": probe["val_mae"]}
             ref = chosen["val_mae"] if chosen is not None else mae0
             if (refusal(probe, mae0) is None and _beats(probe["val_mae"], ref)
                     and probe["val_mae"] * CONFIRM_RATIO <= ref
                     and (best_probe is None or probe["val_mae"] < best_probe["val_mae"])):
                 line, best_probe = f, probe
-        small[0].release_programs()  # the probes are fitted and judged
         if line is None or best_probe is None:
             return chosen
         if refusal(line, mae0) is None:  # the line pays alone: it first, its square next round
@@ -1291,7 +1334,8 @@ class _Session:
         from .mlp_check import compare
 
         t0 = _time.monotonic()
-        self.say("the residual is not white: is an MLP better than the linear law? (training both)")
+        self.say("the residual is not white: is an MLP better than the linear law? (training the MLP; the linear law "
+                 "too if the MLP beats the doctor's fit)")
         tr_e, va_e = self.train_exps, self.val_exps
         if not va_e:
             parts = [split_by_time(e, 0.7) for e in self.train_exps]
@@ -1299,7 +1343,7 @@ class _Session:
         try:
             ext = _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
             form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say,
-                           threads=self.threads)
+                           threads=self.threads, bar=res_fin.mae)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
         if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:
