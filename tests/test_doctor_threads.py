@@ -85,6 +85,9 @@ class _FakeEngine:
     def release_programs(self) -> None:
         self.released = True
 
+    def warm(self, active: list[int]) -> None:
+        self.log.append(("warm", tuple(active)))
+
 
 def _cand(target: str):
     from tnn_dsl.doctor.base import Candidate
@@ -123,10 +126,14 @@ def test_a_rounds_extra_fits_run_side_by_side_unless_one_would_take_the_others_f
             return (names[i], eng)
         return fit
 
-    done = run.fit_apart([job(0), job(1)], (engine, None, None, None), [[_cand(n)] for n in names])
+    cands = [_cand(n) for n in names]
+    cols = {c.key: [3 + i] for i, c in enumerate(cands)}
+    done = run.fit_apart([job(0), job(1)], (engine, None, [0, 1, 2], cols), [[c] for c in cands])
     assert [d[0] for d in done] == names
     apart = threads == 2 and not partners
     assert log.count("clone") == (2 if apart else 0)
+    # compiled alone before the jobs start side by side: the free columns and the first job's own
+    assert [e for e in log if e != "clone"] == ([("warm", (0, 1, 2, 3))] if apart else [])
     assert all((d[1] is not engine) is apart for d in done)
     assert all(d[1].released for d in done)
     assert said == [line for n, (_, e) in zip(names, done) for line in (f"fitting {n} ...", f"fitted {n} on {e.name}")]

@@ -745,6 +745,13 @@ class _Session:
                                              for x, y in zip(a, b))
                     for i, a in enumerate(parts) for b in parts[i + 1:])
         apart = self.threads > 1 and len(jobs) > 1 and not alike
+        if apart:
+            # the network compiled alone first, its scratch memory handed back, as in fit_shortlist: two probes
+            # compiling and taking their first Jacobians at once were the case study's peak (+15 MB, issue 18)
+            acc_keys = self.acc_keys()
+            small[0].warm(list(small[2]) + [j for k in acc_keys + [c.key for c in parts[0]]
+                                            for j in small[3].get(k, [])])
+            release_free_memory()
         engines = [small[0].clone() if apart else small[0] for _ in jobs]
         bound = [lambda say, job=job, eng=eng: job(say, eng) for job, eng in zip(jobs, engines)]
         done = self.side_by_side(bound) if apart else [job(self.say) for job in bound]
