@@ -81,8 +81,9 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     None when there is no linear function to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max,
     K; trainable parameter count; seconds; how its training stopped), ``dm_stat``, ``p_value``, ``mae_gain``,
     ``choice`` ("mlp" or "linear"), ``decided`` (False: a training cut by ``time_limit`` s could have changed the
-    answer, the linear law is kept), ``reason``, ``network`` (the chosen variant), ``n_clauses``. With ``threads``
-    ≥ 2 the two trainings run side by side (their progress lines are said in order when both are done).
+    answer, the linear law is kept), ``reason``, ``network`` (the chosen variant), ``n_clauses``. Without ``bar`` and
+    with ``threads`` ≥ 2 the two trainings run side by side (their progress lines are said in order when both are
+    done).
 
     ``bar`` (K): the held-out MAE the MLP must beat by ``MIN_GAIN`` to be chosen at all — the doctor's own linear
     fit of the extension (its Levenberg–Marquardt values, converged; the session's rule). Given, the MLP is trained
