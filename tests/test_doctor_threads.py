@@ -109,6 +109,7 @@ def test_a_rounds_extra_fits_run_side_by_side_unless_one_would_take_the_others_f
 
     run = S._Session.__new__(S._Session)
     run.threads, run.accepted, run.net_x = threads, [], None
+    run.deadline, run.budget_cut = None, None  # no budget
     said: list[str] = []
     run.say = said.append
     monkeypatch.setattr(S, "product_partners", lambda net: {"f1.mdot": "f1.cp", "f1.cp": "f1.mdot"})

@@ -745,7 +745,7 @@ class _Session:
                                              for x, y in zip(a, b))
                     for i, a in enumerate(parts) for b in parts[i + 1:])
         apart = self.threads > 1 and len(jobs) > 1 and not alike
-        if apart:
+        if apart and not self.spent():  # (spent: every job returns at once, nothing to compile)
             # the network compiled alone first, its scratch memory handed back, as in fit_shortlist: two probes
             # compiling and taking their first Jacobians at once were the case study's peak (+15 MB, issue 18)
             acc_keys = self.acc_keys()
