@@ -1353,11 +1353,8 @@ class _Session:
                            threads=self.threads, bar=res_fin.mae)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
-        if form is not None and form.get("choice") == "mlp" and form["mlp"]["val_mae"] > (1 - MIN_GAIN) * res_fin.mae:
-            form.update(choice="linear", network=None,
-                        reason=(f"the trained MLP ({form['mlp']['val_mae']:.4g} K held out) beats the trained "
-                                f"linear law but not the doctor's own linear fit ({res_fin.mae:.4g} K) by "
-                                f"{100 * MIN_GAIN:.0f} %"))
+        # an MLP that does not beat the doctor's own linear fit by MIN_GAIN is never chosen: ``compare`` checks it
+        # (``bar``) before it trains the linear law at all
         if form is not None:
             self.say(f"  {form['reason']}")
             if form["choice"] == "mlp":
