@@ -329,7 +329,7 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     """``tnnc fleet train`` stopped after its first finished unit (SIGINT on a local Ray: exit 130; SIGKILL of a
     run in this process): every finished unit stays on disk, and the same command finishes the rest without redoing
     them."""
-    fl = _fleet(tmp_path, n=5, faulty=0, seed=4)
+    fl = _fleet(tmp_path, n=3, faulty=0, seed=4)  # the resumed run trains the units left, in this process: few
     out = tmp_path / "out"
     workers = "2" if how == "ctrl-c on ray" else "0"
     args = ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers", workers,
@@ -353,7 +353,7 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     res = subprocess.run(again, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout[res.stdout.index("{"):res.stdout.rindex("}") + 1])
-    assert [u["status"] for u in doc["units"]] == ["ok"] * 5
+    assert [u["status"] for u in doc["units"]] == ["ok"] * 3
     for name, mtime in kept.items():  # not redone
         assert (out / "units" / name / "result.json").stat().st_mtime_ns == mtime
     assert not [p for p in (out / "units").iterdir() if p.name.startswith(".")]  # no leftovers
