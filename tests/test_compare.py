@@ -261,7 +261,8 @@ def test_cli_compare_ti_tith_torch(tmp_path, capsys):
     """The whole command on torch (its filter is a Python loop with nested derivatives, ~10 ms per row per
     likelihood gradient, and the likelihood is fitted from two starts per model): 60 rows, the table's consistency
     only (the JAX test above checks that the heater node pays on 250 rows); the fast variant is the next test.
-    Measured 2026-11-25: passed in 22 min on 2 cores shared with other jobs — the torch filter's speed is issue 18."""
+    Measured 2026-11-25: passed in 22 min on 2 cores shared with other jobs — the torch filter's speed is issue 18;
+    2026-12-04: 192 s alone, the linear models' linearisation now formed once per evaluation on torch too."""
     d, err = _run_ti_tith(tmp_path, capsys, "torch", 60)
     _check_ti_tith(d, err, "torch", 60, heater_pays=False)
 

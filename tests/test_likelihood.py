@@ -297,13 +297,14 @@ def test_process_noise_is_accurate_over_parameter_moves(factor):
             assert np.linalg.norm(Q - ref) <= 1e-12 * np.linalg.norm(ref), (dt, rolled, Q, ref)
 
 
-def test_constant_linearisation_is_formed_once_with_the_same_value(monkeypatch):
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_constant_linearisation_is_formed_once_with_the_same_value(monkeypatch, backend):
     """A linear network's ``H``, ``F``, ``A`` (hence ``Q_d``) depend on neither state nor input: the trace
-    analysis says so on JAX (and not for a network with radiation), and the likelihood and its gradient with the
-    linearisation formed once equal those with it formed per sample to 1e-12 relative."""
+    analysis says so (JAX's trace; a torch model's network compiled for JAX) and not for a network with radiation,
+    and the likelihood and its gradient with the linearisation formed once equal those with it formed per sample
+    to 1e-12 relative."""
     from tnn_dsl.estimation import likelihood as lk
 
-    backend = "jax"  # the analysis reads JAX traces; torch always forms the linearisation per sample
     pr = _problem(backend, integrator="rk4")
     assert pr.static.constant
     z = pr.z0 + 0.1 * np.random.default_rng(3).standard_normal(pr.z0.shape)
@@ -315,5 +316,5 @@ def test_constant_linearisation_is_formed_once_with_the_same_value(monkeypatch):
     assert v1 == pytest.approx(v2, rel=1e-12)
     np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-12 * np.abs(g2).max())
     monkeypatch.setattr(lk, "_HOIST", True)
-    rad = tnn_dsl.compile(tnn_dsl.load(ROOT / "networks" / "tclab" / "tclab_lag.thn"), "jax")
+    rad = tnn_dsl.compile(tnn_dsl.load(ROOT / "networks" / "tclab" / "tclab_lag.thn"), backend)
     assert not lk._constant_linearisation(rad, lk._Static(1.0, "rk4", 1, "vanloan", 4))
