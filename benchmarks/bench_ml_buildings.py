@@ -16,6 +16,13 @@ half the fastest time constant (2 here) it reaches 5437.12, with 4 and 8 sub-ste
 
     python benchmarks/bench_ml_buildings.py            # ti, tith, titeth, with every summary
     python benchmarks/bench_ml_buildings.py --quick    # ti and tith, the table only
+    python benchmarks/bench_ml_buildings.py --backend torch --quick          # the same fits on torch
+    python benchmarks/bench_ml_buildings.py --evaluation   # one −log L + gradient per model and backend
+
+``--evaluation`` times one evaluation of −log L and its gradient over the whole file at the written values (the
+median of three after a first call that compiles), JAX and torch, with the linearisation of these linear models
+formed once per evaluation (the default) and per sample (``likelihood._HOIST = False``, torch's only form before
+2026-12-04).
 """
 
 from __future__ import annotations
@@ -35,17 +42,57 @@ if not DATA.exists():
 REFERENCE = {"ti": 2479.2, "tith": 3904.7, "titeth": 5437.0}
 
 
+def evaluation(names: list[str]) -> None:
+    """One −log L + gradient per model, backend and form of the linearisation: ms (median of three, warm)."""
+    import statistics
+
+    import numpy as np
+
+    from tnn_dsl.estimation import likelihood as lk
+
+    print(f"{'model':<8} {'backend':<7} {'once, ms':>9} {'per sample, ms':>15} {'ratio':>6} {'|Δ −log L|':>11}")
+    for name in names:
+        net = tnn_dsl.load(ROOT / "networks" / "building" / f"{name}.thn")
+        (exp,) = read_data(net, DATA, time_unit="h")
+        for backend in ("jax", "torch"):
+            model = tnn_dsl.compile(net, backend)
+            ms, vals = [], []
+            for hoist in (True, False):
+                lk._HOIST = hoist
+                try:
+                    pr = lk.LikelihoodProblem(model, model.init_params(), exp.inputs, exp.outputs, exp.dt,
+                                              log_sigma_w=np.log(1e-3), log_sigma_v=np.log(0.1))
+                    v, _ = pr.value_and_grad(pr.z0)  # compiles (JAX)
+                    times = []
+                    for _ in range(3):
+                        t0 = time.perf_counter()
+                        pr.value_and_grad(pr.z0)
+                        times.append(time.perf_counter() - t0)
+                finally:
+                    lk._HOIST = True
+                ms.append(1e3 * statistics.median(times))
+                vals.append(v)
+            gap = abs(vals[0] - vals[1])
+            print(f"{name:<8} {backend:<7} {ms[0]:9.1f} {ms[1]:15.1f} {ms[1] / ms[0]:6.1f} {gap:11.2g}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="ti and tith only, no summaries")
+    ap.add_argument("--backend", choices=("jax", "torch"), default="jax")
+    ap.add_argument("--evaluation", action="store_true",
+                    help="time one −log L + gradient per model and backend instead of fitting")
     args = ap.parse_args()
     names = ["ti", "tith"] if args.quick else ["ti", "tith", "titeth"]
+    if args.evaluation:
+        evaluation(names)
+        return
     rows = []
     for name in names:
         net = tnn_dsl.load(ROOT / "networks" / "building" / f"{name}.thn")
         (exp,) = read_data(net, DATA, time_unit="h")
         t0 = time.perf_counter()
-        r = fit_ml(net, exp)
+        r = fit_ml(net, exp, backend=args.backend)
         took = time.perf_counter() - t0
         if not args.quick:
             print(r.summary(), "\n")
