@@ -247,7 +247,7 @@ def _constant_linearisation(model, st: _Static) -> bool:
     construct it does not follow counts as a dependence). A torch model's answer is read off the JAX compilation
     of its network: both backends run the same equations (one physics module), so the dependences are the same.
     On torch the per-sample form costs a forward-mode pass of the step per sample in eager torch (about 3 ms
-    each): formed once, an evaluation of a one-node RC model's likelihood and gradient on 20 samples took 50
+    each): formed once, an evaluation of a one-node RC model's likelihood and gradient on 20 samples took 65
     instead of 330 ms, and its fit 7.6–8.9 instead of 40.6 s (JAX 2.8–3.9 s; tests/test_ml_fit.py's
     ``test_jax_and_torch_reach_the_same_optimum``, 2026-12-04). Cached per model and static choices."""
     key = (id(model), st)
