@@ -401,8 +401,8 @@ def score(case: Case, d, noise: float) -> dict:
 
 
 def run_case(case: Case, noise: float, seed: int, quick: bool, backend: str = "jax", top: int = 3,
-             max_rounds: int = 2, workdir: str | None = None) -> dict:
-    """Plant, diagnose, score one run."""
+             max_rounds: int = 2, workdir: str | None = None, keep: bool = False) -> dict:
+    """Plant, diagnose, score one run. ``keep``: the diagnosis itself under ``"diagnosis"`` too (not JSON-able)."""
     import tnn_dsl
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -413,6 +413,8 @@ def run_case(case: Case, noise: float, seed: int, quick: bool, backend: str = "j
                              backend=backend, top=top, max_rounds=max_rounds)
         r = score(case, d, noise)
     r.update(seed=seed, quick=quick, backend=backend, plant_s=round(t1 - t0, 2), verdict=d.verdict)
+    if keep:
+        r["diagnosis"] = d
     return r
 
 

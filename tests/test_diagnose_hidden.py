@@ -175,7 +175,7 @@ def _marks(name):
 @pytest.mark.parametrize("name", [pytest.param(n, marks=_marks(n)) for n in FAST])
 def test_fast_planted_effect_is_found(name):
     c = CASES[name]
-    r = S.run_case(c, noise=0.01, seed=0, quick=True)
+    r = S.run_case(c, noise=0.01, seed=0, quick=True, keep=True)
     msg = f"{name}: first answer {r['first_answer']} (accepted {r['first_accepted']}); {r['verdict']}"
     assert r["first_eq"], msg
     assert r["accepted"], msg
@@ -184,6 +184,14 @@ def test_fast_planted_effect_is_found(name):
     if "shape" in r:  # a curved truth: its square is among the accepted findings (the curvature look-ahead)
         assert r["shape"], msg
     assert r["above_noise"] and r["ratio"] >= 2.0, f"{msg}; MAE {r['mae_before']:.3g} → {r['mae_after']:.3g} K"
+    if c.edit[0] == "lag":  # a structural finding is written: the extension edits the sensor's line, τ as planted
+        import tnn_dsl  # (the CI check of test_diagnose.py::test_planted_sensor_lag_is_found_and_written, slow there)
+
+        d = r["diagnosis"]
+        assert "lag" in d.verdict and c.edit[1] in d.verdict, msg
+        ext = tnn_dsl.loads(d.extended_text, "extended.thn")
+        sensor = next(s for s in ext.sensors if s.name == c.edit[1])
+        assert sensor.lag is not None and ext.param(sensor.lag).value == pytest.approx(c.edit[2], rel=0.1), msg
 
 
 @pytest.mark.slow  # 85 s; its rule's fast variant: test_doctor_initial.py::test_a_fitted_initial_states_start_up…

@@ -3,6 +3,7 @@ candidates, and the thread count is checked where it is given."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -20,7 +21,8 @@ BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}  # heater fraction (SI of [%])
 
 def test_one_thread_and_two_give_the_same_diagnosis():
     """A dependence planted in TCLab data (U1 grows with T(h1)), three candidates fitted per round and the best
-    continued: one thread and two name the same findings in the same order with the same values, word for word.
+    continued: one thread and two name the same findings in the same order with the same values, word for word; the
+    answer is the planted dependence, named, and it pays.
     JAX only: torch fits one candidate at a time (next test). Numpy's and scipy's BLAS run one thread during the
     diagnosis, and the caller's number of threads is back after it."""
     net = tnn_dsl.load(TCLAB)
@@ -45,6 +47,21 @@ def test_one_thread_and_two_give_the_same_diagnosis():
     assert runs[0].extended_text == runs[1].extended_text
     np.testing.assert_allclose(a["extended"]["val_mae"], b["extended"]["val_mae"], rtol=1e-12)
     assert len(a["findings"]) >= 2  # more than one candidate was fitted, so the threads had work to share
+    # the answer (the CI check of test_diagnose.py::test_planted_dependence_is_found_named_and_pays, slow there):
+    # the planted dependence first, named, paying on the held-out run, written as a valid network
+    d = runs[1]
+    first = d.accepted[0] if d.accepted else None
+    assert first is not None and first.kind == "param_dependence", d.summary()
+    assert first.target == "U1" and first.depends_on == ["T(h1)"], d.summary()
+    assert "U1" in d.verdict and "T(h1)" in d.verdict
+    assert d.extended["val_mae"] < 0.5 * d.baseline["val_mae"]
+    assert "learn U1 as linear(h1)" in d.extended_text
+    tnn_dsl.loads(d.extended_text, "extended.thn")
+    assert {"baseline", "findings", "extended", "gain"} <= set(b)
+    assert {"val_mae", "val_max"} <= set(b["baseline"])
+    for f in b["findings"]:
+        assert {"rank", "kind", "target", "depends_on", "clause", "val_mae_after", "evidence", "accepted"} <= set(f)
+    json.dumps(b)  # JSON-able
 
 
 def test_thread_count_from_argument_environment_or_cpus(monkeypatch):
