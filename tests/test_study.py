@@ -39,6 +39,28 @@ def test_study_tiny(tmp_path, backend):
     assert len(pel) >= 6
     for k in pel:
         np.testing.assert_array_equal(p4[k], p5[k])
+    # ... while M5 trains: its loss falls; and its heat-pipe network moves below (with the rest, the CI check of
+    # test_train.py::test_m5_loads_m4_frozen_and_trains)
+    m5_meta = json.loads((tmp_path / "out/models/m5/meta.json").read_text())
+    adam = [r["loss"] for r in m5_meta["curve"] if r["phase"] == "adam"]
+    assert adam and adam[-1] < m5_meta["curve"][0]["loss"]
+    # m5.thn as written (`init_from = "models/m4"`, which the study points at its own M4) reads the M4 beside it,
+    # relative to its own file; without that model it is a clear error, not a silent fresh start
+    import shutil
+
+    from tnn_dsl.core import TnnError
+    from tnn_dsl.studies import network_path
+
+    shutil.copy(network_path("peltier_heatpipe/m5.thn"), tmp_path / "out" / "m5.thn")
+    kw = dict(backend=backend, epochs=2, lbfgs_iters=0, seed=0)
+    # no validation: the last epoch's values, not the best validated ones (the study's M5 kept its start)
+    m5_as_written = tnn_dsl.train(tmp_path / "out" / "m5.thn", res["data"]["train"], **kw)
+    for k in pel:
+        np.testing.assert_array_equal(m5_as_written.params[k], p4[k], err_msg=k)
+    assert np.any(m5_as_written.params["fn_R_hp1.W2"] != 0)  # the heat-pipe network moved
+    shutil.copy(network_path("peltier_heatpipe/m5.thn"), tmp_path / "m5.thn")  # no models/m4 beside this one
+    with pytest.raises(TnnError, match="m4"):
+        tnn_dsl.train(tmp_path / "m5.thn", res["data"]["train"], **kw)
     # the thesis's parameter counts: M4 122 (Peltier MLP) + 3 (constants), M5 139 (heat-pipe MLP only)
     assert res["models"]["M4"]["n_trainable"] == 125 and res["models"]["M5"]["n_trainable"] == 139
     # ratios are computed from our numbers; the ones needing absent models are NaN

@@ -457,7 +457,10 @@ def test_nominal_run_on_torch_is_a_numpy_simulation_equal_to_jax(case_short, mon
     np.testing.assert_allclose(runs["torch"], runs["jax"], rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("backend", SLOW_TORCH)
+# slow (20 s in CI, 2026-12-04): CI checks the same on the models tests/test_study.py::test_study_tiny trains anyway
+# (M5's Peltier network M4's, its heat-pipe network trained, m5.thn's relative init_from and its missing model)
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_m5_loads_m4_frozen_and_trains(case_short, tmp_path, backend):
     import shutil
 
