@@ -66,8 +66,9 @@ def _skip_the_caches_eviction_scan() -> None:
     time before writing, to evict the oldest past the limit: a session's cache grows to thousands of entries, so the
     scans' cost grows with the square of their number. Measured (2026-12-04, `pytest -n 2 -m "not slow"` on four
     doctor and training files, timers around JAX's cache calls): 15.7 s of scans in 414 s of tests, for a cache that
-    is removed when the session ends and never reaches the limit. The lock stays; only the scan goes. A JAX without
-    this method (another version) is left as it is."""
+    is removed when the session ends and stays far below the limit (24 MB in about 1000 entries after those four
+    files, `du` while they ran). The lock stays; only the scan goes. A JAX without this method (another version) is
+    left as it is."""
     from jax._src import lru_cache
 
     if callable(getattr(lru_cache.LRUCache, "_evict_if_needed", None)):
