@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 from scipy import stats
@@ -29,14 +29,17 @@ MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training 
 
 
 def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: dict[str, list[int]],
-                  accepted: list[Candidate]) -> list[dict] | None:
+                  accepted: list[Candidate], stop: Callable[[], bool] | None = None) -> list[dict] | None:
     """The score test without simulating the big extended network: every candidate enters the dynamics as
     an extra heat flow per node, ``F_c(t) = C·∂rhs/∂θ_c`` at the current trajectory (the big network's
     right-hand side differentiated pointwise, vectorised over time), plus a direct output term
     ``∂h/∂θ_c`` (sensor offsets). The response of the outputs to ``F_c`` is one forward-mode derivative of
     the *current* network's simulation w.r.t. its forcing inputs (``_with_forcing``), batched over
     candidates: exact in continuous time, the discrete step holding ``F_c`` over each sample. Returns None
-    when the two networks' states differ (then the caller uses :func:`_score` on the big network).
+    when the two networks' states differ (then the caller uses :func:`_score` on the big network), and an empty
+    list when ``stop()`` (the session's budget) said stop between two chunks of ``FORCED_CHUNK`` columns: a score
+    test of only some candidates would rank them unfairly, so none is returned. On torch the case study's score test
+    took 51 s and overran a 60 s budget by as much (issue 18); a chunk takes a second or two.
 
     Structural candidates (not exactly null) get their first-order column without simulating the edit:
 
@@ -86,6 +89,8 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     n0 = len(active_base)
     blocks = [cur.forced_jacobian(active_base, chunk=FORCED_CHUNK)]
     for s0 in range(0, len(cand_idx), FORCED_CHUNK):
+        if stop is not None and stop():
+            return []
         part = cand_idx[s0: s0 + FORCED_CHUNK]
         release_free_memory()  # each chunk's arrays are freed on a heap fragmented by the last: give them back
         d_rhs, d_out = big.point_derivs(part, X, U, chunk=FORCED_CHUNK)  # (k, N, ns), (k, N, n_out)
@@ -100,6 +105,8 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     # ~40 MB through the whole score test on the 4 h case study, issue 18)
     forcings = _structural_forcing(cur, mass, smass, X, U, rates, nn)
     while part_f := list(itertools.islice(forcings, FORCED_CHUNK)):
+        if stop is not None and stop():
+            return []
         mass_rows += [row for _, row in part_f]
         blocks.append(cur.forced_jacobian([], np.stack([f for f, _ in part_f]), chunk=FORCED_CHUNK))
         del part_f

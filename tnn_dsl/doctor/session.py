@@ -250,12 +250,19 @@ class _Session:
     def lap(self, name: str, t0: float) -> None:
         self.timings[name] = round(_time.monotonic() - t0, 3)
 
-    def spent(self) -> bool:
-        """The budget is spent (and where it first cut the work is remembered: :attr:`budget_cut`)."""
+    def spent(self, where: str | None = None) -> bool:
+        """The budget is spent (and where it first cut the work is remembered: :attr:`budget_cut`, ``where`` when
+        given, else the round).
+
+        The budget's rule: no piece of work starts once it is spent, and the long ones (fits, the score test's
+        chunks) look at it as they go, so a diagnosis ends within about one Jacobian, one score-test chunk or one
+        final report of its deadline. (The score test and each round's first fit used to run regardless: the torch
+        doctor, ``--budget 60``, ran 117 s, its score test of 51 s and first fit of 18 s both past the deadline.)"""
         out = self.deadline is not None and _time.monotonic() > self.deadline
         if out and self.budget_cut is None:
-            self.budget_cut = (f"in round {self.round_now}" if self.round_now > 0 else
-                               "before any candidate was tested" if self.round_now == 0 else "in the final fits")
+            self.budget_cut = where or (f"in round {self.round_now}" if self.round_now > 0 else
+                                        "before any candidate was tested" if self.round_now == 0
+                                        else "in the final fits")
         return out
 
     # -- stage 0: data -----------------------------------------------------------------------------
@@ -516,7 +523,12 @@ class _Session:
             self.big[0].params = _params_from_state(self.big[0], self.big[1], self.state, acc_keys)
         b_eng, b_ext, b_free, b_cols = self.big
         self.say(f"round {rnd}: score test over {len(self.remaining)} candidates ...")
-        scored = _score_forced(self.final_eng, b_eng, self.remaining, b_cols, [_cand_in(b_ext, k) for k in acc_keys])
+        scored = _score_forced(self.final_eng, b_eng, self.remaining, b_cols, [_cand_in(b_ext, k) for k in acc_keys],
+                               stop=lambda: self.spent(f"in round {rnd}'s score test"))
+        if scored == []:  # the budget stopped it between two chunks
+            b_eng.release_programs()
+            self.say(f"budget spent during round {rnd}'s score test; stopping the forward selection")
+            return []
         if scored is None:
             self.remaining = [r for r in self.remaining if r.kind not in STRUCTURAL_KINDS]
             active_base = list(b_free) + [j for k in acc_keys for j in b_cols.get(k, [])]
@@ -566,6 +578,9 @@ class _Session:
             self.say(f"  {short[0]['cand'].describe()}: the score test explains only {100 * short[0]['r2']:.2g} % of "
                      "the residual; not fitted")
             return []
+        if self.spent(f"in round {self.round_now}, before its candidates were fitted"):
+            self.say("budget spent after the score test; its ranking stands, no candidate is fitted")
+            return []
         acc_keys = self.acc_keys()
         sh_keys = [s_["cand"].key for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
         t_c = _time.monotonic()
@@ -589,7 +604,7 @@ class _Session:
             learned inputs' reference run that the next one reads)."""
             out: list[dict | None] = []
             for s_ in structural:
-                if self.spent() and (out or exact):
+                if self.spent():
                     break
                 c: Candidate = s_["cand"]
                 say(f"  fitting {c.describe()} (k={c.k}) ...")
@@ -603,7 +618,7 @@ class _Session:
 
         def fit_one(i: int, s_: dict):
             def run(say) -> dict | None:
-                if i > 0 and self.spent():
+                if self.spent():
                     return None
                 say(f"  fitting {s_['cand'].describe()} (k={s_['cand'].k}) ...")
                 return self.fit_exact(s_, (e_s.clone(), x_s, f_s, c_s), start_params, acc_keys, FIT_ITER_FIRST,
