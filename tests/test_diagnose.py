@@ -141,10 +141,11 @@ def test_extended_network_is_exactly_null(backend):
 
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])
-def test_forced_score_matches_the_big_network(backend):
+def test_forced_score_matches_the_big_network(backend, monkeypatch):
     """The score test's shortcut (each candidate as an extra heat flow through the current network's
     linearised dynamics, plus its direct output term) ranks like the exact Jacobian of the big extended
-    network's simulation."""
+    network's simulation. Its pointwise derivatives taken in blocks of samples (the last one padded) are the ones
+    taken in one block."""
     import tnn_dsl.doctor.engine as E
     import tnn_dsl.doctor.scoring as S
 
@@ -170,6 +171,15 @@ def test_forced_score_matches_the_big_network(backend):
     # the best candidate of the exact test is (within the shortcut's accuracy) the best of the shortcut too
     assert r2_fast[exact[0]["cand"].key] >= fast[0]["r2"] - 0.02
     assert {d["cand"].kind for d in fast} == set(kinds)
+    _, X = cur.simulate()
+    X = X[:cur.n_score_rows]
+    U = np.concatenate([e.inputs for e in cur.exps], 0)[:cur.n_score_rows, :len(big.model.input_names)]
+    some = sorted(j for c in ext.candidates for j in cols[c.key])[:5]
+    whole = big.point_derivs(some, X, U, chunk=4)
+    assert X.shape[0] < min(E.POINT_BLOCK.values())  # one block here, and below three, the last padded
+    monkeypatch.setattr(E, "POINT_BLOCK", dict.fromkeys(E.POINT_BLOCK, X.shape[0] // 3 + 7))
+    for a, b in zip(whole, big.point_derivs(some, X, U, chunk=4)):
+        assert np.abs(a).max() > 0 and np.max(np.abs(a - b)) <= 1e-12 * np.abs(a).max()
 
 
 def test_indistinguishable_candidates_are_named():

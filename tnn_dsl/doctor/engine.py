@@ -17,10 +17,13 @@ from ..fit.ranges import start_range
 from ..ir import Input, Network, Param
 from .base import Candidate, Extended
 
-POINT_BLOCK = 512
-"""Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`): the extended network's
-right-hand side holds a (tangents, samples) array per candidate term, 392 × 16 × 512 doubles (26 MB) on the case
-study."""
+POINT_BLOCK = {"jax": 512, "torch": 4096}
+"""Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`), by backend. JAX's compiled program
+holds a (tangents, samples) array per candidate term of the extended network, 392 × 16 × 512 doubles (26 MB) on the
+case study. Torch runs the same derivative eagerly, one operation after another, and pays its dispatch per call:
+on the case study's score test (4 h, chunks of 8 tangents; ``/tmp`` throwaway script, 2026-12-05, one process per
+size) 1.82 s per chunk at 512 samples, 0.40 s at 4096, 0.31 s at 8192, 0.28 s at 14401 (one block), the process'
+peak resident size 618, 618, 636 and 698 MB (issue 18)."""
 
 # Levenberg–Marquardt Jacobians (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 FIT_ITER = 80
@@ -576,7 +579,8 @@ class _Engine:
         N = X.shape[0]
         # time in blocks of POINT_BLOCK samples (the last padded: one compiled shape): the extended network's
         # right-hand side holds every candidate's term, each a (chunk, block) array in the derivative
-        block = N if N <= POINT_BLOCK else POINT_BLOCK
+        most = POINT_BLOCK[self.backend]
+        block = N if N <= most else most
         n_blocks = -(-N // block)
         Xp = np.concatenate([X, np.repeat(X[-1:], n_blocks * block - N, 0)]) if n_blocks * block > N else X
         Up = _pad(U, self.n_force)
