@@ -58,6 +58,13 @@ def test_case_study_all_components_agree_short(learn):
     _check(nets.case_study(learn, extra=True), 600)
 
 
+def test_input_only_links_agree_short():
+    """The doctor's answer on the case study (the heat pipe's resistances linear in u1): their conductances made
+    once per sample with the input-only context, rollouts and gradients the same on both backends."""
+    _check(nets.case_study("linear_u1"), 600)
+    _check(nets.case_study("linear_u1"), 300, integrator="expeuler")
+
+
 def test_case_study_agree_expeuler_short():
     _check(nets.case_study("mlp", extra=True), 300, integrator="expeuler")
 

@@ -57,6 +57,8 @@ NETS = {
                  lambda rng, n: case_inputs(600, seed=3)[rng.integers(0, 600, n)]),
     "m4_extra": (lambda: case_study("mlp_peltier", extra=True),
                  lambda rng, n: case_inputs(600, seed=4)[rng.integers(0, 600, n)]),
+    # links whose conductances depend on the inputs alone: made with the sample's context (``"gD"``)
+    "m2_u1": (lambda: case_study("linear_u1"), lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
 }
 
 
@@ -114,6 +116,10 @@ def test_rhs_equals_sum_of_heat_flows(backend, name, scaled):
     build, draw = NETS[name]
     net = build()
     model = tnn_dsl.compile(net, backend)
+    if name == "m2_u1":  # the path this net is here for
+        assert model._core._links_d_u and "gD" in model._core.rhs_u(model._prepare(model.init_params()),
+                                                                      model.xp.asarray(draw(np.random.default_rng(0),
+                                                                                            2)))["v"]
     p = random_table(model, 0)
     rng = np.random.default_rng(1)
     if scaled:  # every scale key at a random value: parameters, flows, learned targets

@@ -351,6 +351,8 @@ class _Core(_Assembly):
                     vec["tbR"] = self._mm(Tb**4, self.Dr_b)
                 if self.nl and self.lag_from_bnd:
                     vec["tbL"] = self._mm(Tb, self.Sl_b)
+        if self._links_d_u:  # input-only dynamic conductances (W/K), one row per sample
+            vec["gD"] = per_sample(self._links_d_conductances(prep, vals))
         q = None
 
         def add(a, b):
@@ -487,17 +489,18 @@ class _Core(_Assembly):
 
     def _dynamic_links(self, prep, vals, env, vec, TL_D, Tb, with_diag):
         """Heat (W per node) through links with dynamic conductances, and their diagonal (or None)."""
-        xp, P = self.xp, self.plan
+        P = self.plan
         diag = None
         lv = self._links_vec
-        if lv is not None and not any(k in prep.scales for k in self._links_d_keys):
+        if "gD" in vec:  # input-only: made with the sample's context (rhs_u)
+            g = vec["gD"]
+        elif lv is not None and not any(k in prep.scales for k in self._links_d_keys):
             V = env.z[("V", lv[0])]
             if lv[1] is not None:
                 V = V[..., lv[1]]
             g = 1.0 / V if lv[2] == "R" else V
         else:
-            g = xp.stack([self._flow_scaled(prep, k, self._g(vals, p, form))
-                          for k, _, _, p, form in self.links_d], axis=-1)
+            g = self._links_d_conductances(prep, vals)
         dX = TL_D
         if P.nb:
             tbD = vec.get("tbD")
@@ -506,6 +509,12 @@ class _Core(_Assembly):
         if with_diag:
             diag = self._mm(g, self.Ad_neg)
         return dQ, diag
+
+    def _links_d_conductances(self, prep, vals):
+        """The dynamic links' conductances ``(..., n_links_d)`` W/K from parameter values ``vals`` (any leading
+        axes: one sample in ``rhs_T``, a whole sequence in ``rhs_u``)."""
+        return self.xp.stack([self._flow_scaled(prep, k, self._g(vals, p, form))
+                              for k, _, _, p, form in self.links_d], axis=-1)
 
     def _dynamic_radiation(self, prep, vals, vec, Tn, Tb, with_diag):
         """Heat (W per node) through radiation with dynamic coefficients, and its diagonal (or None)."""
