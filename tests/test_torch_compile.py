@@ -245,6 +245,37 @@ def test_forward_scan_with_a_learned_function_of_two_heat_flows_matches_jax():
     assert nets.dynamo_restarts() == restarts
 
 
+def _input_only_link_models():
+    """A resistance learned as a function of an input alone (the doctor's u1 law on the case study): its conductance
+    is made with the sample's input-only context (``"gD"``), inside the compiled graphs too. (compiled torch, JAX)"""
+    src = SMALL.replace("learn R_sa as mlp(s, u1; hidden = [4], activation = sigmoid)", "learn R_sa as linear(u1)")
+    net = tnn_dsl.loads(src, "input_only_link.thn")
+    mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
+    assert mc._core._links_d_u
+    return mc, mj
+
+
+def test_compiled_torch_with_input_only_link_conductances_matches_jax():
+    """The forward rollouts the doctor's torch engine runs (batch and single sequence): states as JAX's to 1e-9 K."""
+    mc, mj = _input_only_link_models()
+    p_np = nets.random_params(mj, 7)
+    T0, U = _batch(mj, 11)
+    nets.assert_compiled_forward_matches_jax(mc, mj, p_np, T0, U)
+    assert mc.torch_compile
+
+
+@pytest.mark.slow  # the adjoint's graphs too (~27 s from an empty inductor cache); the fast variant is above
+def test_compiled_torch_with_input_only_link_conductances_gradients_match_jax():
+    """States, outputs and every gradient on a batch as JAX's (1e-9 K, 1e-6 relative)."""
+    mc, mj = _input_only_link_models()
+    p_np = nets.random_params(mj, 7)
+    T0, U = _batch(mj, 11)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tnn_dsl.TorchCompileWarning)  # it really compiled
+        _assert_same(_jax_run(mj, p_np, T0, U), _torch_run(mc, p_np, T0, U))
+    assert mc.torch_compile
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("reference", ["jax", "torch"])
 def test_compiled_torch_case_study_every_component(reference):
