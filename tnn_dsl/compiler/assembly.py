@@ -374,7 +374,8 @@ class _Assembly:
         # links whose conductances all depend on the inputs alone (a resistance learned as a function of a command):
         # their conductance vector is part of the per-sample context (``rhs_u``, ``"gD"``), made once per sample
         # instead of once per right-hand-side evaluation (a reciprocal, a stack and a scalar slice per link per
-        # stage). On the doctor's case study one such resistance made a JAX rollout of 14 401 samples 4.4 → 17.6 ms.
+        # stage). On the doctor's case study one such resistance took a JAX rollout of 14 401 samples from 3.4 to
+        # 9.6 ms, 8.2 ms with the conductances made here (the least of 30 calls; BENCHMARKS.md, 2026-12-05).
         u_names = set(self._u_pnames)
         self._links_d_u = bool(self.links_d) and all(lk[3] in u_names for lk in self.links_d)
         if not self._links_d_u:
