@@ -57,8 +57,12 @@ NETS = {
                  lambda rng, n: case_inputs(600, seed=3)[rng.integers(0, 600, n)]),
     "m4_extra": (lambda: case_study("mlp_peltier", extra=True),
                  lambda rng, n: case_inputs(600, seed=4)[rng.integers(0, 600, n)]),
-    # links whose conductances depend on the inputs alone: made with the sample's context (``"gD"``)
+    # links whose conductances depend on the inputs alone: made with the sample's context (``"gD"``), put in place in
+    # the node matrix of each right-hand side (``m2_u1``) or gathered and scattered (``m2_u1_scatter``: a model over
+    # ``assembly.NODE_MATRIX_MAX``, set to 0 for it)
     "m2_u1": (lambda: case_study("linear_u1"), lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
+    "m2_u1_scatter": (lambda: case_study("linear_u1"),
+                      lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
 }
 
 
@@ -112,14 +116,18 @@ def assembled_rhs(model, p, T, u):
 @pytest.mark.parametrize("backend", ["jax", "torch"])
 @pytest.mark.parametrize("name", sorted(NETS))
 @pytest.mark.parametrize("scaled", [False, True])
-def test_rhs_equals_sum_of_heat_flows(backend, name, scaled):
+def test_rhs_equals_sum_of_heat_flows(backend, name, scaled, monkeypatch):
     build, draw = NETS[name]
     net = build()
+    if name == "m2_u1_scatter":
+        monkeypatch.setattr("tnn_dsl.compiler.assembly.NODE_MATRIX_MAX", 0)
     model = tnn_dsl.compile(net, backend)
-    if name == "m2_u1":  # the path this net is here for
-        assert model._core._links_d_u and "gD" in model._core.rhs_u(model._prepare(model.init_params()),
-                                                                      model.xp.asarray(draw(np.random.default_rng(0),
-                                                                                            2)))["v"]
+    if name.startswith("m2_u1"):  # the path this net is here for
+        core = model._core
+        assert core._links_d_u and "gD" in core.rhs_u(model._prepare(model.init_params()),
+                                                      model.xp.asarray(draw(np.random.default_rng(0), 2)))["v"]
+        assert core.links_in_matrix is (name == "m2_u1")
+        assert [k for k, _ in core._L_blocks] == ([] if core.links_in_matrix else ["M", "D"])
     p = random_table(model, 0)
     rng = np.random.default_rng(1)
     if scaled:  # every scale key at a random value: parameters, flows, learned targets

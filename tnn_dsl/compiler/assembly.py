@@ -171,6 +171,18 @@ plate meshes (benchmarks/bench_scaling.py, BENCHMARKS.md "Network size") dense i
 backends (JAX 4.6 against 7.6 µs per RK4 step, torch 69 against 94) and slower at 306 (33 against 23, 161
 against 133)."""
 
+NODE_MATRIX_MAX = 512
+"""The largest ``n² · (n_links + 1)`` (``n`` nodes, ``n_links`` links whose conductances depend on the inputs alone)
+for which a dense model forms each right-hand side's node matrix ``M + Σ_k g_k(u) P_k`` in place (``P_k`` the
+constant outer product of link ``k``'s gather and scatter columns) and takes one product with the temperatures,
+instead of gathering the links' temperature differences, scaling them by their conductances and scattering the heat
+back (:meth:`_Assembly._first_layer_blocks`). The gather–scatter form puts two dependent reductions in a step where
+XLA's loop fusion then recomputes the step's whole stage expression for every element of the second (the case study
+with ``R_hp2(u1)``: 8 loop fusions a step, 8.2 ms a rollout of 14 401 samples against 3.4 ms without the link);
+the in-place matrix is one reduction over a slightly larger element expression (issue 18, BENCHMARKS.md
+2026-12-05). Its work grows as ``n²`` per link, hence the bound."""
+
+
 
 class _Assembly:
     """The plan bound to an array namespace ``xp``: built once per compiled model, in named steps."""
@@ -375,7 +387,8 @@ class _Assembly:
         # their conductance vector is part of the per-sample context (``rhs_u``, ``"gD"``), made once per sample
         # instead of once per right-hand-side evaluation (a reciprocal, a stack and a scalar slice per link per
         # stage). On the doctor's case study one such resistance took a JAX rollout of 14 401 samples from 3.4 to
-        # 9.6 ms, 8.2 ms with the conductances made here (the least of 30 calls; BENCHMARKS.md, 2026-12-05).
+        # 9.6 ms, 8.2 ms with the conductances made here, 5.0 ms with them put in place in the node matrix of a small
+        # model (``links_in_matrix``, NODE_MATRIX_MAX; the least of 30 calls; BENCHMARKS.md, 2026-12-05).
         u_names = set(self._u_pnames)
         self._links_d_u = bool(self.links_d) and all(lk[3] in u_names for lk in self.links_d)
         if not self._links_d_u:
@@ -464,10 +477,21 @@ class _Assembly:
                 continue  # a state-dependent parameter input: the generic path
             self._fold.append(fname)
         blocks = []
-        if self.has_links_s:
+        # links whose conductances depend on the inputs alone, in a small dense model: each right-hand side forms
+        # the node matrix M + Σ g_k P_k in place (NODE_MATRIX_MAX), so neither block goes into L
+        nd = len(self.links_d)
+        self.links_in_matrix = (self._links_d_u and not self.sparse and n * n * (nd + 1) <= NODE_MATRIX_MAX
+                                and (self.tb_u or not P.nb))
+        self.P_links = []
+        if self.links_in_matrix:
+            D, Inc = _incidence(self.links_d, n, P.nb)
+            Dn = D.dense()[:n]
+            Id = Inc.dense()
+            self.P_links = [self.xp.asarray(np.outer(Dn[:, k], Id[k])) for k in range(nd)]
+        if self.has_links_s and not self.links_in_matrix:
             blocks.append(("M", n))
-        if self.links_d:
-            blocks.append(("D", len(self.links_d)))
+        if self.links_d and not self.links_in_matrix:
+            blocks.append(("D", nd))
         if nl:
             blocks.append(("S", nl))
         for fname in self._fold:

@@ -351,13 +351,21 @@ class _Core(_Assembly):
                     vec["tbR"] = self._mm(Tb**4, self.Dr_b)
                 if self.nl and self.lag_from_bnd:
                     vec["tbL"] = self._mm(Tb, self.Sl_b)
-        if self._links_d_u:  # input-only dynamic conductances (W/K), one row per sample
-            vec["gD"] = per_sample(self._links_d_conductances(prep, vals))
         q = None
 
         def add(a, b):
             return b if a is None else a + b
 
+        if self._links_d_u:  # input-only dynamic conductances (W/K), one row per sample
+            vec["gD"] = per_sample(self._links_d_conductances(prep, vals))
+            if self.links_in_matrix and P.nb:
+                # their boundary ends are input-only too: that heat joins the affine heat q (rhs_T forms the node
+                # matrix from gD alone)
+                tbD = vec.pop("tbD", None)
+                if tbD is None and prep.Tb is not None:
+                    tbD = self._mm(prep.Tb, self.Dd_b)
+                if tbD is not None:
+                    q = add(q, self._mm(vec["gD"] * tbD, self.Id))
         if Tb is not None and prep.Tb is None:
             if prep.M_bn is not None:
                 q = add(q, self._mm(Tb, prep.M_bn))
@@ -445,7 +453,17 @@ class _Core(_Assembly):
         def add(a, b):
             return b if a is None else a + b
 
-        if prep.M_nn is not None:
+        if self.links_in_matrix:
+            # the node matrix with the input-only links in place, one product (assembly.NODE_MATRIX_MAX)
+            gD = vec["gD"]
+            A = prep.M_nn
+            for k, P_k in enumerate(self.P_links):
+                t = gD[..., k, None, None] * P_k
+                A = t if A is None else A + t
+            dQ = add(dQ, (Tn[..., :, None] * A).sum(-2))
+            if dyn_b and prep.M_bn is not None:
+                dQ = add(dQ, self._mm(Tb, prep.M_bn))
+        elif prep.M_nn is not None:
             dQ = add(dQ, block("M"))
             if dyn_b and prep.M_bn is not None:
                 dQ = add(dQ, self._mm(Tb, prep.M_bn))
@@ -461,7 +479,10 @@ class _Core(_Assembly):
                 dQ = add(dQ, self._mm(Tb**4, prep.Mr_bn))
             if with_diag:
                 diag = add(diag, Tn3 * prep.diag_rad)
-        if self.links_d:
+        if self.links_in_matrix:
+            if with_diag:
+                diag = add(diag, self._mm(vec["gD"], self.Ad_neg))
+        elif self.links_d:
             q, dg = self._dynamic_links(prep, vals, env, vec, block("D"), Tb, with_diag)
             dQ = add(dQ, q)
             if with_diag:
