@@ -60,9 +60,25 @@ def test_case_study_all_components_agree_short(learn):
 
 def test_input_only_links_agree_short():
     """The doctor's answer on the case study (the heat pipe's resistances linear in u1): their conductances made
-    once per sample with the input-only context, rollouts and gradients the same on both backends."""
-    _check(nets.case_study("linear_u1"), 600)
-    _check(nets.case_study("linear_u1"), 300, integrator="expeuler")
+    once per sample with the input-only context, rollouts and gradients the same on both backends; and JAX's rollout
+    traced forward only (``Backend.no_grad``: the links in place in the node matrix, ``assembly.NODE_MATRIX_MAX``)
+    the same as the one it differentiates."""
+    from tnn_dsl.compiler.backends.adapter import Backend
+
+    net = nets.case_study("linear_u1")
+    _check(net, 600)
+    _check(net, 300, integrator="expeuler")
+    m = tnn_dsl.compile(net, "jax")
+    assert m._core.links_in_matrix
+    p = m.from_numpy(nets.random_params(m, 3))
+    u = nets.case_inputs(600, seed=3)
+    T0 = np.full(len(m.state_names), 298.15)
+    for integrator in ("rk4", "expeuler"):
+        a = np.asarray(m.rollout(p, T0, u, 1.0, integrator=integrator)[0])
+        b = np.asarray(Backend("jax").jit(Backend("jax").no_grad(
+            lambda pp: m.rollout(pp, T0, u, 1.0, integrator=integrator)[0]))(p))
+        assert np.max(np.abs(a - b)) <= 1e-9, integrator
+        assert np.max(np.abs(a - a[0])) > 1.0  # it moved
 
 
 def test_case_study_agree_expeuler_short():

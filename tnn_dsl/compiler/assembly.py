@@ -173,14 +173,15 @@ against 133)."""
 
 NODE_MATRIX_MAX = 512
 """The largest ``n² · (n_links + 1)`` (``n`` nodes, ``n_links`` links whose conductances depend on the inputs alone)
-for which a dense model forms each right-hand side's node matrix ``M + Σ_k g_k(u) P_k`` in place (``P_k`` the
+for which a dense JAX model, in a program traced forward only (``Backend.no_grad``: the doctor's simulations and
+difference Jacobians), forms each right-hand side's node matrix ``M + Σ_k g_k(u) P_k`` in place (``P_k`` the
 constant outer product of link ``k``'s gather and scatter columns) and takes one product with the temperatures,
 instead of gathering the links' temperature differences, scaling them by their conductances and scattering the heat
-back (:meth:`_Assembly._first_layer_blocks`). The gather–scatter form puts two dependent reductions in a step where
-XLA's loop fusion then recomputes the step's whole stage expression for every element of the second (the case study
-with ``R_hp2(u1)``: 8 loop fusions a step, 8.2 ms a rollout of 14 401 samples against 3.4 ms without the link);
-the in-place matrix is one reduction over a slightly larger element expression (issue 18, BENCHMARKS.md
-2026-12-05). Its work grows as ``n²`` per link, hence the bound."""
+back. The gather–scatter form puts two dependent reductions in a step where XLA's loop fusion then recomputes the
+step's whole stage expression for every element of the second (the case study with ``R_hp2(u1)``: 8 loop fusions a
+step, 8.5 ms a rollout of 14 401 samples against 3.4 ms without the link; 5.0 ms in place). Differentiated in reverse
+the in-place matrix was the slower (a training 20 % slower), so gradients keep the gather–scatter form; its work
+grows as ``n²`` per link, hence the bound (issue 18, BENCHMARKS.md 2026-12-05)."""
 
 
 
@@ -477,20 +478,21 @@ class _Assembly:
                 continue  # a state-dependent parameter input: the generic path
             self._fold.append(fname)
         blocks = []
-        # links whose conductances depend on the inputs alone, in a small dense model: each right-hand side forms
-        # the node matrix M + Σ g_k P_k in place (NODE_MATRIX_MAX), so neither block goes into L
+        # links whose conductances depend on the inputs alone, in a small dense JAX model: a program traced forward
+        # only (Backend.no_grad) forms the node matrix M + Σ g_k P_k in place in each right-hand side
+        # (NODE_MATRIX_MAX) and reads neither block of L (XLA drops them)
         nd = len(self.links_d)
-        self.links_in_matrix = (self._links_d_u and not self.sparse and n * n * (nd + 1) <= NODE_MATRIX_MAX
-                                and (self.tb_u or not P.nb))
+        self.links_in_matrix = (self.xp.name == "jax" and self._links_d_u and not self.sparse
+                                and n * n * (nd + 1) <= NODE_MATRIX_MAX and (self.tb_u or not P.nb))
         self.P_links = []
         if self.links_in_matrix:
             D, Inc = _incidence(self.links_d, n, P.nb)
             Dn = D.dense()[:n]
             Id = Inc.dense()
             self.P_links = [self.xp.asarray(np.outer(Dn[:, k], Id[k])) for k in range(nd)]
-        if self.has_links_s and not self.links_in_matrix:
+        if self.has_links_s:
             blocks.append(("M", n))
-        if self.links_d and not self.links_in_matrix:
+        if self.links_d:
             blocks.append(("D", nd))
         if nl:
             blocks.append(("S", nl))

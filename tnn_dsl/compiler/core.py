@@ -13,6 +13,7 @@ from . import learned as _learned
 from . import physics as _physics
 from . import sparse as _sparse
 from .assembly import PACKED_KEY, _Assembly, _diag, _Env, _first_layer, _PackedVals, _Prep
+from .backends.adapter import forward_only_active
 
 __all__ = ["_Core"]
 
@@ -358,7 +359,7 @@ class _Core(_Assembly):
 
         if self._links_d_u:  # input-only dynamic conductances (W/K), one row per sample
             vec["gD"] = per_sample(self._links_d_conductances(prep, vals))
-            if self.links_in_matrix and P.nb:
+            if self._in_matrix() and P.nb:
                 # their boundary ends are input-only too: that heat joins the affine heat q (rhs_T forms the node
                 # matrix from gD alone)
                 tbD = vec.pop("tbD", None)
@@ -453,7 +454,8 @@ class _Core(_Assembly):
         def add(a, b):
             return b if a is None else a + b
 
-        if self.links_in_matrix:
+        in_matrix = self._in_matrix()
+        if in_matrix:
             # the node matrix with the input-only links in place, one product (assembly.NODE_MATRIX_MAX)
             gD = vec["gD"]
             A = prep.M_nn
@@ -479,7 +481,7 @@ class _Core(_Assembly):
                 dQ = add(dQ, self._mm(Tb**4, prep.Mr_bn))
             if with_diag:
                 diag = add(diag, Tn3 * prep.diag_rad)
-        if self.links_in_matrix:
+        if in_matrix:
             if with_diag:
                 diag = add(diag, self._mm(vec["gD"], self.Ad_neg))
         elif self.links_d:
@@ -530,6 +532,12 @@ class _Core(_Assembly):
         if with_diag:
             diag = self._mm(g, self.Ad_neg)
         return dQ, diag
+
+    def _in_matrix(self) -> bool:
+        """The input-only links go in place in the node matrix (``links_in_matrix``) in this trace: only one run
+        forward (:func:`~.backends.adapter.forward_only`); differentiated in reverse, the matrix form was the slower
+        (the doctor's MLP check trained 20 % slower with it)."""
+        return self.links_in_matrix and forward_only_active()
 
     def _links_d_conductances(self, prep, vals):
         """The dynamic links' conductances ``(..., n_links_d)`` W/K from parameter values ``vals`` (any leading

@@ -547,7 +547,11 @@ class Model:
         return self._jitted(what, *static, lean=lean)(*args)
 
     def _jitted(self, what, *static, lean: bool = False):
-        key = (what, *static, lean)
+        from .backends.adapter import forward_only_active
+
+        # traced forward only (Backend.no_grad): the core may pick forward kernels (assembly.NODE_MATRIX_MAX), so a
+        # program of its own
+        key = (what, *static, "forward_only", lean) if forward_only_active() else (what, *static, lean)
         f = self._jit_cache.get(key)
         if f is None:
             from .backends.adapter import Backend

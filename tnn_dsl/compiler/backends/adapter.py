@@ -39,7 +39,8 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-__all__ = ["Backend", "backend_of", "drop_compiled_caches", "lean_programs", "lean_programs_active"]
+__all__ = ["Backend", "backend_of", "drop_compiled_caches", "forward_only", "forward_only_active", "lean_programs",
+           "lean_programs_active"]
 
 BACKENDS = ("jax", "torch")
 """The autodiff backends (what a user may choose); ``"numpy"`` is accepted too, for simulations only."""
@@ -74,6 +75,27 @@ def lean_programs() -> Iterator[None]:
 def lean_programs_active() -> bool:
     """Whether this thread is inside :func:`lean_programs`."""
     return _LEAN_PROGRAMS.get()
+
+
+_FORWARD_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar("tnn_dsl_forward_only", default=False)
+
+
+@contextlib.contextmanager
+def forward_only() -> Iterator[None]:
+    """Within the block (in this thread), JAX programs traced are known to be run forward only, never
+    differentiated in reverse mode: the compiled model may then pick the kernels that are faster forward and slower
+    to differentiate (``assembly.NODE_MATRIX_MAX``). :meth:`Backend.no_grad` traces its function inside it; the
+    model keys its compiled programs by it (``Model._jitted``)."""
+    token = _FORWARD_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _FORWARD_ONLY.reset(token)
+
+
+def forward_only_active() -> bool:
+    """Whether this thread is inside :func:`forward_only`."""
+    return _FORWARD_ONLY.get()
 
 
 class Backend:
@@ -208,7 +230,15 @@ class Backend:
         return dict(LEAN_XLA_OPTIONS)
 
     def no_grad(self, fn: Callable) -> Callable:
-        """``fn`` without building an autodiff graph (torch); JAX builds none anyway."""
+        """``fn`` without building an autodiff graph (torch); JAX builds none anyway, and traces ``fn`` inside
+        :func:`forward_only` (``fn`` is never differentiated in reverse mode: a compiled model picks its forward
+        kernels)."""
+        if self.name == "jax":
+            def traced(*args, **kw):
+                with forward_only():
+                    return fn(*args, **kw)
+
+            return traced
         if self.name != "torch":
             return fn
         torch = self.torch
