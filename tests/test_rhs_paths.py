@@ -47,6 +47,22 @@ def boundary_net():
     return b.build()
 
 
+def wall_u():
+    """Two nodes and a wall at a constant 290 K; the resistance node 1–wall learned linear in the input ``P`` W."""
+    b = B("wall_u")
+    b.input("P")
+    b.boundary("wall", 290.0)
+    b.node("n1", 100.0)
+    b.node("n2", 300.0)
+    b.R("n1", "wall", 2.0, name="R_w1")
+    b.G("n1", "n2", 0.8)
+    b.R("n2", "wall", 4.0)
+    b.source("n1", ref("P"))
+    b.sensor("T2", "n2")
+    b.learn("f_w", "linear", ["R_w1"], ["P"])
+    return b.build()
+
+
 NETS = {
     "boundaries": (boundary_net, lambda rng, n: np.stack(
         [rng.uniform(0, 3, n), rng.uniform(285, 305, n), rng.uniform(280, 300, n), rng.uniform(1, 2, n)], -1)),
@@ -66,6 +82,8 @@ NETS = {
     "m2_u1": (lambda: case_study("linear_u1"), lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
     "m2_u1_scatter": (lambda: case_study("linear_u1"),
                       lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
+    # the same with a constant boundary at a learned link's end (its heat folded into the input-only heat q)
+    "wall_u": (lambda: wall_u(), lambda rng, n: rng.uniform(0, 20, (n, 1))),
 }
 
 
@@ -125,8 +143,8 @@ def test_rhs_equals_sum_of_heat_flows(backend, name, scaled, monkeypatch):
     if name == "m2_u1_scatter":
         monkeypatch.setattr("tnn_dsl.compiler.assembly.NODE_MATRIX_MAX", 0)
     model = tnn_dsl.compile(net, backend)
-    in_matrix = name == "m2_u1" and backend == "jax"
-    if name.startswith("m2_u1"):  # the path this net is here for
+    in_matrix = name in ("m2_u1", "wall_u") and backend == "jax"
+    if name.startswith("m2_u1") or name == "wall_u":  # the path this net is here for
         core = model._core
         assert core._links_d_u and "gD" in core.rhs_u(model._prepare(model.init_params()),
                                                       model.xp.asarray(draw(np.random.default_rng(0), 2)))["v"]

@@ -184,7 +184,6 @@ the in-place matrix was the slower (a training 20 % slower), so gradients keep t
 grows as ``n²`` per link, hence the bound (issue 18, BENCHMARKS.md 2026-12-05)."""
 
 
-
 class _Assembly:
     """The plan bound to an array namespace ``xp``: built once per compiled model, in named steps."""
 
