@@ -462,9 +462,7 @@ class _Core(_Assembly):
             for k, P_k in enumerate(self.P_links):
                 t = gD[..., k, None, None] * P_k
                 A = t if A is None else A + t
-            dQ = add(dQ, (Tn[..., :, None] * A).sum(-2))
-            if dyn_b and prep.M_bn is not None:
-                dQ = add(dQ, self._mm(Tb, prep.M_bn))
+            dQ = add(dQ, (Tn[..., :, None] * A).sum(-2))  # (its boundaries are input-only: links_in_matrix)
         elif prep.M_nn is not None:
             dQ = add(dQ, block("M"))
             if dyn_b and prep.M_bn is not None:
