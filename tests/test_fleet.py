@@ -285,7 +285,7 @@ def test_a_dying_worker_is_retried_once_then_reported(tmp_path, monkeypatch):
     run redoes only the unit that ended in an error."""
     from tnn_dsl.fleet.engine import KILL_WORKER_ENV
 
-    fl = _fleet(tmp_path, n=4, faulty=0, seed=5)
+    fl = _fleet(tmp_path, n=3, faulty=0, seed=5)  # three units: 33 s in CI with four (2026-12-05)
     marker = tmp_path / "board-001.died"
     monkeypatch.setenv(KILL_WORKER_ENV, f"board-001:{marker},board-002")
     res = run_fleet(template_path(), fl, tmp_path / "out", options=FleetOptions(mode="train", epochs=20), workers=2,
@@ -293,11 +293,11 @@ def test_a_dying_worker_is_retried_once_then_reported(tmp_path, monkeypatch):
     by = {r["unit"]: r for r in res.rows}
     assert marker.is_file() and by["board-001"]["status"] == "ok"
     assert by["board-002"]["status"] == "error" and "died" in by["board-002"]["reason"]
-    assert by["board-000"]["status"] == by["board-003"]["status"] == "ok"
+    assert by["board-000"]["status"] == "ok"
     monkeypatch.delenv(KILL_WORKER_ENV)  # the next run redoes the unit that ended in an error, and only it
     again = run_fleet(template_path(), fl, tmp_path / "out", options=FleetOptions(mode="train", epochs=20),
                       workers=0, batch=1)
-    assert again.ran == ["board-002"] and [r["status"] for r in again.rows] == ["ok"] * 4
+    assert again.ran == ["board-002"] and [r["status"] for r in again.rows] == ["ok"] * 3
 
 
 def _finished(out: Path) -> list[Path]:
