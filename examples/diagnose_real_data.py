@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(DATA), help="folder with the shared CSV files")
     ap.add_argument("--out", default=None, help="keep JSON, extended networks and HTML reports here")
     ap.add_argument("--budget", type=float, default=None, help="wall-clock budget per diagnosis (s)")
-    ap.add_argument("--top", type=int, default=5)
+    ap.add_argument("--top", type=int, default=None, help="candidates fitted per round (default: the doctor's, 3)")
     ap.add_argument("--objective", choices=("output-error", "ml"), default="output-error",
                     help="what decides between candidates (default output-error)")
     ap.add_argument("--init", choices=("estimate", "measured", "steady"), default="estimate",

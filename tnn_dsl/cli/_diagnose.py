@@ -40,7 +40,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", default=None, metavar="OUT", help="write the findings as JSON")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="wall-clock budget in seconds")
     add_backend(p)
-    p.add_argument("--top", type=int, default=5, help="distinct candidates fitted properly per round (default 5)")
+    p.add_argument("--top", type=int, default=None,
+                   help="distinct candidates fitted properly per round (default 3: the doctor's SHORTLIST_TOP)")
     p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
     p.add_argument("--no-mlp-check", action="store_true",
                    help="do not train the extension with MLP clauses to compare (done when a structured residual "

@@ -54,7 +54,8 @@ def register(subparsers) -> None:
     add_backend(p)
     p.add_argument("--epochs", type=int, default=None, metavar="N", help="training epochs (default: the trainer's)")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="the doctor's wall-clock budget per unit")
-    p.add_argument("--top", type=int, default=5, help="the doctor's candidates fitted per round (default 5)")
+    p.add_argument("--top", type=int, default=None,
+                   help="the doctor's candidates fitted per round (default 3: the doctor's SHORTLIST_TOP)")
     p.add_argument("--max-rounds", type=int, default=4, help="the doctor's rounds at most (default 4)")
     p.add_argument("--mlp-check", action="store_true",
                    help="let the doctor try MLP extensions per unit (off in a fleet: two MLP trainings per unit)")

@@ -62,13 +62,14 @@ from ..compiler.backends.adapter import drop_compiled_caches
 from ..core.blas import one_blas_thread
 from ..core.memory import large_blocks_mapped, release_free_memory
 from .results import Diagnosis, Finding
+from .scoring import SHORTLIST_TOP
 from .session import _Session
 
 __all__ = ["diagnose", "Diagnosis", "Finding"]
 
 
 def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | None = None, backend: str = "jax",
-             progress: Callable[[str], None] | None = None, *, top: int = 5, max_rounds: int = 4,
+             progress: Callable[[str], None] | None = None, *, top: int | None = None, max_rounds: int = 4,
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
              burn_in: float | None = None, objective: str = "output-error", threads: int | None = None,
@@ -87,8 +88,9 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     backend : "jax" | "torch"
     progress : callable(str), optional
         Called with one line per step (the CLI's progress display).
-    top : int
-        How many of the best-scoring distinct candidates are fitted properly each round.
+    top : int, optional
+        How many of the best-scoring distinct candidates are fitted properly each round (default
+        :data:`~tnn_dsl.doctor.scoring.SHORTLIST_TOP`, 3).
     output : str, optional
         Where to write the extended ``.thn`` (default: not written; the text is in the result). Checked
         before any work: never an input, never an existing file other than a ``.thn`` unless ``force``.
@@ -126,7 +128,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     -------
     Diagnosis
     """
-    run = _Session(net_or_path, train, val, budget_s, backend, progress, top=top, max_rounds=max_rounds,
+    run = _Session(net_or_path, train, val, budget_s, backend, progress,
+                   top=SHORTLIST_TOP if top is None else top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
                    burn_in=burn_in, objective=objective, threads=threads)
     with one_blas_thread():  # small matrices between compiled simulations: BLAS threads only spin (core.blas)

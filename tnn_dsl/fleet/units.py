@@ -36,7 +36,7 @@ class FleetOptions:
     mode: str = "diagnose"
     backend: str = "jax"
     epochs: int | None = None
-    top: int = 5
+    top: int | None = None
     max_rounds: int = 4
     budget_s: float | None = None
     mlp_check: bool = False
