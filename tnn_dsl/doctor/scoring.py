@@ -393,8 +393,9 @@ score, to which :func:`_shortlist` adds a physical rival of heat loads and the b
 ``learn`` clauses, and the round adds candidates tied with the list. Five until 2026-12-05; three is what the
 hidden-effect suite has always been run and judged with (``benchmarks/diagnose_suite.py``), and on the case study and
 the real-data examples the answers were the same with three as with five — every finding, gain and value — in less
-time (the case study's diagnosis 87.5 → 80.1 s with two threads and no MLP check, TCLab's rounds 55.2 → 44.7 s;
-BENCHMARKS.md "Diagnosis: time and memory", 2026-12-05). A wider search: ``top=5``."""
+time (the case study's diagnosis 98.6 → 83.1 s with two threads, 122.4 → 96.3 s with one, run one after the other;
+TCLab's four rounds 55.2 → 44.7 s; BENCHMARKS.md "Diagnosis: time and memory", 2026-12-05). A wider search:
+``top=5``."""
 
 
 def _shortlist(scored: list[dict], top: int, same_cos: float = SAME_COS) -> list[dict]:
