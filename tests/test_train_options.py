@@ -147,3 +147,81 @@ def test_the_time_limit_does_not_count_compilation(tmp_path, monkeypatch, backen
     assert len(epochs) > 5  # trained for its second, not stopped after the first epoch
     assert meta["curve"][-1]["time"] >= 1.0 + 1.5 - 0.05  # wall time: the budget plus the first call
     assert meta["curve"][-1]["time"] < 1.0 + meta["compile_seconds"] + 2.0
+
+
+def _interrupting(phase: str, cause: BaseException | None):
+    """A progress callback that raises, at the first record of ``phase``, the ``SystemError`` C code raises when a
+    Ctrl-C lands in a Python callback it runs (``core/interrupt.py``), with ``cause`` as its cause."""
+    def callback(rec: dict) -> None:
+        if rec["phase"] == phase:
+            err = SystemError("<function _ScalarMeta.__numpy_dtype__> returned a result with an exception set")
+            if cause is None:
+                raise err
+            raise err from cause
+    return callback
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+@pytest.mark.parametrize("phase", ["adam", "lbfgs"])
+def test_ctrl_c_that_comes_out_of_c_code_keeps_the_best_model(tmp_path, backend, phase):
+    """A Ctrl-C that surfaces as a ``SystemError`` caused by ``KeyboardInterrupt`` (numpy's dtype lookup of a JAX
+    scalar, CI 2026-12-05) stops the training like Ctrl-C itself: stopped ``interrupted``, a model that predicts; a
+    ``SystemError`` no Ctrl-C caused is a bug and is raised."""
+    from tnn_dsl.core.interrupt import is_interrupt
+
+    net = tnn_dsl.loads(RC, "rc.thn")
+    data = _record(tmp_path)  # also the validation file: the polish's records come from its validation checks
+    tm = tnn_dsl.train(net, data, val=data, backend=backend, epochs=30, lbfgs_iters=20, val_every=1,
+                       callback=_interrupting(phase, KeyboardInterrupt()))
+    assert tm.meta["stopped"] == "interrupted"
+    assert np.isfinite(tm.evaluate(data, backend=backend)["mae"])
+    with pytest.raises(SystemError) as info:
+        tnn_dsl.train(net, data, val=data, backend=backend, epochs=30, lbfgs_iters=20, val_every=1,
+                      callback=_interrupting(phase, None))
+    assert not is_interrupt(info.value)
+
+
+def test_the_cli_reports_such_a_ctrl_c_as_interrupted(monkeypatch, capsys):
+    """``tnnc``: exit 130 and "interrupted" for it, not "internal error" (exit 2); a SystemError of its own: exit 2."""
+    import tnn_dsl.cli as cli
+
+    def parser_raising(cause):
+        def build():
+            p = cli.argparse.ArgumentParser()
+
+            def func(args):
+                err = SystemError("returned a result with an exception set")
+                if cause is None:
+                    raise err
+                raise err from cause
+            p.set_defaults(func=func)
+            return p
+        return build
+
+    monkeypatch.setattr(cli, "build_parser", parser_raising(KeyboardInterrupt()))
+    assert main([]) == 130 and "interrupted" in capsys.readouterr().err
+    monkeypatch.setattr(cli, "build_parser", parser_raising(None))
+    assert main([]) == 2 and "internal error: SystemError" in capsys.readouterr().err
+
+
+def test_is_interrupt_follows_causes_and_contexts():
+    from tnn_dsl.core.interrupt import is_interrupt
+
+    def chained(inner: BaseException, how: str) -> SystemError:
+        try:
+            try:
+                raise inner
+            except BaseException as e:
+                if how == "cause":
+                    raise SystemError("outer") from e
+                raise SystemError("outer")  # noqa: B904 - the context, as C code leaves it
+        except SystemError as outer:
+            return outer
+
+    assert is_interrupt(KeyboardInterrupt())
+    assert is_interrupt(chained(KeyboardInterrupt(), "cause")) and is_interrupt(chained(KeyboardInterrupt(), "context"))
+    assert not is_interrupt(chained(ValueError(), "cause")) and not is_interrupt(SystemError("alone"))
+    assert not is_interrupt(ValueError("x"))  # only a SystemError is looked through
+    a, b = SystemError("a"), SystemError("b")
+    a.__context__, b.__context__ = b, a  # a cycle ends
+    assert not is_interrupt(a)

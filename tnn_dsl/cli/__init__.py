@@ -51,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from ..core import TnnError
+    from ..core.interrupt import is_interrupt
 
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
@@ -73,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         return 0
     except Exception as err:  # noqa: BLE001 - the one place that turns a bug into exit 2
+        if is_interrupt(err):  # Ctrl-C that came out of C code as a SystemError (core/interrupt.py)
+            print("interrupted", file=sys.stderr)
+            return 130
         if debug:
             raise
         print(f"tnnc: internal error: {type(err).__name__}: {err}", file=sys.stderr)

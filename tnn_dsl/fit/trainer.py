@@ -38,6 +38,7 @@ import numpy as np
 
 from ..compiler import Backend
 from ..core import Diagnostic, TnnError
+from ..core.interrupt import is_interrupt
 from ..ir import Network
 from .config import TrainConfig
 from .initial import check_rule
@@ -603,7 +604,9 @@ class _Trainer(_Rollouts):
                     break
         except _Stop:
             return r.best_z
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as e:
+            if not is_interrupt(e):  # a SystemError that no Ctrl-C caused is a bug: not hidden
+                raise
             self.stopped = "interrupted"
             self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {r.best_epoch})")
             return r.best_z
@@ -759,7 +762,9 @@ class _Trainer(_Rollouts):
         except _Stop:
             if self.over_time_limit(t0):
                 self.stopped = "time_limit"
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as e:
+            if not is_interrupt(e):
+                raise
             self.stopped = "interrupted"
             self.warnings.append("interrupted during the L-BFGS polish; kept the best model")
         if cand is not None and np.all(np.isfinite(cand)) and it[0] % val_every != 0:
