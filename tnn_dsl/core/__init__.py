@@ -2,7 +2,8 @@
 
 Owns: diagnostics and errors (``errors``: ``file:line:col: error: ...`` with caret and hint), source positions
 (``span``), safe output files (``files``: checks before any work, atomic writes), JSON conversion of numpy
-results (``jsonable``), a Ctrl-C seen through C code (``interrupt``) and the installed version. May import: nothing of tnn_dsl.
+results (``jsonable``), a Ctrl-C seen through C code (``interrupt``) and the installed version. May import:
+nothing of tnn_dsl.
 """
 
 from __future__ import annotations
