@@ -400,9 +400,11 @@ def score(case: Case, d, noise: float) -> dict:
     return r
 
 
-def run_case(case: Case, noise: float, seed: int, quick: bool, backend: str = "jax", top: int = 3,
+def run_case(case: Case, noise: float, seed: int, quick: bool, backend: str = "jax", top: int | None = None,
              max_rounds: int = 2, workdir: str | None = None, keep: bool = False) -> dict:
-    """Plant, diagnose, score one run. ``keep``: the diagnosis itself under ``"diagnosis"`` too (not JSON-able)."""
+    """Plant, diagnose, score one run. ``keep``: the diagnosis itself under ``"diagnosis"`` too (not JSON-able).
+    ``top``: candidates fitted per round (``None``: the doctor's default, ``doctor.scoring.SHORTLIST_TOP`` = 3, which
+    this suite judges)."""
     import tnn_dsl
 
     with tempfile.TemporaryDirectory() as tmp:
