@@ -113,14 +113,17 @@ def ml_refit(trained: Any, model: Any, exps: list, cfg: Any, log: Callable[[str]
     est.notes.insert(0, f"started from {label} (log L {est.loglik:.2f}" + (f"; {others}" if others else "") + ")")
     if log is not None:
         log(f"likelihood fit: log L {est.loglik:.2f} from {label}" + (f" ({others})" if others else ""))
-    for name, v in est.fitted.items():
-        trained.params[name] = np.asarray(v, dtype=np.float64).reshape(np.shape(trained.params[name]))
+    new = {name: np.asarray(v, dtype=np.float64).reshape(np.shape(trained.params[name]))
+           for name, v in est.fitted.items()}
     # each training file's stored start is refitted for a free run with the new parameters (free_run_start):
     # the likelihood's x0 (in the table) is the filter's prior mean, loose for an unsensed node
     names = list(model.state_names)
-    params = trained.backend_params(cfg.backend)
+    base = model.to_numpy(trained.backend_params(cfg.backend))
+    params = model.from_numpy({**base, **{k: v for k, v in new.items() if k in base}})
     by_name = {n: free_run_start(trained.network, model, params, U, Y, dt, integrator=cfg.integrator,
                                  substeps=cfg.substeps)[0] for n, U, Y, dt, _ in recs}
+    # written into ``trained`` only now, all together: a Ctrl-C before this line leaves the output-error fit whole
+    trained.params.update(new)
     for rec in trained.meta.get("initial_states") or []:
         T = by_name.get(rec.get("name"))
         if T is not None:

@@ -607,8 +607,7 @@ class _Trainer(_Rollouts):
         except (KeyboardInterrupt, SystemError) as e:
             if not is_interrupt(e):  # a SystemError that no Ctrl-C caused is a bug: not hidden
                 raise
-            self.stopped = "interrupted"
-            self.warnings.append(f"interrupted at epoch {len(self.curve)}; kept the best model (epoch {r.best_epoch})")
+            self.note_interrupt(f"at epoch {len(self.curve)}; kept the best model (epoch {r.best_epoch})")
             return r.best_z
         # L-BFGS polish on the full training loss, from Adam's last state (lower training loss than an
         # early best-validation state; that one stays the fallback)
@@ -765,17 +764,28 @@ class _Trainer(_Rollouts):
         except (KeyboardInterrupt, SystemError) as e:
             if not is_interrupt(e):
                 raise
-            self.stopped = "interrupted"
-            self.warnings.append("interrupted during the L-BFGS polish; kept the best model")
-        if cand is not None and np.all(np.isfinite(cand)) and it[0] % val_every != 0:
-            check(cand, final=True)
-        elif cand is not None and not has_val:
-            check(cand, final=True)
+            self.note_interrupt("during the L-BFGS polish; kept the best model")
+        try:  # the last iterate's check: a free run over the validation data (seconds), which Ctrl-C may cut
+            if cand is not None and np.all(np.isfinite(cand)) and it[0] % val_every != 0:
+                check(cand, final=True)
+            elif cand is not None and not has_val:
+                check(cand, final=True)
+        except (KeyboardInterrupt, SystemError) as e:
+            if not is_interrupt(e):
+                raise
+            self.note_interrupt("while checking the L-BFGS polish's last iterate; kept the best model checked before")
         if state["z"] is not None:
             return state["z"]
         self.log("the L-BFGS polish did not improve the " + ("validation MAE" if has_val else "training loss")
                  + "; kept the Adam result")
         return np.array(z if fallback is None else fallback, copy=True)
+
+    def note_interrupt(self, what: str) -> None:
+        """Ctrl-C stopped the fit: ``stopped = "interrupted"`` and a warning ``interrupted <what>``. The caller keeps
+        the best state it has; what follows the fit (standard errors) is skipped, the model is still saved."""
+        self.stopped = "interrupted"
+        self.warnings.append(f"interrupted {what}")
+        self.log(f"warning: interrupted {what}")
 
     def record(self, epoch, loss, val, t0, phase, eta=math.nan):
         best = min([r["val_mae"] for r in self.curve if math.isfinite(r["val_mae"])]

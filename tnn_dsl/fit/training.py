@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -12,6 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..core import Diagnostic, TnnError
+from ..core.interrupt import is_interrupt
 from ..data import as_experiments
 from ..ir import Network
 from .config import TrainConfig, load_config, torch_compile_pays
@@ -118,9 +120,14 @@ def model_meta(trained: TrainedModel, tr: _Trainer, model: Any, exps: list, vals
     ``est`` (or ``None``); its training and validation errors are computed here (free runs). ``seconds``: the
     whole training (s); ``compile_seconds``: the part of it in the first calls of its compiled programs (s,
     default ``tr``'s; ``time_limit`` does not count them)."""
-    metrics: dict[str, Any] = {"train": _metrics_or_nan(trained, exps, cfg)}
-    if vals:
-        metrics["validation"] = _metrics_or_nan(trained, vals, cfg)
+    metrics: dict[str, Any] = {}
+    for key, sets in (("train", exps), ("validation", vals)):
+        if sets:
+            metrics[key] = _metrics_or_nan(trained, sets, cfg, tr)
+            if metrics[key].get("interrupted"):  # Ctrl-C: the next data set's errors are not computed either
+                if vals:
+                    metrics["validation"] = {"mae": math.nan, "interrupted": True}
+                break
     net = trained.network
     return {
         "network": net.name,
@@ -158,6 +165,12 @@ def _estimates(trained: TrainedModel, model: Any, exps: list, cfg: TrainConfig, 
         if cfg.objective == "ml":
             return ml_refit(trained, model, exps, cfg, tr.log)
         return output_error_summary(trained, model, exps, cfg)
+    except (KeyboardInterrupt, SystemError) as e:
+        if not is_interrupt(e):
+            raise
+        tr.note_interrupt("while estimating " + ("by maximum likelihood; kept the output-error fit"
+                                                 if cfg.objective == "ml" else "standard errors; none given"))
+        return None
     except (TnnError, FloatingPointError, np.linalg.LinAlgError, ValueError) as e:
         msg = e.diagnostics[0].message if isinstance(e, TnnError) and getattr(e, "diagnostics", None) else str(e)
         what = "the likelihood fit" if cfg.objective == "ml" else "standard errors"
@@ -174,10 +187,30 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
     tr, z = _fit(net, exps, vals, cfg, model, callback, log)
     if not (tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT):
         return tr, z, None, tr.warmup_s
-    z = tr.finish_single_shooting(z)
-    tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+    # Ctrl-C from here on keeps the best result so far. The windowed trainer is finished as a shallow copy: the
+    # switch of layout rebinds the copy's attributes, so the windowed one and its ``z`` stay valid together.
+    finishing = copy.copy(tr)
+    try:
+        z_f = finishing.finish_single_shooting(z)
+    except (KeyboardInterrupt, SystemError) as e:
+        if not is_interrupt(e):
+            raise
+        tr.note_interrupt("while switching to single shooting; kept the multiple-shooting fit")
+        return tr, z, None, tr.warmup_s
+    tr, z = finishing, z_f
+    if tr.stopped == "interrupted":  # the single-shooting polish was stopped: not a second route
+        return tr, z, None, tr.warmup_s
+    try:
+        tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+        a, b = tr.selection_score(z), tr_s.selection_score(z_s)
+    except (KeyboardInterrupt, SystemError) as e:
+        if not is_interrupt(e):
+            raise
+        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit")
+        return tr, z, None, tr.warmup_s
+    if tr_s.stopped == "interrupted":  # the first route is kept below (a route cut short does not win) and says so
+        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit")
     compile_s = tr.warmup_s + tr_s.warmup_s  # both routes trained
-    a, b = tr.selection_score(z), tr_s.selection_score(z_s)
     by = "validation MAE" if vals else "free-run training loss"
     if tr_s.stopped not in _CUT_SHORT and b < a:
         tr, z = tr_s, z_s
@@ -235,11 +268,18 @@ def _input_paths(network, data, val) -> list:
     return paths
 
 
-def _metrics_or_nan(trained, exps, cfg):
+def _metrics_or_nan(trained, exps, cfg, tr: _Trainer):
+    """The free-run errors of ``trained`` on ``exps``; NaN where the model leaves the physical range, or where
+    Ctrl-C stops the run (the model is saved either way)."""
     try:
         return trained.evaluate(exps, backend=cfg.backend, init=cfg.init, burn_in_s=cfg.burn_in)
     except (FloatingPointError, TnnError):  # a model that leaves the physical range is still saved
         return {"mae": math.nan}
+    except (KeyboardInterrupt, SystemError) as e:
+        if not is_interrupt(e):
+            raise
+        tr.note_interrupt("while computing the model's errors; saved without them")
+        return {"mae": math.nan, "interrupted": True}
 
 
 def _data_desc(exps) -> list[dict[str, Any]]:
