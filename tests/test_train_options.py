@@ -311,6 +311,7 @@ def _ctrl_c_at(monkeypatch, stage: str) -> list[bool]:
 
 _STAGES = ["polish's last check", "switch to single shooting", "single-shooting route", "standard errors",
            "likelihood fit", "errors"]
+ROUTE_STAGES = ("switch to single shooting", "single-shooting route")
 
 
 # the likelihood fit on torch takes 76 s (against 11 s on JAX): slow; its JAX variant stays in CI
@@ -322,15 +323,16 @@ def test_ctrl_c_after_the_first_model_still_saves_a_model(tmp_path, monkeypatch,
     shooting, the second (single-shooting) route, the standard errors, the likelihood fit (``objective="ml"``: the
     output-error fit is kept whole, not half overwritten), the stored errors' free runs — ends the training
     ``interrupted`` with a warning saying where, and the model it had is saved and predicts (each of these raised
-    out of ``train`` before: the model was lost). 120 samples in windows of 10: multiple shooting, then both
-    routes."""
+    out of ``train`` before: the model was lost). 120 samples; for the two stages of the routes in windows of 10
+    (multiple shooting, then both routes), else one free run (single shooting)."""
     net = tnn_dsl.loads(RC, "rc.thn")
     data = _record(tmp_path)
     fired = _ctrl_c_at(monkeypatch, stage)
     out = tmp_path / "model"
     try:
-        tm = tnn_dsl.train(net, data, val=data, backend=backend, epochs=20, lbfgs_iters=15, window=200.0, out=out,
-                           torch_compile=False, objective="ml" if stage == "likelihood fit" else "output-error")
+        tm = tnn_dsl.train(net, data, val=data, backend=backend, epochs=20, lbfgs_iters=15, out=out,
+                           window=200.0 if stage in ROUTE_STAGES else None, torch_compile=False,
+                           objective="ml" if stage == "likelihood fit" else "output-error")
     except KeyboardInterrupt:
         pytest.fail(f"Ctrl-C in the {stage} came out of train(): the model was lost")
     meta = tm.meta
