@@ -276,7 +276,8 @@ def test_a_budget_spent_before_any_test_is_not_a_clean_bill(backend):
     assert d.verdict.startswith("not decided: the budget (0.001 s) ran out before any candidate was tested"), d.verdict
     assert any("stopped the nominal model's fit" in n for n in d.notes), d.notes
     doc = d.to_dict()  # what tnnc diagnose --json and a fleet's unit rows carry
-    assert doc["decided"] is False and doc["budget"] == {"seconds": 1e-3, "ran_out": "before any candidate was tested"}
+    assert doc["decided"] is False and doc["budget"] == {"seconds": 1e-3, "ran_out": "before any candidate was tested",
+                                                         "interrupted": False}
 
 
 def _write(exp, net, path):

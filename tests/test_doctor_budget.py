@@ -89,7 +89,7 @@ def test_the_score_test_stops_between_chunks_when_the_budget_is_spent(backend, c
     assert not d.accepted and not d.scores and not d.findings
     where = "in round 1's score test"
     assert d.verdict.startswith(f"not decided: the budget ({BUDGET_S:g} s) ran out {where}"), d.verdict
-    assert d.to_dict()["budget"] == {"seconds": BUDGET_S, "ran_out": where}
+    assert d.to_dict()["budget"] == {"seconds": BUDGET_S, "ran_out": where, "interrupted": False}
 
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])

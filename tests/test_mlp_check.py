@@ -194,3 +194,28 @@ def test_the_mlp_is_trained_first_and_the_linear_law_only_where_the_mlp_could_be
         assert r["decided"] is (not cut)
         assert ("not decided" in r["reason"] and "--mlp-time" in r["reason"]) if cut else (
             "the linear clauses were not trained" in r["reason"])
+
+
+def test_a_stop_cuts_the_trainings_and_leaves_the_answer_undecided(monkeypatch):
+    """The doctor's Ctrl-C (``compare(..., stop=)``, :mod:`tnn_dsl.doctor.stopping`): each training gets a callback that
+    stops it (``KeyboardInterrupt``, the trainer keeps its best state: ``stopped: interrupted``) once ``stop()`` is
+    true; a training so cut leaves the answer undecided like the time limit, the reason saying Ctrl-C stopped it."""
+    rng = np.random.default_rng(1)
+    e_lin = rng.normal(0.0, 0.05, 2000)
+    stopping = [False]
+    seen: list[str] = []
+
+    def fake_train(variant, train, val, callback=None, **kw):
+        callback({"phase": "start"})  # before the stop: goes on
+        stopping[0] = True
+        try:
+            callback({"phase": "adam"})
+        except KeyboardInterrupt:
+            seen.append("stopped")
+            return _Trained(e_lin * 1.2, "interrupted", 45)
+        return _Trained(e_lin * 1.2, "completed", 45)
+
+    monkeypatch.setattr("tnn_dsl.fit.train", fake_train)
+    r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0, bar=float(np.mean(np.abs(e_lin))), stop=lambda: stopping[0])
+    assert seen == ["stopped"] and r["choice"] == "linear" and r["decided"] is False
+    assert "stopped by Ctrl-C" in r["reason"] and "run to its end decides" in r["reason"], r["reason"]

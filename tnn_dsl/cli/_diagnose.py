@@ -83,7 +83,8 @@ def run(args) -> int:
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
                  mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force, init=args.init,
-                 burn_in=args.burn_in, objective=args.objective, release_jax_caches=True)  # this process is ours
+                 burn_in=args.burn_in, objective=args.objective, release_jax_caches=True,  # this process is ours
+                 stop_on_ctrl_c=True)  # Ctrl-C: what was found so far is reported and written (doctor.stopping)
     print(d.summary())
     if d.diff:
         print("\nextension (diff):")
@@ -96,4 +97,8 @@ def run(args) -> int:
 
         path = write_report(d, args.report, force=args.force)
         progress(f"report written to {path}")
+    if (d.budget or {}).get("interrupted"):
+        print(f"interrupted: stopped {d.budget['ran_out']}; what was found so far is above"
+              + (" and written" if args.output or args.json or args.report else ""), file=sys.stderr)
+        return 130
     return 0

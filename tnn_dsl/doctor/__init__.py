@@ -5,7 +5,8 @@ Owns: one run as named stages (``session``; entry point ``diagnose`` in ``diagno
 score columns in ``forcing``) as IR edits, the fitting engine (``engine``: simulation, residuals, forward-mode
 Jacobians, Levenberg–Marquardt), the score test and shortlist (``scoring``), proper fits (``fitting``), the
 held-out decision (``selection``), the extension as IR edits printed to ``.thn`` (``extension``), linear or
-MLP (``mlp_check``), causes named in words (``words``), results (``results``) and the HTML page (``report``).
+MLP (``mlp_check``), causes named in words (``words``), results (``results``), the HTML page (``report``) and
+Ctrl-C as a spent budget (``stopping``).
 May import: every stage below it (``core`` … ``analysis``); not ``control``, ``studies`` or ``cli``.
 """
 

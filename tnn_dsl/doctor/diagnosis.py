@@ -64,6 +64,7 @@ from ..core.memory import large_blocks_mapped, release_free_memory
 from .results import Diagnosis, Finding
 from .scoring import SHORTLIST_TOP
 from .session import _Session
+from .stopping import ctrl_c_stops
 
 __all__ = ["diagnose", "Diagnosis", "Finding"]
 
@@ -73,7 +74,7 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
              burn_in: float | None = None, objective: str = "output-error", threads: int | None = None,
-             release_jax_caches: bool = False) -> Diagnosis:
+             release_jax_caches: bool = False, stop_on_ctrl_c: bool = False) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -123,6 +124,12 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
         process, the caller's own included, then compiles again on its next call; ``tnnc diagnose``, which owns its
         process, turns it on (issue 18: the case study's peak with two threads 580–614 → 557–558 MB,
         ``benchmarks/bench_diagnose.py``, BENCHMARKS.md "Diagnosis: time and memory").
+    stop_on_ctrl_c : bool
+        A first Ctrl-C (in the main thread) stops the diagnosis the way a spent budget does — no new work, a fit in
+        progress ends after its iteration — and it returns what it has, the findings accepted so far with their
+        extended model, its verdict saying where Ctrl-C stopped it (``budget["interrupted"]``); a second Ctrl-C
+        aborts (:mod:`tnn_dsl.doctor.stopping`). Off by default: a program running diagnoses in a loop of its own
+        expects Ctrl-C to end that loop. ``tnnc diagnose`` turns it on.
 
     Returns
     -------
@@ -132,7 +139,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
                    top=SHORTLIST_TOP if top is None else top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
                    burn_in=burn_in, objective=objective, threads=threads)
-    with one_blas_thread():  # small matrices between compiled simulations: BLAS threads only spin (core.blas)
+    with one_blas_thread(), ctrl_c_stops(progress or (lambda s: None), enabled=stop_on_ctrl_c):
+        # one BLAS thread: small matrices between compiled simulations, where BLAS threads only spin (core.blas)
         return _run(run, max_rounds, release_jax_caches)
 
 

@@ -16,6 +16,7 @@ from ..compiler import backend_of
 from ..fit.ranges import start_range
 from ..ir import Input, Network, Param
 from .base import Candidate, Extended
+from .stopping import stop_requested
 
 POINT_BLOCK = {"jax": 512, "torch": 4096}
 """Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`), by backend. JAX's compiled program
@@ -794,7 +795,7 @@ class _Engine:
             if done:
                 capped = False
                 break
-            if deadline is not None and _time.monotonic() > deadline:
+            if stop_requested() or (deadline is not None and _time.monotonic() > deadline):  # Ctrl-C, the budget
                 break
         self.params = params
         return {"sse": cur, "iterations": it, "jacobians": n_jac, "capped": capped}

@@ -16,6 +16,7 @@ from ..ir import Network
 from .base import Candidate, Extended
 from .candidates import build_extended
 from .engine import FIT_ITER_FIRST, _alias, _Engine, _make_engine
+from .stopping import stop_requested
 from .structural import apply_structural
 
 
@@ -71,7 +72,7 @@ def refit_from_written(eng: _Engine, act: list[int], info: dict, start: dict, na
     on to ``max_iter`` only if its training SSE is then below the first start's (on the case study's 4 h, a probe's
     second start had crawled to its cap of 80 Jacobians, 12 s, and lost: 184.8 against 138.9 K²)."""
     start = written_values(eng, start, names, learned) if names else None
-    if start is None or (deadline is not None and _time.monotonic() > deadline):
+    if start is None or stop_requested() or (deadline is not None and _time.monotonic() > deadline):
         return info
     first = eng.params
     eng.params = start

@@ -74,14 +74,41 @@ def _n_params(trained) -> int:
     return int(sum(int(np.prod(s.shape)) for s in model.param_specs.values() if s.trainable))
 
 
+_CUT = ("time_limit", "interrupted")
+"""How a training stopped when it was cut short of its schedule: its time limit, or Ctrl-C (the doctor's ``stop``)."""
+
+
+def _cut_words(row: dict, time_limit: float) -> str:
+    return "stopped by Ctrl-C" if row.get("stopped") == "interrupted" else f"stopped at the {time_limit:.0f} s limit"
+
+
+def _decides(row: dict) -> str:
+    return ("the check run to its end decides" if row.get("stopped") == "interrupted" else
+            "a faster machine or a longer limit (mlp_time, tnnc diagnose --mlp-time S) decides")
+
+
+def _stopping(stop: Callable[[], bool] | None) -> Callable[[dict], None] | None:
+    """A training callback that stops the training (as Ctrl-C does: its best state kept) once ``stop()`` is true."""
+    if stop is None:
+        return None
+
+    def callback(_record: dict) -> None:
+        if stop():
+            raise KeyboardInterrupt
+
+    return callback
+
+
 def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax", time_limit: float = 60.0,
-            say: Callable[[str], None] = lambda s: None, threads: int = 1, bar: float | None = None) -> dict | None:
+            say: Callable[[str], None] = lambda s: None, threads: int = 1, bar: float | None = None,
+            stop: Callable[[], bool] | None = None) -> dict | None:
     """Train the extension ``net`` as it is (the doctor's linear functions, of ``targets``) and with those as MLPs
     (:func:`mlp_variant`) on ``train`` (Experiments), measure both on ``val`` (Experiments; free runs). Returns
     None when there is no linear function to compare, else a dict: ``linear`` / ``mlp`` (held-out MAE and max,
     K; trainable parameter count; seconds; how its training stopped), ``dm_stat``, ``p_value``, ``mae_gain``,
     ``choice`` ("mlp" or "linear"), ``decided`` (False: a training cut by ``time_limit`` s could have changed the
-    answer, the linear law is kept), ``reason``, ``network`` (the chosen variant), ``n_clauses``. Without ``bar`` and
+    answer, the linear law is kept; so does a training ``stop()`` stopped, checked after each of its epochs: the
+    doctor's Ctrl-C), ``reason``, ``network`` (the chosen variant), ``n_clauses``. Without ``bar`` and
     with ``threads`` ≥ 2 the two trainings run side by side (their progress lines are said in order when both are
     done).
 
@@ -106,7 +133,8 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         # each training's programs are compiled for it alone: XLA's lean options, whose compilation needs a
         # fraction of the memory (this check was the diagnosis' peak; issue 18)
         with lean_programs():
-            trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0)
+            trained = train_model(variant, train, val, backend=backend, time_limit=time_limit, seed=0,
+                                  callback=_stopping(stop))
             e = _held_out_errors(trained, val)
         row = {"val_mae": float(np.nanmean(np.abs(e))), "val_max": float(np.nanmax(np.abs(e))),
                "k": _n_params(trained), "seconds": round(time.monotonic() - t0, 1),
@@ -118,13 +146,12 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     if bar is not None and math.isfinite(bar):
         e_mlp, row = run("mlp", net_mlp, say)
         if row["val_mae"] > (1 - MIN_GAIN) * bar:  # it cannot be chosen (the session's own rule)
-            cut = row.get("stopped") == "time_limit"
+            cut = row.get("stopped") in _CUT
             out.update(mlp=row, choice="linear", network=net, decided=not cut)
             why = (f"the trained MLP ({row['val_mae']:.4g} K held out) does not beat the doctor's own linear fit "
                    f"({bar:.4g} K) by {100 * MIN_GAIN:.0f} %")
-            out["reason"] = (f"not decided: {why}, but its training was stopped at the {time_limit:.0f} s limit "
-                             "before its schedule ended; the linear law is kept — a faster machine or a longer limit "
-                             "(mlp_time, tnnc diagnose --mlp-time S) decides" if cut else
+            out["reason"] = (f"not decided: {why}, but its training was {_cut_words(row, time_limit)} before its "
+                             f"schedule ended; the linear law is kept — {_decides(row)}" if cut else
                              f"{why}: the linear law is kept (the linear clauses were not trained)")
             return out
         e_lin, row_lin = run("linear", net, say)
@@ -140,14 +167,13 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     pays = p < P_ACCEPT and gain >= MIN_GAIN
     # a training the time limit cut short that could have changed the answer: the MLP's when it did not pay, the
     # linear law's when the MLP did
-    cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") == "time_limit"]
+    cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") in _CUT]
     out["decided"] = not cut
     if cut:
         out.update(choice="linear", network=net,
-                   reason=(f"not decided: the {cut[0]} variant's training was stopped at the {time_limit:.0f} s limit "
+                   reason=(f"not decided: the {cut[0]} variant's training was {_cut_words(out[cut[0]], time_limit)} "
                            f"before its schedule ended (so far the MLP {'pays' if pays else 'does not pay'}, p = "
-                           f"{p:.2g}); the linear law is kept — a faster machine or a longer limit (mlp_time, "
-                           f"tnnc diagnose --mlp-time S) decides"))
+                           f"{p:.2g}); the linear law is kept — {_decides(out[cut[0]])}"))
     elif pays:
         out.update(choice="mlp", network=net_mlp,
                    reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")

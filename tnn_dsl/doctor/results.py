@@ -74,9 +74,9 @@ class Diagnosis:
     """What the selection maximises: ``output-error`` (free-run error, held-out Diebold–Mariano on squared errors)
     or ``ml`` (the Kalman-filter likelihood, likelihood-ratio tests; evidence ``likelihood`` per finding)."""
     budget: dict | None = None
-    """``{"seconds": s, "ran_out": where}`` when the budget (``budget_s``) cut the work (``where``: ``"before any
-    candidate was tested"``, ``"in round 2"``, ...), else ``None``. With nothing accepted the diagnosis is then not
-    decided (:attr:`decided`)."""
+    """``{"seconds": s, "ran_out": where, "interrupted": bool}`` when the budget (``budget_s``) or Ctrl-C
+    (``interrupted``; :mod:`.stopping`) cut the work (``where``: ``"before any candidate was tested"``, ``"in round
+    2"``, ...), else ``None``. With nothing accepted the diagnosis is then not decided (:attr:`decided`)."""
 
     @property
     def decided(self) -> bool:

@@ -40,6 +40,7 @@ from .fitting import _fit_result, _fit_structural, _train_lr_test, continue_fit,
 from .results import Diagnosis, Finding
 from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist, same_correction
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
+from .stopping import stop_requested
 from .structural import structural_candidates
 from .threads import fit_threads, side_by_side
 from .uncertainty import final_uncertainty
@@ -227,6 +228,8 @@ class _Session:
         self.deadline = None if budget_s is None else self.t_start + float(budget_s)
         self.budget_s = budget_s
         self.budget_cut: str | None = None
+        self.interrupted = False
+        """Whether Ctrl-C (:mod:`.stopping`), not the budget, cut the work at :attr:`budget_cut`."""
         """Where the budget first stopped work (``"before any candidate was tested"``, ``"in round 2"``,
         ``"before round 2"``, ``"in the final fits"``): a verdict reached with less work than the method asks says
         so."""
@@ -258,12 +261,18 @@ class _Session:
         chunks) look at it as they go, so a diagnosis ends within about one Jacobian, one score-test chunk or one
         final report of its deadline. (The score test and each round's first fit used to run regardless: the torch
         doctor, ``--budget 60``, ran 117 s, its score test of 51 s and first fit of 18 s both past the deadline.)"""
-        out = self.deadline is not None and _time.monotonic() > self.deadline
+        stop = stop_requested()  # Ctrl-C (doctor.stopping): spent like a budget, whatever is left of it
+        out = stop or (self.deadline is not None and _time.monotonic() > self.deadline)
         if out and self.budget_cut is None:
             self.budget_cut = where or (f"in round {self.round_now}" if self.round_now > 0 else
                                         "before any candidate was tested" if self.round_now == 0
                                         else "in the final fits")
+            self.interrupted = stop
         return out
+
+    def cut_by(self) -> str:
+        """What cut the work, in words: ``"Ctrl-C"`` or ``"the budget (60 s)"``."""
+        return "Ctrl-C" if self.interrupted else f"the budget ({self.budget_s:g} s)"
 
     # -- stage 0: data -----------------------------------------------------------------------------
 
@@ -337,7 +346,7 @@ class _Session:
                  + f") on {int(self.train_rows.sum())} samples ...")
         info = eng.fit(free_idx, max_iter=30, deadline=self.deadline, tol=1e-6)
         if info["capped"] and self.spent():
-            self.notes.append(f"the budget ({self.budget_s:g} s) stopped the nominal model's fit after "
+            self.notes.append(f"{self.cut_by()} stopped the nominal model's fit after "
                               f"{info['iterations']} iterations, before it converged: the baseline below is not the "
                               "best the written model does, and no candidate was tested; run with a larger --budget "
                               "(or none)")
@@ -1348,9 +1357,12 @@ class _Session:
         """Linear or MLP, as the evidence says: only where a structured residual is left and time allows."""
         res_fin = self.res_fin
         targets = doctor_targets(self.acc_small)
-        if not (self.accepted and targets and self.mlp_check
-                and not R.all_white(res_fin.whiteness)
-                and (self.deadline is None or _time.monotonic() + 2 * self.mlp_time < self.deadline)):
+        if not (self.accepted and targets and self.mlp_check and not R.all_white(res_fin.whiteness)):
+            return
+        if stop_requested():  # Ctrl-C: the check is skipped and the result says so
+            self.spent("before the check of an MLP against the linear law")
+            return
+        if self.deadline is not None and _time.monotonic() + 2 * self.mlp_time >= self.deadline:
             return
         from ..data import split_by_time
         from .mlp_check import compare
@@ -1365,7 +1377,7 @@ class _Session:
         try:
             ext = _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
             form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say,
-                           threads=self.threads, bar=res_fin.mae)
+                           threads=self.threads, bar=res_fin.mae, stop=stop_requested)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
         # an MLP that does not beat the doctor's own linear fit by MIN_GAIN is never chosen: ``compare`` checks it
@@ -1403,11 +1415,12 @@ class _Session:
                    else "no significant deficiency found")
         if self.budget_cut is not None:
             where = self.budget_cut
-            verdict = (f"{verdict}; the budget ({self.budget_s:g} s) ran out {where}"
-                       + (": more rounds could find more" if "round" in where else "")
+            cut = (f"stopped by Ctrl-C {where}" if self.interrupted
+                   else f"the budget ({self.budget_s:g} s) ran out {where}")
+            verdict = (f"{verdict}; {cut}" + (": more rounds could find more" if "round" in where else "")
                        if self.accepted else
-                       f"not decided: the budget ({self.budget_s:g} s) ran out {where}, so no deficiency was found "
-                       "but the search did not finish; run with a larger --budget (or none)")
+                       f"not decided: {cut}, so no deficiency was found but the search did not finish; "
+                       + ("run it to its end" if self.interrupted else "run with a larger --budget (or none)"))
         self.timings["total"] = round(_time.monotonic() - self.t_start, 3)
         eng = self.eng
         plots = {"t": self.t_all, "y": eng.y, "y_nominal": self.y_nom, "y_extended": self.y_fin,
@@ -1419,4 +1432,5 @@ class _Session:
                          left=_what_is_left(res_fin), timings=self.timings, plots=plots, notes=self.notes,
                          initial=self.initial, objective=self.objective,
                          budget=None if self.budget_cut is None else {"seconds": self.budget_s,
-                                                                      "ran_out": self.budget_cut})
+                                                                      "ran_out": self.budget_cut,
+                                                                      "interrupted": self.interrupted})

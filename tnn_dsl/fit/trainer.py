@@ -596,9 +596,9 @@ class _Trainer(_Rollouts):
         r.best_z, r.best_loss = z.copy(), loss0
         r.best_val = r.val = self.validate(z) if r.has_val else math.inf
         r.t_val = time.perf_counter() - r.t0
-        self.record(0, loss0, r.best_val, r.t0, "start")
         val_every = cfg.val_every or self.auto_val_every()
         try:
+            self.record(0, loss0, r.best_val, r.t0, "start")  # a callback may stop the training from here on
             for epoch in range(1, cfg.epochs + 1):
                 if not self._adam_epoch(r, epoch, rng, minibatch, full_vg, batch_vg, data, val_every):
                     break
