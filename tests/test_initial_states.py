@@ -423,6 +423,40 @@ def test_free_runs_of_files_alike_go_as_one_batch_equal_to_the_runs_one_by_one(b
         sim.free_runs(model, params, exps, rule, check=True)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_burn_in_fits_of_files_alike_run_in_lockstep_and_equal_the_fits_one_by_one(backend, monkeypatch):
+    """``initial_states``: on torch the ``estimate`` fits of files alike in step and burn-in length run together
+    (one batched rollout per kind of request and iteration: fewer calls than the files' fits one by one), and every
+    file's start, its RMS note and the states held on a bound equal :func:`initial_state`'s to round-off — files
+    started 3–8 K off rest, one 60 K off (its steps go uphill and are halved, its hidden state held on the
+    plausible range's edge), one with noise, one shorter (fitted alone). JAX: each file's fit as before."""
+    from tnn_dsl.fit import initial as ini_mod
+
+    net, model, params = _model(backend)
+    exps = [_simulated(backend, _prbs_inputs(s), name=f"f{s}")[0] for s in range(3)]
+    exps.append(_simulated(backend, _prbs_inputs(3), off=np.array([0.0, -60.0]), name="far")[0])
+    exps.append(_simulated(backend, _prbs_inputs(4), noise=0.05, seed=2, name="noisy")[0])
+    exps.append(_simulated(backend, _prbs_inputs(5, N - 100), name="short")[0])
+    calls = [0]
+    real = model.rollout
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(model, "rollout", counted)
+    together = ini_mod.initial_states(net, model, params, exps, "estimate")
+    n_together, calls[0] = calls[0], 0
+    alone = [initial_state(net, model, params, e, "estimate") for e in exps]
+    n_alone = calls[0]
+    if backend == "torch":  # (JAX's fits call programs compiled once: no rollout call to count)
+        assert 0 < n_together < n_alone / 2, (n_together, n_alone)
+    for e, a, b in zip(exps, together, alone):
+        assert a.rule == b.rule == "estimate" and a.burn_in == b.burn_in and a.notes == b.notes, e.name
+        np.testing.assert_allclose(a.T, b.T, rtol=0, atol=1e-9, err_msg=e.name)
+    assert any("edge of the plausible start range" in n for n in together[3].notes), together[3].notes
+
+
 # ---------------------------------------------------------------------------------------------
 # 5. the command line
 # ---------------------------------------------------------------------------------------------

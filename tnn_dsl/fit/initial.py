@@ -279,74 +279,97 @@ class _BurnInFit:
         burn-in's RMS error (K). ``bounds`` ``(low, high)`` K: every state is kept inside (a projected step); a
         model that cannot explain the start otherwise pushes an unsensed state there, and :attr:`held` says
         which. A step that raises the cost is halved (:data:`GN_MAX_HALVINGS`), so the estimate never ends worse
-        than an iterate it has seen."""
+        than an iterate it has seen. (:func:`_gauss_newton` is the iteration; :func:`solve_batched` runs several
+        files' together.)"""
         B = backend_of(model)
         Ub = B.asarray(np.asarray(U, dtype=np.float64))
         if self.packable and hasattr(model, "pack_params"):  # one jit argument, not one per constant
             params = model.pack_params(params)
-        mask = np.isfinite(Y)
-        sig = _noise_std(Y)  # (n_out,)
-        W = np.broadcast_to(1.0 / sig, Y.shape)[mask]
-        x = np.asarray(prior, dtype=np.float64).copy()
-        P = 1.0 / np.asarray(prior_std, dtype=np.float64)
-        ns = len(model.state_names)
-        if bounds is not None:
-            x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
-        rms = math.inf
-        best: tuple[float, np.ndarray, float] | None = None  # (cost, x, rms) of the last iterate that went downhill
-        halvings = 0
-        for _ in range(MAX_GN_ITER):
-            if self.fyJ is not None and not halvings:  # the readings and their Jacobian from one call
-                y, J = (B.numpy(a) for a in self.fyJ(params, Ub, B.asarray(x)))
-            else:  # a halved step is a trial: its readings alone (torch: one run, not the 2·n + 1 of the batch)
-                y = B.numpy(self.fy(params, Ub, B.asarray(x)))
-                J = None
-            r = (y - Y)[mask]
-            with np.errstate(over="ignore", invalid="ignore"):
-                cost = float(np.sum((W * r) ** 2) + np.sum((P * (x - prior)) ** 2))
-            if best is not None and not cost <= best[0] * (1.0 + 1e-12):
-                # the last step went uphill (a nonlinear network far from the linearisation, a state projected
-                # onto its bound) or out of the finite: take half of it, at most GN_MAX_HALVINGS times in a row
-                halvings += 1
-                if halvings > GN_MAX_HALVINGS:
-                    x, rms = best[1], best[2]
-                    break
-                x = best[1] + 0.5 * (x - best[1])
-                continue
-            if not math.isfinite(cost):
-                break  # the start itself: nothing better to go back to (the run is checked later)
-            with np.errstate(over="ignore"):
-                rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-            best, halvings = (cost, x, rms), 0
-            if J is None and self.fyJ is not None:  # a trial taken: its Jacobian (the readings as they were)
-                J = B.numpy(self.fyJ(params, Ub, B.asarray(x))[1])
-            elif J is None:
-                J = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
-            Jm = J[mask]
-            if not (np.all(np.isfinite(Jm)) and np.all(np.isfinite(r))):
-                break  # the model's sensitivities overflow here: keep the last state (the run is checked later)
-            try:
-                dx = gauss_newton_step(Jm, r, W, P, x - prior)
-            except np.linalg.LinAlgError:
-                break
-            step = float(np.max(np.abs(dx))) if dx.size else 0.0
-            if step > 50.0:  # a trust region for strongly nonlinear networks (K)
-                dx *= 50.0 / step
-            x_new = x + dx
-            if bounds is not None:
-                x_new[:ns] = np.clip(x_new[:ns], bounds[0], bounds[1])
-            moved = x_new - x  # the step taken (a state held on a bound does not move)
-            x = x_new
-            with np.errstate(over="ignore", invalid="ignore"):  # huge sensitivities: inf, the loop goes on
-                decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
-            if float(np.max(np.abs(moved), initial=0.0)) < 1e-7 or decrement < GN_DECREMENT_TOL:
-                break
-        else:
-            if best is not None:  # out of iterations: the best iterate seen, not an untried last step
-                x, rms = best[1], best[2]
-        self.held = ([] if bounds is None else
-                     [i for i in range(ns) if x[i] <= bounds[0] + 1e-9 or x[i] >= bounds[1] - 1e-9])
+        steps = _gauss_newton(len(model.state_names), Y, prior, prior_std, bounds, self.fyJ is not None)
+        request = next(steps)
+        try:
+            while True:
+                kind, x = request
+                if kind == "yJ":  # the readings and their Jacobian from one call
+                    answer = tuple(B.numpy(a) for a in self.fyJ(params, Ub, B.asarray(x)))
+                elif kind == "y":
+                    answer = B.numpy(self.fy(params, Ub, B.asarray(x)))
+                else:  # "J"
+                    answer = B.numpy(self.fJ(params, Ub, B.asarray(x)))  # (n_t, n_out, n_states)
+                request = steps.send(answer)
+        except StopIteration as done:
+            x, rms, self.held = done.value
         return x, rms
+
+
+def _gauss_newton(ns: int, Y: np.ndarray, prior: np.ndarray, prior_std: np.ndarray,
+                  bounds: tuple[float, float] | None, joint: bool):
+    """The burn-in fit's Gauss–Newton iteration (:meth:`_BurnInFit.solve`) as a generator: it yields what it needs
+    computed — ``("yJ", x)`` the readings and their Jacobian from one call (``joint``: torch's central differences),
+    ``("y", x)`` the readings alone (a trial step), ``("J", x)`` the Jacobian alone — and is sent the answer; it
+    returns ``(x, rms K, the states held on a bound)``. Written once, so that one file's fit and several files' fits
+    run in lockstep (:func:`solve_batched`: their requests of one kind as one batched call) take the same steps."""
+    mask = np.isfinite(Y)
+    sig = _noise_std(Y)  # (n_out,)
+    W = np.broadcast_to(1.0 / sig, Y.shape)[mask]
+    x = np.asarray(prior, dtype=np.float64).copy()
+    P = 1.0 / np.asarray(prior_std, dtype=np.float64)
+    if bounds is not None:
+        x[:ns] = np.clip(x[:ns], bounds[0], bounds[1])
+    rms = math.inf
+    best: tuple[float, np.ndarray, float] | None = None  # (cost, x, rms) of the last iterate that went downhill
+    halvings = 0
+    for _ in range(MAX_GN_ITER):
+        if joint and not halvings:  # the readings and their Jacobian from one call
+            y, J = yield ("yJ", x)
+        else:  # a halved step is a trial: its readings alone (torch: one run, not the 2·n + 1 of the batch)
+            y = yield ("y", x)
+            J = None
+        r = (y - Y)[mask]
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(np.sum((W * r) ** 2) + np.sum((P * (x - prior)) ** 2))
+        if best is not None and not cost <= best[0] * (1.0 + 1e-12):
+            # the last step went uphill (a nonlinear network far from the linearisation, a state projected
+            # onto its bound) or out of the finite: take half of it, at most GN_MAX_HALVINGS times in a row
+            halvings += 1
+            if halvings > GN_MAX_HALVINGS:
+                x, rms = best[1], best[2]
+                break
+            x = best[1] + 0.5 * (x - best[1])
+            continue
+        if not math.isfinite(cost):
+            break  # the start itself: nothing better to go back to (the run is checked later)
+        with np.errstate(over="ignore"):
+            rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+        best, halvings = (cost, x, rms), 0
+        if J is None and joint:  # a trial taken: its Jacobian (the readings as they were)
+            J = (yield ("yJ", x))[1]
+        elif J is None:
+            J = yield ("J", x)  # (n_t, n_out, n_states)
+        Jm = J[mask]
+        if not (np.all(np.isfinite(Jm)) and np.all(np.isfinite(r))):
+            break  # the model's sensitivities overflow here: keep the last state (the run is checked later)
+        try:
+            dx = gauss_newton_step(Jm, r, W, P, x - prior)
+        except np.linalg.LinAlgError:
+            break
+        step = float(np.max(np.abs(dx))) if dx.size else 0.0
+        if step > 50.0:  # a trust region for strongly nonlinear networks (K)
+            dx *= 50.0 / step
+        x_new = x + dx
+        if bounds is not None:
+            x_new[:ns] = np.clip(x_new[:ns], bounds[0], bounds[1])
+        moved = x_new - x  # the step taken (a state held on a bound does not move)
+        x = x_new
+        with np.errstate(over="ignore", invalid="ignore"):  # huge sensitivities: inf, the loop goes on
+            decrement = float(np.sum((W * (Jm @ moved)) ** 2) + np.sum((P * moved) ** 2))
+        if float(np.max(np.abs(moved), initial=0.0)) < 1e-7 or decrement < GN_DECREMENT_TOL:
+            break
+    else:
+        if best is not None:  # out of iterations: the best iterate seen, not an untried last step
+            x, rms = best[1], best[2]
+    held = [] if bounds is None else [i for i in range(ns) if x[i] <= bounds[0] + 1e-9 or x[i] >= bounds[1] - 1e-9]
+    return x, rms, held
 
 
 def gauss_newton_step(J: np.ndarray, r: np.ndarray, W: np.ndarray, P: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -518,6 +541,13 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
     bounds = start_range(model, exp)
     x, rms, held = _map_start(net, model, params, U[:b], Y[:b], float(exp.dt), measured, pe, integrator, substeps,
                               bounds)
+    return _estimated(model, x, rms, held, b, span, names, bounds)
+
+
+def _estimated(model: Any, x: np.ndarray, rms: float, held: list[int], b: int, span: str, names: tuple[str, ...],
+               bounds: tuple[float, float]) -> InitialState:
+    """The ``estimate`` rule's :class:`InitialState` from its burn-in fit (``x``: the state, then the per-experiment
+    values ``names``; ``rms`` K; the states ``held`` on a bound) over ``b`` samples (``span`` in words)."""
     if not np.all(np.isfinite(x)):
         raise TnnError(Diagnostic("the initial state could not be estimated from the burn-in (not finite)",
                                   hint="try --init measured, or a longer --burn-in"))
@@ -531,6 +561,128 @@ def initial_state(net: Network, model: Any, params: Mapping[str, Any], exp: Expe
                      f"({bounds[0]:.4g} … {bounds[1]:.4g} K) and holds it there: the model does not explain how "
                      f"this file starts (a missing element, or parameters far off)")
     return InitialState(x[:ns], 0, b, "estimate", notes, params=values)
+
+
+def initial_states(net: Network, model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
+                   rule: str = "estimate", *, burn_in_s: float | None = None, integrator: str = "rk4",
+                   substeps: int | None = None, stored: Mapping[str, Sequence[float]] | None = None,
+                   per_experiment: Mapping[str, float] | None = None,
+                   stored_params: Mapping[str, Mapping[str, float]] | None = None) -> list[InitialState | TnnError]:
+    """:func:`initial_state` of each experiment of ``exps`` (a file's :class:`~tnn_dsl.core.TnnError` in its place).
+    On torch, the ``estimate`` rule's burn-in fits of files alike in step and burn-in length (no stored start, no
+    per-experiment values) run in lockstep (:func:`solve_batched`): each Gauss–Newton iteration is one batched
+    rollout for all of them instead of one per file — torch pays its per-step overhead once a call, and ten 2 h
+    files' starts cost ten compiled calls an iteration before (1.5 s of the 1.8 s a widening of the demo's
+    out-of-distribution sets took on M4, issue 18). The steps each file takes are its own fit's: the rows of a
+    batch are each file's arithmetic (the same starts to round-off, ``tests/test_initial_states.py``)."""
+    out: list[InitialState | TnnError | None] = [None] * len(exps)
+    groups: dict[tuple[str, int], list[tuple[int, tuple]]] = {}
+    batched = backend_of(model).name == "torch" and check_rule(rule) == "estimate" and not per_experiment
+    for i, exp in enumerate(exps):
+        try:
+            plan = _burn_in_plan(net, model, params, exp, burn_in_s, stored) if batched else None
+            if plan is None:
+                out[i] = initial_state(net, model, params, exp, rule, burn_in_s=burn_in_s, integrator=integrator,
+                                       substeps=substeps, stored=stored, per_experiment=per_experiment,
+                                       stored_params=stored_params)
+            else:
+                groups.setdefault((repr(float(exp.dt)), plan[0]), []).append((i, plan))
+        except TnnError as err:
+            out[i] = err
+    for (dt, b), members in groups.items():
+        fit = _BurnInFit(model, float(dt), b, integrator, substeps)
+        if len(members) == 1 or fit.fyJ is None:  # one file, or not central differences: each file its own fit
+            for i, _ in members:
+                try:
+                    out[i] = initial_state(net, model, params, exps[i], rule, burn_in_s=burn_in_s,
+                                           integrator=integrator, substeps=substeps)
+                except TnnError as err:
+                    out[i] = err
+            continue
+        problems = [(np.asarray(exps[i].inputs, dtype=np.float64)[:b], np.asarray(exps[i].outputs,
+                                                                                  dtype=np.float64)[:b],
+                     prior, prior_std, bounds) for i, (_, prior, prior_std, bounds) in members]
+        solved = solve_batched(model, params, problems, float(dt), integrator, substeps)
+        for (i, (_, _, _, bounds)), (x, rms, held) in zip(members, solved):
+            try:
+                out[i] = _estimated(model, x, rms, held, b, f"{b} samples ({b * float(dt):g} s)", (), bounds)
+            except TnnError as err:
+                out[i] = err
+    return out  # type: ignore[return-value]
+
+
+def _burn_in_plan(net: Network, model: Any, params: Mapping[str, Any], exp: Experiment, burn_in_s: float | None,
+                  stored: Mapping[str, Sequence[float]] | None) -> tuple | None:
+    """``(burn-in samples, prior, prior_std, bounds)`` of ``exp``'s ``estimate`` fit (no per-experiment values), or
+    ``None`` where :func:`initial_state` does something else for it (a stored start, a file too short or without a
+    reading in its burn-in): the same preparation as :func:`initial_state` and :func:`_map_start`."""
+    Y = np.asarray(exp.outputs, dtype=np.float64)
+    b = burn_in_samples(exp, burn_in_s)
+    if stored:
+        hit = stored.get(fingerprint(exp))
+        if hit is not None and len(hit) == len(model.state_names):
+            return None
+    if b < 2 or not np.isfinite(Y[:b]).any() or not np.isfinite(Y[0]).any():
+        return None
+    U = np.asarray(exp.inputs, dtype=np.float64)
+    _, measured = measured_state(net, model, params, U[0], Y[0])
+    sensed = np.zeros(len(model.state_names), dtype=bool)
+    for i, j, _ in sensed_states(model, net, None):
+        sensed[i] = bool(np.isfinite(Y[0, j]))
+    prior_std = np.where(sensed, SENSED_PRIOR_K, UNSENSED_PRIOR_K)
+    return b, np.asarray(measured, dtype=np.float64), prior_std, start_range(model, exp)
+
+
+def solve_batched(model: Any, params: Mapping[str, Any], problems: Sequence[tuple], dt: float, integrator: str,
+                  substeps: int | None) -> list[tuple[np.ndarray, float, list[int]]]:
+    """Several burn-in fits (torch's central differences; ``problems``: ``(U (n, n_in), Y (n, n_out) K, prior,
+    prior_std, bounds)`` each, one ``n`` for all) in lockstep: each file's :func:`_gauss_newton`, their requests
+    of one kind answered by one batched rollout (the readings and Jacobians: every file's ``2·n_states + 1`` runs
+    together, as :func:`_central_difference_jacobian` runs one file's). Returns ``(x, rms K, held)`` per problem."""
+    B = backend_of(model)
+    torch = B.torch
+    ns = len(model.state_names)
+    if hasattr(model, "pack_params"):  # one argument for the compiled call, not one per constant
+        params = model.pack_params(params)
+    U = [B.asarray(np.asarray(u, dtype=np.float64)) for u, *_ in problems]
+    steps = [_gauss_newton(ns, Y, prior, prior_std, bounds, True) for _, Y, prior, prior_std, bounds in problems]
+    requests = {k: next(g) for k, g in enumerate(steps)}
+    out: list = [None] * len(problems)
+
+    def rollout(X, Ub):
+        with torch.no_grad():
+            return model.rollout(params, X, Ub, dt, integrator=integrator, substeps=substeps)[1]
+
+    while requests:
+        answers: dict[int, Any] = {}
+        joint = [k for k, (kind, _) in requests.items() if kind == "yJ"]
+        alone = [k for k, (kind, _) in requests.items() if kind == "y"]
+        if joint:
+            with torch.no_grad():
+                Xs, diffs = [], []
+                for k in joint:
+                    x = B.asarray(requests[k][1])
+                    h = FD_REL_STEP * torch.clamp(x.abs(), min=1.0)
+                    E = torch.diag(h)
+                    X = torch.cat([x[None], x + E, x - E], 0)  # (2n + 1, n), as one file's fit builds it
+                    Xs.append(X)
+                    diffs.append(torch.diagonal(X[1:ns + 1] - X[ns + 1:]))
+                Ub = torch.cat([U[k].unsqueeze(0).expand(2 * ns + 1, *U[k].shape) for k in joint], 0).contiguous()
+                Y = rollout(torch.cat(Xs, 0), Ub).reshape(len(joint), 2 * ns + 1, *U[joint[0]].shape[:1], -1)
+                for k, Yk, step in zip(joint, Y, diffs):
+                    J = torch.movedim((Yk[1:ns + 1] - Yk[ns + 1:]) / step[:, None, None], 0, -1)
+                    answers[k] = (B.numpy(Yk[0]), B.numpy(J))
+        if alone:
+            X = B.asarray(np.stack([requests[k][1] for k in alone]))
+            Y = rollout(X, torch.stack([U[k] for k in alone], 0))
+            answers.update({k: B.numpy(Yk) for k, Yk in zip(alone, Y)})
+        for k, answer in answers.items():
+            try:
+                requests[k] = steps[k].send(answer)
+            except StopIteration as done:
+                out[k] = done.value
+                del requests[k]
+    return out
 
 
 def _map_start(net: Network, model: Any, params: Mapping[str, Any], U: np.ndarray, Y: np.ndarray, dt: float,

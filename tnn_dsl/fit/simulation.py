@@ -12,7 +12,7 @@ import numpy as np
 
 from ..compiler import backend_of
 from ..data import Experiment, as_experiments
-from .initial import InitialState, initial_state, with_values
+from .initial import InitialState, initial_states, with_values
 from .ranges import (  # noqa: F401 - re-exported: the ranges' home before they moved to .ranges
     IMPLAUSIBLE_SPANS,
     IMPLAUSIBLE_SPANS_BELOW,
@@ -107,13 +107,14 @@ def free_runs(model: Any, params: Mapping[str, Any], exps: Sequence[Experiment],
     ops = backend_of(model)
     out: list[Any] = [None] * len(exps)
     starts: list[tuple[int, InitialState]] = []
-    for i, exp in enumerate(exps):
-        try:
-            starts.append((i, initial_state(model.network, model, params, exp, init, burn_in_s=burn_in_s,
-                                            integrator=integrator, substeps=substeps, stored=stored,
-                                            per_experiment=per_experiment, stored_params=stored_params)))
-        except TnnError as err:
-            out[i] = err  # raised below when it is the first file's error (errors="raise")
+    # each file's initial state (torch: the burn-in fits of files alike in step and burn-in length together)
+    for i, ini in enumerate(initial_states(model.network, model, params, exps, init, burn_in_s=burn_in_s,
+                                           integrator=integrator, substeps=substeps, stored=stored,
+                                           per_experiment=per_experiment, stored_params=stored_params)):
+        if isinstance(ini, TnnError):
+            out[i] = ini  # raised below when it is the first file's error (errors="raise")
+        else:
+            starts.append((i, ini))
     # batches: files alike in step and length from their start, sharing the model's values
     groups: dict[Any, list[tuple[int, InitialState]]] = {}
     batches = ops.name == "torch"  # JAX: a 2 h file's run takes ~10 ms, a new batch shape ~0.35 s to compile
