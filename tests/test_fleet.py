@@ -10,7 +10,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -36,7 +35,6 @@ from tnn_dsl.fleet import (
 from tnn_dsl.fleet.report import OUTLIER_Z
 
 ROOT = Path(__file__).resolve().parents[1]
-TNNC = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())"]
 
 
 def _fleet(tmp_path: Path, n: int = 4, faulty: int = 1, seed: int = 0) -> Path:
@@ -325,7 +323,7 @@ def _wait_for_results(out: Path, n: int, proc: subprocess.Popen, timeout: float 
 
 # the in-process SIGKILL variant is slow; Ctrl-C on a local Ray stays in CI
 @pytest.mark.parametrize("how", ["ctrl-c on ray", pytest.param("killed in process", marks=pytest.mark.slow)])
-def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
+def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how, capsys):
     """``tnnc fleet train`` stopped after its first finished unit (SIGINT on a local Ray: exit 130; SIGKILL of a
     run in this process): every finished unit stays on disk, and the same command finishes the rest without redoing
     them."""
@@ -334,7 +332,6 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     workers = "2" if how == "ctrl-c on ray" else "0"
     args = ["fleet", "train", str(template_path()), str(fl), "-o", str(out), "--epochs", "60", "--workers", workers,
             "--batch", "1", "--quiet"]  # one unit per task: the units finish one by one
-    cmd = TNNC + args
     proc = subprocess.Popen(TNNC_CTRL_C + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first = _wait_for_results(out, 1, proc)
@@ -348,11 +345,15 @@ def test_an_interrupted_run_loses_no_finished_unit_and_resumes(tmp_path, how):
     assert first[0].parent.name in kept
     for name in kept:
         assert json.loads((out / "units" / name / "result.json").read_text())["status"] == "ok"
-    again = cmd[:-1] + ["--json", "-"]
-    again[again.index("--workers") + 1] = "0"  # resumed in one process: the same units, no second Ray start-up
-    res = subprocess.run(again, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
-    doc = json.loads(res.stdout[res.stdout.index("{"):res.stdout.rindex("}") + 1])
+    again = args[:-1] + ["--json", "-"]
+    again[again.index("--workers") + 1] = "0"  # resumed in this process: the same units, no Ray, no new interpreter
+    from tnn_dsl.cli import main
+
+    capsys.readouterr()
+    rc = main(again)
+    out_text = capsys.readouterr().out
+    assert rc == 0, out_text
+    doc = json.loads(out_text[out_text.index("{"):out_text.rindex("}") + 1])
     assert [u["status"] for u in doc["units"]] == ["ok"] * 3
     for name, mtime in kept.items():  # not redone
         assert (out / "units" / name / "result.json").stat().st_mtime_ns == mtime
