@@ -348,8 +348,8 @@ class _Session:
         if info["capped"] and self.spent():
             self.notes.append(f"{self.cut_by()} stopped the nominal model's fit after "
                               f"{info['iterations']} iterations, before it converged: the baseline below is not the "
-                              "best the written model does, and no candidate was tested; run with a larger --budget "
-                              "(or none)")
+                              "best the written model does, and no candidate was tested; "
+                              + ("run it to its end" if self.interrupted else "run with a larger --budget (or none)"))
         self.state.harvest(eng, ext0, [])
         self.lap("nominal_fit", t0)
         self.eng, self.ext0 = eng, ext0
