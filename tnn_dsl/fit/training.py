@@ -206,10 +206,12 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
     except (KeyboardInterrupt, SystemError) as e:
         if not is_interrupt(e):
             raise
-        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit")
+        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit polished as single "
+                          "shooting")
         return tr, z, None, tr.warmup_s
     if tr_s.stopped == "interrupted":  # the first route is kept below (a route cut short does not win) and says so
-        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit")
+        tr.note_interrupt("during the single-shooting route; kept the multiple-shooting fit polished as single "
+                          "shooting")
     compile_s = tr.warmup_s + tr_s.warmup_s  # both routes trained
     by = "validation MAE" if vals else "free-run training loss"
     if tr_s.stopped not in _CUT_SHORT and b < a:
