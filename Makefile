@@ -8,11 +8,18 @@ JOBS   ?= 2
 
 .PHONY: venv demo test test-all lint bench check clean browser
 
+# pip installs without compiling each file to bytecode as it unpacks (one core); compileall then compiles the
+# installed packages on every core, their test suites left out (`/test/`, `/tests/`; not `torch/testing`, which
+# torch imports). Measured (2026-12-05, 2 cores, fresh venvs one after the other): 36.8 against 55.6 s and 55.6
+# against 72.1 s, the same imports in the same time after (the bytecode is written here: environments that set
+# PYTHONDONTWRITEBYTECODE never write it at import).
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev,fleet]'
+	$(PY) -m pip install -q --no-compile torch==2.13.0
+	$(PY) -m pip install -q --no-compile -e '.[dev,fleet]'
+	$(PY) -m compileall -q -j 0 -x '/tests?/' "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
+	  > /dev/null 2>&1 || true  # as pip: a file that does not compile (torch ships Python 3.12 syntax) is left as is
 	touch $(STAMP)
 
 venv: $(STAMP)
