@@ -54,7 +54,7 @@ def _share_jax_cache_with_children(config) -> None:
     "not slow" tests/test_real_data_defaults.py tests/test_benchmarks_smoke.py tests/test_cli_train.py
     tests/test_objective.py tests/test_train.py`, with and without, one after the other): 245.6 against 267.3 s,
     ``bench_real_data_fits.py``'s smoke run 12.7 against 31.9 s (the fits of ``test_real_data_defaults.py`` read
-    back). A variable the user set is left as it is; a fleet sets its own cache for its Ray workers."""
+    back). A variable the user set is left as it is. A fleet's Ray workers use it too (`fleet.engine._cache_env`)."""
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _jax_cache_dir(config))
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(JAX_CACHE_MAX_BYTES))

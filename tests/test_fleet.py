@@ -190,6 +190,19 @@ def test_a_unit_whose_diagnosis_budget_ran_out_is_not_counted_clean():
 # ---------------------------------------------------------------------------------------------
 
 
+def test_the_units_share_the_jax_cache_the_environment_names(tmp_path, monkeypatch):
+    """The units' processes use the JAX cache ``JAX_COMPILATION_CACHE_DIR`` names (kept across runs: a second fleet
+    run reads its programs), else one of the run's own under ``OUT``; every program is kept either way."""
+    from tnn_dsl.fleet.engine import COMPILE_CACHE, _cache_env
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    env = _cache_env(tmp_path / "out")
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str((tmp_path / "out" / COMPILE_CACHE).resolve())
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "kept"))
+    assert _cache_env(tmp_path / "out")["JAX_COMPILATION_CACHE_DIR"] == str((tmp_path / "kept").resolve())
+
+
 def _strip(row: dict) -> dict:
     return {k: v for k, v in row.items() if k not in ("seconds", "key")}
 

@@ -50,7 +50,8 @@ def register(subparsers) -> None:
                    help="units fitted together per task in one compiled program (train; default auto, 1: one by one)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the fleet report as JSON ('-': stdout)")
     p.add_argument("--no-compile-cache", action="store_true",
-                   help="do not share JAX's compilation cache between the units (OUT/.jax_cache)")
+                   help="do not share JAX's compilation cache between the units (OUT/.jax_cache, or the directory "
+                        "JAX_COMPILATION_CACHE_DIR names where set)")
     add_backend(p)
     p.add_argument("--epochs", type=int, default=None, metavar="N", help="training epochs (default: the trainer's)")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="the doctor's wall-clock budget per unit")

@@ -246,11 +246,17 @@ def torch_threads() -> None:
 
 COMPILE_CACHE = ".jax_cache"
 """Under ``OUT``: JAX's persistent compilation cache shared by the units (one structure, one data length: the
-programs of the second unit on are read, not compiled)."""
+programs of the second unit on are read, not compiled), unless the environment names one already."""
 
 
 def _cache_env(out: Path) -> dict[str, str]:
-    return {"JAX_COMPILATION_CACHE_DIR": str((out / COMPILE_CACHE).resolve()),
+    """The JAX cache settings of the units' processes: the directory ``JAX_COMPILATION_CACHE_DIR`` names where the
+    user set one (a cache kept across runs: a second fleet run, or a fleet after a single unit's ``tnnc train``,
+    reads the programs instead of compiling them), else ``OUT/.jax_cache``; every program kept either way (JAX's
+    default keeps only those that took over a second to compile, and a unit's take less)."""
+    where = os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip()
+    return {"JAX_COMPILATION_CACHE_DIR": str(Path(where).expanduser().resolve() if where
+                                             else (out / COMPILE_CACHE).resolve()),
             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
 
 
@@ -272,8 +278,9 @@ def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out:
     (``out/report.json``, ``out/report.html``). ``workers``: Ray CPUs of a local Ray (0: this process, no Ray);
     ``address``: an existing Ray cluster (``"auto"`` or ``"HOST:PORT"``). ``force``: allow ``out`` to hold a
     fleet run with other options or another network (its units are then redone as their keys differ).
-    ``compile_cache``: share JAX's persistent compilation cache between the units (``OUT/.jax_cache``; with
-    ``workers=0`` it stays set in this process's JAX configuration afterwards). ``batch``: units per task, fitted
+    ``compile_cache``: share JAX's persistent compilation cache between the units (``OUT/.jax_cache``, or the
+    directory ``JAX_COMPILATION_CACHE_DIR`` names where set; with ``workers=0`` it stays set in this process's JAX
+    configuration afterwards). ``batch``: units per task, fitted
     in one compiled program (:func:`~tnn_dsl.fleet.units.run_batch`; 1: one unit per task; ``None``:
     :func:`auto_batch`).
     Returns a :class:`FleetRun`; Ctrl-C returns one with ``interrupted`` set after the finished units are written."""
