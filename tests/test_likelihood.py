@@ -38,6 +38,19 @@ source n = P
 sensor y = n column "y"
 """
 
+RADIATING = """
+network radiating "a heater losing heat by conduction and radiation"
+units temperature = K
+input Ta : temperature column "Ta"
+input P  : [W] column "P"
+boundary amb = Ta
+node n C = 20 J/K  free
+G n -- amb = 0.02 W/K  free as U
+radiation n -- amb  area = 1e-3 m^2  emissivity = 0.9
+source n = P
+sensor y = n column "y"
+"""
+
 TWO = """
 network two "two heaters, one sensor"
 units temperature = K
@@ -153,6 +166,39 @@ def test_backends_agree_on_value_and_gradient():
         (vj, gj), (vt, gt) = out["jax"], out["torch"]
         assert np.isfinite(vj) and vj == pytest.approx(vt, rel=1e-9)
         np.testing.assert_allclose(gj, gt, rtol=1e-9, atol=1e-9 * np.abs(gj).max())
+
+
+def test_backends_agree_where_the_linearisation_moves_with_the_state():
+    """A heater radiating to its surroundings (``H``, ``F``, ``A`` and ``Q_d`` at every sample; torch's Jacobians by
+    reverse mode, JAX's by forward mode): the same −log L and gradient to round-off; and torch's model prepared
+    once for the record (``Model.sample_steps``) steps as ``Model.rollout`` does."""
+    net = tnn_dsl.loads(RADIATING, "radiating.thn")
+    rng = np.random.default_rng(4)
+    U = np.column_stack([np.full(24, 296.0), np.repeat(rng.uniform(0.0, 3.0, size=3), 8)])
+    mn = tnn_dsl.compile(net, "numpy")
+    p = mn.init_params()
+    _, Y = mn.rollout(p, np.asarray(mn.steady_state(p, U[0])), U, 5.0)
+    Y = np.asarray(Y) + 0.05 * rng.standard_normal(np.shape(Y))
+    Y[5, 0] = np.nan  # a dropout
+    out = {}
+    for backend in BACKENDS:
+        m = tnn_dsl.compile(net, backend)
+        pr = LikelihoodProblem(m, m.init_params(), U, Y, 5.0)
+        assert not pr.static.constant
+        z = pr.z0 + 0.02 * np.random.default_rng(1).standard_normal(pr.z0.shape)
+        out[backend] = pr.value_and_grad(z)
+    (vj, gj), (vt, gt) = out["jax"], out["torch"]
+    assert np.isfinite(vj) and vj == pytest.approx(vt, rel=1e-10)
+    np.testing.assert_allclose(gt, gj, rtol=1e-8, atol=1e-9 * np.abs(gj).max())
+    mt = tnn_dsl.compile(net, "torch")
+    pt = mt.init_params()
+    T = mt.xp.asarray(np.full((3, len(mt.state_names)), 300.0) + rng.standard_normal((3, len(mt.state_names))))
+    prepared = mt.sample_steps(pt, mt.xp.asarray(U), 5.0)
+    for k in (0, 9, len(U) - 1):
+        ref = mt.rollout(pt, T, mt.xp.asarray(U[[k, k]]), 5.0)[0][..., 1, :]
+        assert float((prepared.step(T, k) - ref).abs().max()) <= 1e-12
+    every = prepared.step_all(T[:1].expand(len(U), -1))
+    assert float((every[9] - prepared.step(T[0], 9)).abs().max()) <= 1e-12
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -55,7 +55,10 @@ factorised.
 
 Everything is written once against the backend's namespace; the loop over samples is the adapter's
 ``scan`` (``jax.lax.scan``; a Python loop on torch), differentiable end to end on both backends (the
-Jacobians inside the filter are forward-mode JVPs, which reverse mode differentiates again).
+Jacobians inside the filter are forward-mode JVPs on JAX and one reverse pass kept differentiable on torch, whose
+forward mode runs through Python reference implementations; reverse mode differentiates either again). Eager torch
+prepares the model once per record (``Model.sample_steps``) and, with a constant linearisation, integrates every
+sample's interval at once, the step then being affine in the state (:func:`_parts`).
 
 Entry points: :func:`nll` (a backend scalar, differentiable), :func:`loglik` (a float),
 :func:`innovations` (one-step predictions and standardised residuals, numpy), and
@@ -213,18 +216,65 @@ def _process_noise(B, A, sw2, st: _Static, rolled: bool = False):
     return 0.5 * (Q + Q.T)
 
 
-def _parts(B, model, st: _Static, params):
-    """``(outputs(x, u), step(x, u), rhs(x, u), jac)``: the sensors, the integrator over one sample and the
-    drift, each on a leading batch axis of ``x``, and ``jac(f, x) = (f(x), ∂f/∂x)``."""
+def _parts(B, model, st: _Static, params, U):
+    """``(outputs(x, u), step(x, u, k), rhs(x, u), jac, affine)``: the sensors, the integrator over sample ``k``'s
+    interval (``u = U[k]``) and the drift, each on a leading batch axis of ``x``; ``jac(f, x) = (f(x), ∂f/∂x)``;
+    ``affine(x_ref, F)``, where not ``None``, the step of a constant linearisation ``F = ∂Φ/∂x``.
+
+    Eager torch steps the model prepared once for the record (:meth:`~tnn_dsl.compiler.model.Model.sample_steps`:
+    the parameters' preparation and the inputs' part of the drift once, not once per sample and per Jacobian), and
+    with a constant linearisation (the step is then affine in the state: ``Φ(x, u_k) = Φ(x_ref, u_k) + F (x −
+    x_ref)`` exactly) integrates every sample's interval at once from ``x_ref``, leaving each sample one product
+    with ``F``: the filter's Python loop and its reverse pass then run a few operations per sample, not the
+    integrator's stages. JAX traces :meth:`~tnn_dsl.compiler.model.Model.rollout` of one interval, compiled once with
+    the filter (its program as before)."""
     m = B.xp
     I_s = B.asarray(np.eye(len(model.state_names)))
+    if B.name == "torch":
+        prepared = model.sample_steps(params, U, st.dt, integrator=st.integrator, substeps=st.substeps)
 
-    def step(x, u):
+        def affine(x_ref, F):
+            rows = prepared.step_all(x_ref[None, :] + 0.0 * U[:, :1]).unbind(0)  # Φ(x_ref, u_k), one row per k
+
+            def step_affine(x, u, k):
+                return rows[int(k)] + (x - x_ref) @ F.T
+            return step_affine
+
+        return prepared.outputs, (lambda x, u, k: prepared.step(x, k, eager=True)), prepared.rhs, _jac(B, I_s), affine
+
+    def step(x, u, k):
         states, _ = model.rollout(params, x, m.stack([u, u], axis=0), st.dt, integrator=st.integrator,
                                   substeps=st.substeps)
         return states[..., 1, :]
 
-    def jac(f, x):
+    return ((lambda x, u: model.outputs(params, x, u)), step, (lambda x, u: model.rhs(params, x, u)), _jac(B, I_s),
+            None)
+
+
+def _jac(B, I_s):
+    """``jac(f, x, rows) = (f(x), ∂f/∂x (rows, ns))`` for ``f`` with ``rows`` outputs on a leading batch axis."""
+    if B.name == "torch":
+        torch = B.torch
+
+        def jac_reverse(f, x, rows):
+            """One reverse pass over ``rows`` copies of ``x``: the gradient of ``Σ_i f(X)[i, i]`` is row ``i`` of the
+            Jacobian in row ``i`` of ``X``; kept differentiable (``create_graph``) where the caller differentiates.
+            Not forward mode: torch 2.13 runs forward-mode derivatives (``torch.func.jvp``, dual tensors) of even an
+            addition through its Python reference implementations, ~0.1 ms an operation — 10 ms a sample of the
+            filter on one node (2026-12-05)."""
+            outer = torch.is_grad_enabled()
+            with torch.enable_grad():
+                X = x.unsqueeze(0).expand(rows, x.shape[-1])
+                if not X.requires_grad:
+                    X = X.detach().requires_grad_(True)
+                Y = f(X)
+                (G,) = torch.autograd.grad(torch.diagonal(Y).sum(), X, create_graph=outer, allow_unused=True)
+            if G is None:
+                G = torch.zeros_like(X)
+            return (Y[0], G) if outer else (Y[0].detach(), G.detach())
+        return jac_reverse
+
+    def jac(f, x, rows):
         """``(f(x), ∂f/∂x (n_f, ns))`` by one forward-mode pass over ``ns`` copies of ``x``, copy ``i`` along
         ``e_i`` (``f`` takes a leading batch axis; differentiable again in reverse mode; no ``vmap``, and the
         primal ``f(x)`` comes with it)."""
@@ -232,7 +282,7 @@ def _parts(B, model, st: _Static, params):
         y, dy = B.jvp(f, (X,), (I_s,))
         return y[0], dy.T
 
-    return (lambda x, u: model.outputs(params, x, u)), step, (lambda x, u: model.rhs(params, x, u)), jac
+    return jac
 
 
 _HOIST = True
@@ -246,10 +296,11 @@ def _constant_linearisation(model, st: _Static) -> bool:
     off the JAX trace of the three Jacobians (a dependency analysis of the program, not a numerical test; a
     construct it does not follow counts as a dependence). A torch model's answer is read off the JAX compilation
     of its network: both backends run the same equations (one physics module), so the dependences are the same.
-    On torch the per-sample form costs a forward-mode pass of the step per sample in eager torch (about 3 ms
-    each): formed once, an evaluation of a one-node RC model's likelihood and gradient on 20 samples took 65
-    instead of 330 ms, and its fit 7.6–8.9 instead of 40.6 s (JAX 2.8–3.9 s; tests/test_ml_fit.py's
-    ``test_jax_and_torch_reach_the_same_optimum``, 2026-12-04). Cached per model and static choices."""
+    On torch the per-sample form costs three Jacobians and ``Q_d``'s series at every sample in eager torch: formed
+    once, an evaluation of a one-node RC model's likelihood and gradient on 20 samples took 65 instead of 330 ms,
+    and its fit 7.6–8.9 instead of 40.6 s (JAX 2.8–3.9 s; tests/test_ml_fit.py's
+    ``test_jax_and_torch_reach_the_same_optimum``, 2026-12-04; both forms are faster since, see
+    ``benchmarks/bench_likelihood.py``). Cached per model and static choices."""
     key = (id(model), st)
     hit = _CONSTANT.get(key)
     if hit is not None and hit[0] is model:
@@ -261,10 +312,12 @@ def _constant_linearisation(model, st: _Static) -> bool:
 
             traced = compile_network(model.network, "jax", sparse=getattr(model, "sparse", None))
         B = backend_of(traced)
-        out, step, rhs, jac = _parts(B, traced, st, traced.init_params())
+        out, step, rhs, jac, _ = _parts(B, traced, st, traced.init_params(), None)
+        ns, no = len(model.state_names), len(model.output_names)
 
         def jacobians(x, u):
-            return (jac(lambda z: out(z, u), x)[1], jac(lambda z: step(z, u), x)[1], jac(lambda z: rhs(z, u), x)[1])
+            return (jac(lambda z: out(z, u), x, no)[1], jac(lambda z: step(z, u, 0), x, ns)[1],
+                    jac(lambda z: rhs(z, u), x, ns)[1])
 
         x = B.xp.asarray(np.full(len(model.state_names), 293.15))
         u = B.xp.asarray(np.ones(len(model.input_names)))
@@ -319,22 +372,24 @@ def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
     I_s = B.asarray(np.eye(ns))
     sw2 = m.exp(2.0 * lsw)
     sv2 = m.exp(2.0 * lsv)
-    out, step, rhs, jac = _parts(B, model, st, params)
+    out, step, rhs, jac, affine = _parts(B, model, st, params, U)
     if st.constant:  # H, F, A and Q_d once, at any point (they depend on neither)
-        H0 = jac(lambda z: out(z, U[0]), x0)[1]
-        F0 = jac(lambda z: step(z, U[0]), x0)[1]
-        A0 = jac(lambda z: rhs(z, U[0]), x0)[1]
+        H0 = jac(lambda z: out(z, U[0]), x0, no)[1]
+        F0 = jac(lambda z: step(z, U[0], 0), x0, ns)[1]
+        A0 = jac(lambda z: rhs(z, U[0]), x0, ns)[1]
         Qd0 = _process_noise(B, A0, sw2, st, rolled=True)
+        if affine is not None:
+            step = affine(x0, F0)
 
     def body(carry, uym):
         x, P = carry
-        u, y, okf = uym    # y: 0 where missing, okf: 1.0 where read (float: torch's bool * 1.0 is float32)
+        u, y, okf, k = uym  # y: 0 where missing, okf: 1.0 where read (float: torch's bool * 1.0 is float32); k: index
         ok = okf > 0.5
         # update with the readings present
         if st.constant:
             yhat, H = out(x[None, :], u)[0], H0
         else:
-            yhat, H = jac(lambda z: out(z, u), x)
+            yhat, H = jac(lambda z: out(z, u), x, no)
         Hm = H * okf[:, None]
         HP = Hm @ P
         S = HP @ Hm.T + m.diag(m.where(ok, sv2, 1.0))
@@ -352,10 +407,10 @@ def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
         term = logdet + quad + m.sum(okf) * _LOG_2PI
         # predict over the sample interval
         if st.constant:
-            x_n, F, Qd = step(x_f[None, :], u)[0], F0, Qd0
+            x_n, F, Qd = step(x_f[None, :], u, k)[0], F0, Qd0
         else:
-            x_n, F = jac(lambda z: step(z, u), x_f)
-            Qd = _process_noise(B, jac(lambda z: rhs(z, u), x_f)[1], sw2, st)
+            x_n, F = jac(lambda z: step(z, u, k), x_f, ns)
+            Qd = _process_noise(B, jac(lambda z: rhs(z, u), x_f, ns)[1], sw2, st)
         P_n = F @ P_f @ F.T + Qd
         P_n = 0.5 * (P_n + P_n.T)
         sd_y = m.sqrt(B.clip_min(m.diagonal(H @ P @ H.T) + sv2, 0.0))
@@ -363,13 +418,14 @@ def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
         return (x_n, P_n), (term, yhat, eps, sd_y, x, sd_x)
 
     if lp0 is None:  # CTSM's default: the process noise accumulated over one sample interval
-        P0 = Qd0 if st.constant else _process_noise(B, jac(lambda z: rhs(z, U[0]), x0)[1], sw2, st)
+        P0 = Qd0 if st.constant else _process_noise(B, jac(lambda z: rhs(z, U[0]), x0, ns)[1], sw2, st)
     else:
         P0 = m.diag(m.exp(2.0 * lp0))
     mask = m.isfinite(Y)
     zero = 0.0 * U[:, :1]  # (N, 1) zeros of the floating type (U is finite)
     Y0, okf = m.where(mask, Y, zero), m.where(mask, 1.0 + zero, zero)
-    _, (terms, yhat, eps, sd_y, xs, sd_x) = B.scan(body, (x0, P0), (U, Y0, okf))
+    index = B.asarray(np.arange(U.shape[0]))  # the sample's index (the torch step's prepared inputs; JAX ignores it)
+    _, (terms, yhat, eps, sd_y, xs, sd_x) = B.scan(body, (x0, P0), (U, Y0, okf, index))
     return 0.5 * m.sum(terms), (yhat, eps, sd_y, xs, sd_x)
 
 
