@@ -314,7 +314,8 @@ _STAGES = ["polish's last check", "switch to single shooting", "single-shooting 
 ROUTE_STAGES = ("switch to single shooting", "single-shooting route")
 
 
-# the likelihood fit on torch takes 76 s (against 11 s on JAX): slow; its JAX variant stays in CI
+# the likelihood fit on torch: 18 s alone (2026-12-05; 76 s in a CI run before its Jacobians went reverse-mode), against
+# 11 s on JAX in CI: slow; its JAX variant stays in CI
 @pytest.mark.parametrize("stage, backend", [
     (s, b) if (s, b) != ("likelihood fit", "torch") else pytest.param(s, b, marks=pytest.mark.slow)
     for s in _STAGES for b in ("jax", "torch")])
