@@ -218,7 +218,8 @@ def _process_noise(B, A, sw2, st: _Static, rolled: bool = False):
 
 def _parts(B, model, st: _Static, params, U):
     """``(outputs(x, u), step(x, u, k), rhs(x, u), jac, affine)``: the sensors, the integrator over sample ``k``'s
-    interval (``u = U[k]``) and the drift, each on a leading batch axis of ``x``; ``jac(f, x) = (f(x), ∂f/∂x)``;
+    interval (``u = U[k]``) and the drift, each on a leading batch axis of ``x``; ``jac(f, x, rows) = (f(x),
+    ∂f/∂x)`` (:func:`_jac`);
     ``affine(x_ref, F)``, where not ``None``, the step of a constant linearisation ``F = ∂Φ/∂x``.
 
     Eager torch steps the model prepared once for the record (:meth:`~tnn_dsl.compiler.model.Model.sample_steps`:
