@@ -201,6 +201,50 @@ def test_backends_agree_where_the_linearisation_moves_with_the_state():
     assert float((every[9] - prepared.step(T[0], 9)).abs().max()) <= 1e-12
 
 
+def test_torch_settled_stretches_equal_the_sample_loop(monkeypatch):
+    """torch, constant linearisation: the stretches where the covariance has settled and every sensor is read, run as
+    one vectorised recursion, give the sample loop's −log L, gradient and innovations to round-off — with dropouts
+    of one sensor, the other and both between the stretches, the default ``P0`` and a fitted one."""
+    from tnn_dsl.estimation import likelihood as lk
+
+    U, Y, dt = _two_record(N=400)
+    Y[150:153, 0] = np.nan
+    Y[200, :] = np.nan
+    blocks: list[int] = []
+    real_block = lk._stationary_block
+
+    def counted(torch, x, P, Yb, *a, **k):
+        blocks.append(int(Yb.shape[0]))
+        return real_block(torch, x, P, Yb, *a, **k)
+
+    monkeypatch.setattr(lk, "_stationary_block", counted)
+    model = tnn_dsl.compile(tnn_dsl.loads(TWO, "two.thn"), "torch")
+    for kw in ({}, {"fit_p0": True, "log_p0_std": [0.1, -0.3]}):
+        out = []
+        for on in (True, False):
+            monkeypatch.setattr(lk, "_STATIONARY", on)
+            pr = LikelihoodProblem(model, model.init_params(), U, Y, dt, log_sigma_w=[math.log(0.02), math.log(0.05)],
+                                   log_sigma_v=[math.log(0.1), math.log(0.2)], x0=[297.0, 296.5], **kw)
+            assert pr.static.constant
+            z = pr.z0 + 0.05 * np.random.default_rng(2).standard_normal(pr.z0.shape)
+            v, g = pr.value_and_grad(z)
+            a = {k: (v_.detach().numpy() if hasattr(v_, "detach") else v_)
+                 for k, v_ in pr.unpack(pr.B.asarray(z)).items() if k not in ("params", "log_p0_std")}
+            res = innovations(model, pr.unpack(pr.B.asarray(z))["params"], U, Y, dt,
+                              log_p0_std=None if not kw else np.asarray(kw["log_p0_std"]), **a)
+            out.append((v, g, res))
+        (v1, g1, r1), (v2, g2, r2) = out
+        assert v1 == pytest.approx(v2, rel=1e-12)
+        np.testing.assert_allclose(g1, g2, rtol=1e-9, atol=1e-10 * np.abs(g2).max())
+        np.testing.assert_allclose(r1.predicted, r2.predicted, rtol=1e-12)
+        np.testing.assert_allclose(r1.std, r2.std, rtol=1e-9)
+        np.testing.assert_array_equal(np.isnan(r1.innovations), np.isnan(Y))
+        np.testing.assert_allclose(r1.innovations, r2.innovations, rtol=1e-8, atol=1e-10)
+    # four filters (value and gradient, innovations; two P0): each vectorised a stretch before the dropouts and one
+    # after them, together at least 40 % of its samples
+    assert len(blocks) >= 8 and sum(blocks) >= 4 * 0.4 * len(Y), blocks
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_gradient_matches_finite_differences(backend):
     """∂(−log L)/∂z against central differences (step 1e-5): a capacitance and a conductance (log), both
