@@ -58,7 +58,8 @@ Everything is written once against the backend's namespace; the loop over sample
 Jacobians inside the filter are forward-mode JVPs on JAX and one reverse pass kept differentiable on torch, whose
 forward mode runs through Python reference implementations; reverse mode differentiates either again). Eager torch
 prepares the model once per record (``Model.sample_steps``) and, with a constant linearisation, integrates every
-sample's interval at once, the step then being affine in the state (:func:`_parts`).
+sample's interval at once, the step then being affine in the state (:func:`_parts`), and runs the stretches where
+the covariance has settled as one vectorised linear recursion (:func:`_stationary_runs`).
 
 Entry points: :func:`nll` (a backend scalar, differentiable), :func:`loglik` (a float),
 :func:`innovations` (one-step predictions and standardised residuals, numpy), and
