@@ -134,6 +134,7 @@ def test_released_programs_are_built_again_and_give_the_same_numbers(backend):
     eng.release_programs()
     assert not any(name in eng.__dict__ for name in E._PROGRAMS)
     assert not any(isinstance(k, tuple) for k in eng.model._jit_cache)
+    eng._sim_memo = None  # the last simulation is kept (``simulate``): this one must run the rebuilt program
     y1, x1 = eng.simulate()
     np.testing.assert_allclose(y1, y0, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(x1, x0, rtol=1e-12, atol=1e-12)
@@ -141,10 +142,51 @@ def test_released_programs_are_built_again_and_give_the_same_numbers(backend):
     assert eng._train_sse(eng.params)[0] == pytest.approx(sse0, rel=1e-12)
     assert all(name in eng.__dict__ for name in ("_sim", "_sim_train", "_jac_diff"))
     clone = eng.clone()  # a clone of a released engine shares nothing it lacks
+    clone._sim_memo = None
     eng.release_programs()
     np.testing.assert_allclose(clone.simulate()[0], y0, rtol=1e-12, atol=1e-12)
     with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
         eng.nothing_here  # noqa: B018
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_simulation_and_the_held_out_starts_are_made_once_for_the_same_parameters(backend, monkeypatch):
+    """``_Engine.simulate`` gives its last simulation again (copies) for bitwise the same parameters, and the held-out
+    files' starts (the ``estimate`` rule's burn-in fits) are put back, not fitted again, when the other parameters
+    are bitwise those of the last fit — a table set anew with the same values included; a moved parameter runs both
+    again, and going back gives the first numbers to the bit (issue 18: half of a diagnosis' simulations were
+    repeats)."""
+    eng, free = _nominal_engine(backend, init="estimate")
+    assert eng.val_only, "the planted data's held-out file is the one whose start is estimated"
+    sims, fits = [], []
+    run = eng._sim
+    monkeypatch.setattr(eng, "_sim", lambda p: (sims.append(1), run(p))[1], raising=False)
+    estimate = E._Engine.initial_states
+    monkeypatch.setattr(E._Engine, "initial_states", lambda self, *a, **k: (fits.append(a), estimate(self, *a, **k))[1])
+    start = {k: np.array(v, copy=True) for k, v in eng.params.items()}
+    y0, x0 = eng.simulate()
+    assert (len(sims), len(fits)) == (1, 1)
+    y1, x1 = eng.simulate()
+    assert (len(sims), len(fits)) == (1, 1)
+    np.testing.assert_array_equal(y1, y0)
+    np.testing.assert_array_equal(x1, x0)
+    y1[:] = 0.0  # a copy: the kept simulation is not the caller's to change
+    np.testing.assert_array_equal(eng.simulate()[0], y0)
+    eng.params = {k: np.array(v, copy=True) for k, v in eng.params.items()}  # marks the starts stale
+    assert eng.x0_stale
+    np.testing.assert_array_equal(eng.residual(), eng.y - y0)
+    assert (len(sims), len(fits)) == (1, 1)
+    assert eng.sse(which="val") == eng._sse_of((eng.y - y0).ravel()[eng.val_idx])
+    moved = eng.apply(eng.params, free[:1], np.array([0.3]), trust=False)
+    eng.params = moved
+    y2, _ = eng.simulate()
+    assert (len(sims), len(fits)) == (2, 2)
+    assert not np.array_equal(y2, y0)
+    eng.params = {k: np.array(v, copy=True) for k, v in start.items()}
+    y3, x3 = eng.simulate()
+    assert (len(sims), len(fits)) == (3, 3)
+    np.testing.assert_array_equal(y3, y0)
+    np.testing.assert_array_equal(x3, x0)
 
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])

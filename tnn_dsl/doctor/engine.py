@@ -182,6 +182,9 @@ class _Engine:
         self.cols = cols
         self.col_index = {(c.key, c.index): i for i, c in enumerate(cols)}
         self._params: dict[str, np.ndarray] = {}
+        # the last simulation and held-out starts, with the parameters they were made with (simulate, _fresh)
+        self._sim_memo: tuple[dict, np.ndarray, np.ndarray] | None = None
+        self._x0_memo: tuple[dict, dict] | None = None
         self.params = params if params is not None else {
             k: np.array(v, dtype=float) for k, v in self.model.to_numpy(self.model.init_params(seed=0)).items()}
         # experiments the training rows never touch: their initial state comes from their burn-in
@@ -244,19 +247,20 @@ class _Engine:
         return [x0_key(i, n) for n in self.model.state_names]
 
     def initial_states(self, which: Sequence[int], rule: str = "estimate", keep: set[str] | frozenset = frozenset()
-                       ) -> None:
+                       ) -> bool:
         """Set the initial states of experiments ``which`` by ``rule`` (``estimate``: a MAP fit to the file's
         burn-in with the current parameters fixed; ``measured``: the steady state with the sensed nodes at their
         first readings; :func:`tnn_dsl.fit.initial.initial_state`) in place; keys in ``keep`` are left as they
-        are."""
+        are. Returns whether every experiment got one (one whose estimate failed keeps its previous start)."""
         from dataclasses import replace
 
         from ..core import TnnError
         from ..fit.initial import initial_state
 
         if self.init.rule == "steady":
-            return
+            return True
         pb = self._to(self._params)
+        every = True
         for i in which:
             e = self.exps[i]
             burn = self.init.burn[i] if i < len(self.init.burn) else None
@@ -264,11 +268,15 @@ class _Engine:
                 ini = initial_state(self.net, self.model, pb, replace(e, inputs=_pad(e.inputs, self.n_force)), rule,
                                     burn_in_s=None if burn is None else burn * float(e.dt))
             except TnnError:
+                every = False
                 continue  # e.g. parameters with no finite steady state: keep the previous start
             if np.all(np.isfinite(ini.T)):
                 for k, v in zip(self.x0_keys(i), ini.T):
                     if k not in keep:
                         self._params[k] = np.asarray(float(v))
+            else:
+                every = False
+        return every
 
     def steady_gap(self, i: int) -> np.ndarray:
         """First reading minus the reading at the steady state of the first inputs, per sensor (n_out,) K, of
@@ -280,9 +288,23 @@ class _Engine:
             return np.asarray(self.exps[i].outputs[0], dtype=float) - y_ss
 
     def _fresh(self) -> None:
-        """Re-estimate the held-out files' initial states if the parameters changed since (``estimate``)."""
+        """Re-estimate the held-out files' initial states if the parameters changed since (``estimate``). The
+        estimate is a function of the other parameters alone (the burn-in fit starts from the measured state, not
+        from the last estimate), so when those are bitwise the ones of the last estimate its values are put back
+        instead: setting the parameters marks the starts stale whether or not a value moved (a fit put back at its
+        start, a clone's table copied), and each estimate is a Gauss–Newton fit of its own (issue 18)."""
         if self.x0_stale and self.init.rule == "estimate" and self.val_only:
-            self.initial_states(self.val_only)
+            own = {k for i in self.val_only for k in self.x0_keys(i)}
+            rest = {k: v for k, v in self._params.items() if k not in own}
+            memo = self._x0_memo
+            if memo is not None and _same_values(memo[0], rest):
+                for k, v in memo[1].items():
+                    self._params[k] = np.array(v, copy=True)
+            elif self.initial_states(self.val_only):
+                self._x0_memo = (_snapshot(rest), {k: np.array(self._params[k], copy=True) for k in own
+                                                   if k in self._params})
+            else:
+                self._x0_memo = None
         self.x0_stale = False
 
     def _build_scatter(self):
@@ -440,11 +462,20 @@ class _Engine:
 
     def simulate(self, params=None):
         """Outputs (N, n_out) K and states (N, n_states) K for ``params`` (default: current, with the held-out
-        files' initial states brought up to date)."""
+        files' initial states brought up to date). The last simulation is kept with a copy of its parameters and
+        given again (copies) for bitwise the same ones: a fitted candidate's residual and held-out SSE, the baseline's
+        residual read by two steps of a round, each asked for the same run (half of a diagnosis' whole simulations on
+        the case study, issue 18)."""
         if params is None:
             self._fresh()
-        y, x = self._sim(self._arg(self.params if params is None else params))
-        return np.asarray(self._np(y)), np.asarray(self._np(x))
+        p = self.params if params is None else params
+        memo = self._sim_memo
+        if memo is not None and _same_values(memo[0], p):
+            return memo[1].copy(), memo[2].copy()
+        y, x = self._sim(self._arg(p))
+        y, x = np.asarray(self._np(y)), np.asarray(self._np(x))
+        self._sim_memo = (_snapshot(p), y, x)
+        return y.copy(), x.copy()
 
     def residual(self, params=None):
         ym, _ = self.simulate(params)
@@ -805,6 +836,24 @@ class _Engine:
         current parameters (the proper fit then moves them with the parameters)."""
         if self.init.rule == "estimate":
             self.initial_states([i for i in range(len(self.exps)) if i not in self.val_only])
+
+
+def _snapshot(params) -> dict[str, np.ndarray]:
+    """A copy of a parameter table (numpy arrays), to tell later whether a table holds the same values
+    (:func:`_same_values`)."""
+    return {k: np.array(v, copy=True) for k, v in params.items()}
+
+
+def _same_values(kept: dict[str, np.ndarray], params) -> bool:
+    """Whether ``params`` holds exactly the keys of the snapshot ``kept`` with bitwise the same values (dtype, shape
+    and bytes: a NaN equals itself, −0.0 differs from 0.0)."""
+    if kept.keys() != params.keys():
+        return False
+    for k, a in kept.items():
+        b = np.asarray(params[k])
+        if a.dtype != b.dtype or a.shape != b.shape or a.tobytes() != b.tobytes():
+            return False
+    return True
 
 
 def _numpy_tree(d):
