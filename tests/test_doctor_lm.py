@@ -190,6 +190,38 @@ def test_a_simulation_and_the_held_out_starts_are_made_once_for_the_same_paramet
 
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_fit_on_a_network_holding_more_null_candidates_gives_its_own_networks_numbers(backend):
+    """The round's shared small network (``_Session.foreseen``, issue 18): a heat load at h2 growing with Q1 (the
+    planted effect) fitted on a network that also holds, at their null values, its square, its constant sub-model
+    and a load depending on T(h1) simulates what the network of that one candidate simulates (to round-off) and its
+    fit reaches the same training SSE and values."""
+    net = tnn_dsl.load(TCLAB)
+    pl = plant(net, BOUNDS, "heat_load", "Q[h2]", "Q1", 0.3, noise=0.0, seed=2, n_train=300, n_val=10,
+               backend="jax", hold=(20, 60))
+    exps, tm, vm = E._split_masks(pl.train, pl.val)
+    own_key = "heat_load:Q[h2]:Q1"
+    more = [own_key, "heat_load:Q[h2]:Q1²", "heat_load:Q[h2]:", "heat_load:Q[h2]:T(h1)"]
+    state, ref = E._State(E._InitPlan("estimate")), {}
+    fits = []
+    for keys in ([own_key], more):
+        ext = build_extended(net, ["Q1", "Q2"], only=set(keys))
+        assert {c.key for c in ext.candidates} >= set(keys)
+        eng, _, free, cols = E._make_engine(ext, net, exps, tm, vm, backend, state, ref, keys)
+        eng.initial_states(range(len(exps)), "measured")  # the files' starts (the doctor's: its nominal fit's)
+        y0, _ = eng.simulate()
+        act = list(free) + cols[own_key]
+        info = eng.fit(act, max_iter=30, tol=1e-10)
+        fits.append((y0, info["sse"], [float(np.asarray(eng.params[eng.cols[j].key]).reshape(-1)[eng.cols[j].index])
+                                       for j in cols[own_key]]))
+    (y_own, sse_own, v_own), (y_more, sse_more, v_more) = fits
+    np.testing.assert_allclose(y_more, y_own, rtol=0, atol=1e-10)
+    assert sse_more == pytest.approx(sse_own, rel=1e-8)
+    top = max(abs(v) for v in v_own)
+    np.testing.assert_allclose(v_more, v_own, rtol=1e-6, atol=1e-9 * top)
+    assert top == pytest.approx(0.3, rel=0.05)  # the planted load's slope, 0.3 W per unit of Q1 (no noise)
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
 def test_warm_compiles_what_a_fit_calls_first_and_changes_nothing(backend):
     """``_Engine.warm`` (the doctor calls it before a round's fits start side by side): the parameters stay as they
     were, a fit on a clone afterwards compiles nothing more on JAX, and it reaches the SSE that the same fit reaches

@@ -234,6 +234,10 @@ class _Session:
         ``"before round 2"``, ``"in the final fits"``): a verdict reached with less work than the method asks says
         so."""
         self.round_now = 0
+        self.round_net: dict | None = None
+        """The round's one small network (:meth:`fit_shortlist`): its engine, extension and columns (``small``), its
+        candidates (``keys``) and the engine's start values (``start``); :meth:`small` hands out clones of it for
+        later fits of the round whose candidates it holds."""
         self.say = progress or (lambda s: None)
         self.timings: dict[str, float] = {}
         self.moved_names: list[str] = []  # free constants the current fit moved far (``refit_from_written``)
@@ -323,7 +327,15 @@ class _Session:
 
     def small(self, keys: list[str]) -> tuple[_Engine, Extended, list[int], dict[str, list[int]]]:
         """An engine over the original network plus just the candidates ``keys`` (values from the state):
-        (engine, its Extended, free column indices, candidate key → its column indices)."""
+        (engine, its Extended, free column indices, candidate key → its column indices). Where the round's small
+        network (:attr:`round_net`) holds every one of ``keys``, a clone of its engine at its start values instead:
+        the other candidates sit there at their null values, where the simulation is the smaller network's, and
+        its programs are compiled already."""
+        shared = self.round_net
+        if shared is not None and set(keys) <= shared["keys"]:
+            e = shared["small"][0].clone()
+            e.params = {k: np.array(v, copy=True) for k, v in shared["start"].items()}
+            return (e, *shared["small"][1:])
         ext_s = build_extended(self.net_x, self.varying, self.extra, kinds=self.kinds, only=set(keys))
         return _make_engine(ext_s, self.net_x, self.exps, self.train_mask, self.val_mask, self.backend, self.state,
                             self.ref, keys)
@@ -477,41 +489,46 @@ class _Session:
         if not scored:
             return False
         t0 = _time.monotonic()
-        fits = self.fit_shortlist(scored)
-        self.lap(f"fit_round{rnd}", t0)
-        if not fits:
-            return False
-        _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
-        current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
-                   for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
-        for f in fits:
-            self.judge(f, current)
-        # the shortlist's networks are fitted and judged: their programs go before the twins', sub-models' and
-        # probes' networks compile theirs (issue 18: ~40 MB a network on the case study); the fit chosen compiles
-        # its network again when it becomes the current model
-        for eng in {id(f["eng"]): f["eng"] for f in fits}.values():
-            eng.release_programs()
-        fits += self.fit_twins(fits, current)
-        fits += self.fit_nested(fits, scored, current)
-        fits += self.fit_replacements(fits, scored, current)
-        e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
-        for f in fits:
-            f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
-                                                        f["cand"].k, len(scored))
-        chosen = (self.ml_choose(fits, current) if self.ml is not None
-                  else _choose(fits, self.current_val, self.e_base_val))
-        if chosen is not None and self.ml is None:
-            rivals = self.fit_physical_rivals(chosen, fits, scored, current)
-            if rivals:
-                for f in rivals:
-                    f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
-                                                                f["cand"].k, len(scored))
-                fits += rivals
-                chosen = _choose(fits, self.current_val, self.e_base_val)
-        if self.ml is None:
-            chosen = self.curvature_look_ahead(chosen, fits, current)
-        if chosen is not None and self.ml is not None:
-            self.adopt_ml(chosen)
+        fits: list[dict] = []
+        try:
+            fits = self.fit_shortlist(scored)
+            self.lap(f"fit_round{rnd}", t0)
+            if not fits:
+                return False
+            _, xc = self.final_eng.simulate()  # where the current model's states go (once per round)
+            current = {n: (float(np.nanmin(xc[:, j])), float(np.nanmax(xc[:, j])))
+                       for j, n in enumerate(self.final_eng.model.state_names) if np.isfinite(xc[:, j]).any()}
+            for f in fits:
+                self.judge(f, current)
+            # the shortlist's networks are fitted and judged: their programs go before the twins', sub-models' and
+            # probes' networks compile theirs (issue 18: ~40 MB a network on the case study); the fit chosen compiles
+            # its network again when it becomes the current model
+            for eng in {id(f["eng"]): f["eng"] for f in fits}.values():
+                if not getattr(eng, "round_shared", False):  # the round's shared network goes at the round's end
+                    eng.release_programs()
+            fits += self.fit_twins(fits, current)
+            fits += self.fit_nested(fits, scored, current)
+            fits += self.fit_replacements(fits, scored, current)
+            e_base_tr = self.final_eng.residual().ravel()[self.final_eng.train_idx]
+            for f in fits:
+                f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
+                                                            f["cand"].k, len(scored))
+            chosen = (self.ml_choose(fits, current) if self.ml is not None
+                      else _choose(fits, self.current_val, self.e_base_val))
+            if chosen is not None and self.ml is None:
+                rivals = self.fit_physical_rivals(chosen, fits, scored, current)
+                if rivals:
+                    for f in rivals:
+                        f["S_train"], f["p_train"] = _train_lr_test(e_base_tr, f["e_all"].ravel()[f["eng"].train_idx],
+                                                                    f["cand"].k, len(scored))
+                    fits += rivals
+                    chosen = _choose(fits, self.current_val, self.e_base_val)
+            if self.ml is None:
+                chosen = self.curvature_look_ahead(chosen, fits, current)
+            if chosen is not None and self.ml is not None:
+                self.adopt_ml(chosen)
+        finally:
+            self.end_round_net(fits)  # its shared network's programs go before the chosen one's compile
         self.record(fits, scored, chosen, rnd)
         self.round_fits = []  # their engines and compiled networks go with the round
         if chosen is None:
@@ -592,10 +609,16 @@ class _Session:
             return []
         acc_keys = self.acc_keys()
         sh_keys = [s_["cand"].key for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
+        ahead = [k for k in self.foreseen([s_ for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS], scored)
+                 if k not in sh_keys and k not in acc_keys]
         t_c = _time.monotonic()
-        e_s, x_s, f_s, c_s = self.small(acc_keys + sh_keys)
+        e_s, x_s, f_s, c_s = self.small(acc_keys + sh_keys + ahead)
         t_c = _time.monotonic() - t_c
         start_params = {k: np.array(v, copy=True) for k, v in e_s.params.items()}
+        if ahead:  # held to the round's end: the sub-models and probes fitted later run on it (:meth:`small`)
+            e_s.round_shared = True
+            self.round_net = {"small": (e_s, x_s, f_s, c_s), "keys": set(acc_keys + sh_keys + ahead),
+                              "start": start_params}
         structural = [s_ for s_ in short if s_["cand"].kind in STRUCTURAL_KINDS]
         exact = [s_ for s_ in short if s_["cand"].kind not in STRUCTURAL_KINDS]
 
@@ -645,6 +668,40 @@ class _Session:
                 fits.append(f)
         self.continue_fits(fits, x_s)
         return fits
+
+    def foreseen(self, short: list[dict], scored: list[dict]) -> list[str]:
+        """Keys of the candidates the round may fit after its shortlist ``short`` (exactly-null entries), each of
+        which would otherwise compile a network of its own: the one-parameter sub-model of a dependence
+        (:meth:`fit_nested`: a wrong constant, a constant heat load) and the square of a linear dependence on inputs
+        (:meth:`curvature_look_ahead`'s probes). They join the round's small network at their null values (a
+        sub-model's column is its dependence's own intercept, a square one more input-only column), so those fits
+        run on the programs the shortlist compiled: on the case study's first round a sub-model and a probe had
+        compiled two networks more, about 2 s each with their held-out starts (issue 18)."""
+        done = {a.key for a in self.accepted}
+        square = {c.element["parents"][0]: c for c in self.ext.candidates
+                  if c.element.get("shape") == "quadratic" and c.key not in done}
+        keys: list[str] = []
+        for s_ in short:
+            c: Candidate = s_["cand"]
+            if c.key in square and not c.element.get("members") and all(kind == "input" for kind, _ in c.vars):
+                keys.append(square[c.key].key)
+            kind = {"param_dependence": "wrong_constant", "heat_load": "heat_load"}.get(c.kind)
+            if kind is not None and c.depends_on and c.k >= 2:
+                sub = next((t["cand"] for t in scored if t["cand"].kind == kind and t["cand"].target == c.target
+                            and not t["cand"].depends_on and t["cand"].k == 1), None)
+                if sub is not None:
+                    keys.append(sub.key)
+        return list(dict.fromkeys(keys))
+
+    def end_round_net(self, fits: list[dict]) -> None:
+        """The round's shared small network (:attr:`round_net`) is done with: its programs go, the clones' that the
+        round's fits ``fits`` hold too (as every other network's went after its fits)."""
+        if self.round_net is not None:
+            self.round_net["small"][0].release_programs()
+            self.round_net = None
+        for f in fits:
+            if getattr(f.get("eng"), "round_shared", False):
+                f["eng"].release_programs()
 
     def tied_with_shortlist(self, scored: list[dict], short: list[dict], left_out: list[dict]) -> list[dict]:
         """Exactly-null candidates the shortlist left out whose linearised fit explains nearly as much as the best
@@ -780,7 +837,8 @@ class _Session:
         bound = [lambda say, job=job, eng=eng: job(say, eng) for job, eng in zip(jobs, engines)]
         done = self.side_by_side(bound) if apart else [job(self.say) for job in bound]
         for eng in {id(e): e for e in engines}.values():
-            eng.release_programs()
+            if not getattr(eng, "round_shared", False):  # the round's shared network goes at the round's end
+                eng.release_programs()
         return done
 
     def fit_extra(self, todo: list[dict], why: str, current: dict[str, tuple[float, float]]) -> list[dict]:
@@ -885,7 +943,7 @@ class _Session:
                 out.append(f)
                 if c.kind in STRUCTURAL_KINDS:
                     f["eng"].release_programs()
-        if small is not None:
+        if small is not None and not getattr(small[0], "round_shared", False):
             small[0].release_programs()  # fitted and judged: their networks' programs go
         return out
 
