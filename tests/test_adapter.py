@@ -3,6 +3,8 @@ transform gives the same numbers on JAX and torch, and agrees with finite differ
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from tnn_dsl.compiler.backends.adapter import Backend, backend_of
 from tnn_dsl.compiler.protocol import CompiledModel
 
 BACKENDS = ["jax", "torch"]
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 A = np.array([[1.0, 2.0, 0.5], [0.3, -1.0, 4.0]])
 
 
@@ -254,3 +257,39 @@ def test_batched_in_chunks_equals_one_batch(backend):
             got = B.numpy(B.no_grad(B.batched(run, chunk=chunk))(T0))
             assert got.shape == whole.shape == (m, 120, len(model.output_names))
             np.testing.assert_allclose(got, whole, rtol=1e-12, atol=1e-12)
+
+
+_CACHE_PROBE = """
+import jax.monitoring, numpy as np
+seen = set()
+jax.monitoring.register_event_listener(lambda e, **k: seen.add(e))
+import tnn_dsl
+m = tnn_dsl.compile(tnn_dsl.load({net!r}))
+m.rollout(m.init_params(seed=0), np.full(len(m.state_names), 300.0), np.full((50, len(m.input_names)), 0.5), 1.0)
+print(sorted(e.rsplit('/', 1)[1] for e in seen if 'compilation_cache/cache_' in e))
+"""
+
+
+def test_a_cache_directory_in_the_environment_keeps_every_program(tmp_path):
+    """With ``JAX_COMPILATION_CACHE_DIR`` set, a model's simulation — compiled in far less than the second below which
+    JAX keeps nothing — is written to the cache, and the next process reads it instead of compiling it
+    (``jax_ops.cache_every_program``, issue 18); a threshold the environment sets itself is left as it is."""
+    import subprocess
+    import sys
+
+    code = _CACHE_PROBE.format(net=os.path.join(ROOT, "networks", "tclab", "tclab.thn"))
+
+    def run(cache, **env):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                             env={**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache), **env})
+        assert out.returncode == 0, out.stderr[-2000:]
+        return out.stdout.strip().splitlines()[-1]
+
+    assert run(tmp_path / "c") == "['cache_misses']"
+    def programs(cache) -> list[str]:  # JAX's own lock file aside
+        return [p.name for p in cache.iterdir() if not p.name.startswith(".")] if cache.exists() else []
+
+    assert programs(tmp_path / "c")
+    assert run(tmp_path / "c") == "['cache_hits']"
+    run(tmp_path / "d", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1000")
+    assert programs(tmp_path / "d") == []

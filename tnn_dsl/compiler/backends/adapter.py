@@ -113,6 +113,8 @@ class Backend:
             import jax
             import jax.numpy as jnp
 
+            from . import jax_ops  # noqa: F401 -- float64, and the persistent cache's thresholds (cache_every_program)
+
             jax.config.update("jax_enable_x64", True)
             self.jax, self.xp = jax, jnp
             self.dtype = jnp.float64 if dtype == "float64" else jnp.float32

@@ -1,4 +1,6 @@
-"""The JAX array namespace. Importing this module enables ``jax_enable_x64`` (float64 by default).
+"""The JAX array namespace. Importing this module enables ``jax_enable_x64`` (float64 by default), and where the
+environment names JAX's persistent compilation cache (``JAX_COMPILATION_CACHE_DIR``) keeps every program there
+(:func:`cache_every_program`).
 
 Products by small matrices (``matmul``) are written so that XLA fuses them with their neighbours instead of
 calling a library ``dot`` per product (on CPU each ``dot`` is a separate kernel launch, which dominates the
@@ -14,12 +16,37 @@ Measured on the case study (benchmarks/bench_rollout.py): see the architecture n
 
 from __future__ import annotations
 
+import os
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
+CACHE_THRESHOLDS = {"JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("jax_persistent_cache_min_compile_time_secs", 0.0),
+                    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": ("jax_persistent_cache_min_entry_size_bytes", 0)}
+"""JAX's thresholds below which a compiled program is not written to its persistent cache (by default those that
+took under a second to compile: every program of a thermal network's simulations and fits), by the environment
+variable that sets each, and the value :func:`cache_every_program` gives them."""
+
+
+def cache_every_program() -> bool:
+    """Where the environment names JAX's persistent compilation cache (``JAX_COMPILATION_CACHE_DIR``, which JAX
+    reads itself), keep every program in it: each threshold of :data:`CACHE_THRESHOLDS` the environment does not set
+    goes to 0. A second run of the same job (``tnnc diagnose`` or ``tnnc train`` on files of the same lengths) then
+    reads its programs instead of compiling them (issue 18: a third of a diagnosis is compiling). Returns whether
+    the cache is on."""
+    if not os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip():
+        return False
+    for env, (option, value) in CACHE_THRESHOLDS.items():
+        if not os.environ.get(env, "").strip():
+            jax.config.update(option, value)
+    return True
+
+
+cache_every_program()
 
 from . import NumpyLike  # noqa: E402
 
