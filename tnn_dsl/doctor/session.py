@@ -673,17 +673,33 @@ class _Session:
         """Keys of the candidates the round may fit after its shortlist ``short`` (exactly-null entries), each of
         which would otherwise compile a network of its own: the one-parameter sub-model of a dependence
         (:meth:`fit_nested`: a wrong constant, a constant heat load) and the square of a linear dependence on inputs
-        (:meth:`curvature_look_ahead`'s probes). They join the round's small network at their null values (a
-        sub-model's column is its dependence's own intercept, a square one more input-only column), so those fits
-        run on the programs the shortlist compiled: on the case study's first round a sub-model and a probe had
-        compiled two networks more, about 2 s each with their held-out starts (issue 18)."""
+        (:meth:`curvature_look_ahead`'s probes) where its function stays input-only. They join the round's small
+        network at their null values (a sub-model's column is its dependence's own intercept, a square one more
+        input-only column), so those fits run on the programs the shortlist compiled: on the case study's first
+        round a sub-model and a probe had compiled two networks more, about 2 s each with their held-out starts
+        (issue 18)."""
         done = {a.key for a in self.accepted}
         square = {c.element["parents"][0]: c for c in self.ext.candidates
                   if c.element.get("shape") == "quadratic" and c.key not in done}
+        groups = [{f"Q[{t.name}]" if t.kind == "heat_load" else t.name for t in fn.targets} for fn in self.net.learned]
+
+        def function_of(c: Candidate) -> set[str]:
+            """The targets sharing ``c``'s learned function in the network (a user's ``learn`` clause joins its own)."""
+            out = {m.target for m in c.members}
+            return out.union(*[g for g in groups if g & out])
+
+        # a square goes in only where its function stays input-only: joined with a dependence on a temperature it
+        # makes that function a polynomial in the temperature, evaluated inside the time loop (the case study's
+        # R_base_hs on I² beside R_base_hs on T(hs): poly(I, hs; degree = 2), round 2's simulations 30 → 46 ms)
+        on_states: set[str] = set()
+        for c in [s_["cand"] for s_ in short] + list(self.accepted):
+            if any(kind != "input" for kind, _ in c.vars):
+                on_states |= function_of(c)
         keys: list[str] = []
         for s_ in short:
             c: Candidate = s_["cand"]
-            if c.key in square and not c.element.get("members") and all(kind == "input" for kind, _ in c.vars):
+            if (c.key in square and not c.element.get("members") and all(kind == "input" for kind, _ in c.vars)
+                    and not function_of(c) & on_states):
                 keys.append(square[c.key].key)
             kind = {"param_dependence": "wrong_constant", "heat_load": "heat_load"}.get(c.kind)
             if kind is not None and c.depends_on and c.k >= 2:
