@@ -166,6 +166,10 @@ class _Engine:
     from its burn-in whenever the parameters have changed and its rows are simulated (``x0_stale``)."""
 
 
+    round_shared: bool = False
+    """Whether this engine is (a clone of) a round's shared small network (``_Session.round_net``), whose programs go
+    at the round's end, not after the phase that used it."""
+
     def __init__(self, net: Network, experiments, train_mask, val_mask, backend: str, cols: list[_Col],
                  params: dict[str, np.ndarray] | None = None, model=None, n_force: int = 0,
                  init: _InitPlan | None = None):
