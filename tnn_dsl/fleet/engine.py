@@ -254,19 +254,23 @@ def _cache_env(out: Path) -> dict[str, str]:
     user set one (a cache kept across runs: a second fleet run, or a fleet after a single unit's ``tnnc train``,
     reads the programs instead of compiling them), else ``OUT/.jax_cache``; every program kept either way (JAX's
     default keeps only those that took over a second to compile, and a unit's take less)."""
+    from ..compiler.backends.jax_ops import CACHE_THRESHOLDS
+
     where = os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip()
     return {"JAX_COMPILATION_CACHE_DIR": str(Path(where).expanduser().resolve() if where
                                              else (out / COMPILE_CACHE).resolve()),
-            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+            **{env: f"{value:g}" for env, (_, value) in CACHE_THRESHOLDS.items()}}
 
 
 def _use_cache_here(env: dict[str, str]) -> None:
     """JAX's persistent compilation cache for the units run in this process."""
     import jax
 
+    from ..compiler.backends.jax_ops import CACHE_THRESHOLDS
+
     jax.config.update("jax_compilation_cache_dir", env["JAX_COMPILATION_CACHE_DIR"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    for option, value in CACHE_THRESHOLDS.values():
+        jax.config.update(option, value)
 
 
 def run_fleet(network: str | os.PathLike, fleet: str | os.PathLike | Fleet, out: str | os.PathLike, *,
