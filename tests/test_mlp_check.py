@@ -219,3 +219,124 @@ def test_a_stop_cuts_the_trainings_and_leaves_the_answer_undecided(monkeypatch):
     r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0, bar=float(np.mean(np.abs(e_lin))), stop=lambda: stopping[0])
     assert seen == ["stopped"] and r["choice"] == "linear" and r["decided"] is False
     assert "stopped by Ctrl-C" in r["reason"] and "run to its end decides" in r["reason"], r["reason"]
+
+
+@pytest.mark.parametrize("n_in", [1, 2, 3])
+def test_an_mlp_started_from_a_linear_law_computes_that_law(n_in):
+    """``mlp_start``: the MLP variant's hidden layer drawn as the trainer draws it, its output layer fitted to the
+    linear law's raw output over the normalised inputs' box; compiled, the MLP gives the linear law's values (to
+    1e-6 of the raw output on one or two inputs, 1e-3 on three; outside the box it may part) and every other value
+    stays as it was."""
+    from tnn_dsl.compiler import compile as compile_network
+    from tnn_dsl.compiler.learned import apply
+    from tnn_dsl.doctor.mlp_check import mlp_start
+
+    ins = ", ".join(["Q", "T(h)", "Ta"][:n_in])
+    net = tnn_dsl.loads(BASE + f"learn U, Qh as linear({ins})\n", "x.thn")
+    net_mlp, n = mlp_variant(net, {"U", "Qh"})
+    assert n == 1
+    rng = np.random.default_rng(n_in)
+    lin = compile_network(net, backend="jax")
+    start = {k: np.asarray(v, float) for k, v in lin.to_numpy(lin.init_params(seed=0)).items()}
+    fn = next(f for f in net.learned if f.kind == "linear")
+    start[f"{fn.name}.W"] = rng.normal(0.0, 0.4, (n_in, 2))
+    start[f"{fn.name}.b"] = rng.normal(0.0, 0.2, 2)
+    start[f"{fn.name}.x_mean"] = rng.normal(300.0, 5.0, n_in)
+    start[f"{fn.name}.x_scale"] = rng.uniform(1.0, 20.0, n_in)
+    start["U"] = np.asarray(0.025)
+    values, dz = mlp_start(net_mlp, start)
+    assert dz < 1e-5
+    x = start[f"{fn.name}.x_mean"] + start[f"{fn.name}.x_scale"] * rng.uniform(-1.0, 1.0, (200, n_in))
+    fn_mlp = next(f for f in net_mlp.learned if f.kind == "mlp")
+    mine = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith(fn.name + ".")}
+    theirs = {k.split(".", 1)[1]: v for k, v in start.items() if k.startswith(fn.name + ".")}
+    np.testing.assert_allclose(apply(np, fn_mlp, mine, x), apply(np, fn, theirs, x), atol=max(dz, 1e-12) * 2)
+    assert set(mine) == {"W0", "b0", "W1", "b1", "x_mean", "x_scale", "y_scale"}
+    assert values["U"] == start["U"] and not any(k in values for k in (f"{fn.name}.W", f"{fn.name}.b"))
+    mlp = compile_network(net_mlp, backend="jax")
+    shapes = {k: np.shape(v) for k, v in mlp.to_numpy(mlp.init_params(seed=0)).items()}
+    assert all(np.shape(values[k]) == s for k, s in shapes.items() if k in values)
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_training_from_given_values_starts_there_and_keeps_their_statistics(backend):
+    """``train(start=...)``: the given values replace the initial ones (a learned function's statistics included,
+    not recomputed from the data; names the network does not have are ignored), and with no optimisation step at
+    all the trained model is the start, its validation error the start's."""
+    data, val = [_data(lambda q: 0.02 * (1 + 0.5 * (q - 0.5)), 400, 3)], [_data(lambda q: 0.02, 200, 4)]
+    name = EXTENDED.learned[0].name
+    start = {f"{name}.W": np.array([[0.3]]), f"{name}.b": np.array([0.1]), f"{name}.x_mean": np.array([40.0]),
+             f"{name}.x_scale": np.array([70.0]), f"{name}.y_scale": np.array([0.02]), "not_a_parameter": np.ones(2)}
+    trained = tnn_dsl.train(EXTENDED, data, val, backend=backend, start=start, epochs=0, lbfgs_iters=0)
+    for k, v in start.items():
+        if k != "not_a_parameter":
+            np.testing.assert_array_equal(trained.params[k], v)
+    assert "not_a_parameter" not in trained.params
+    fresh = tnn_dsl.train(EXTENDED, data, val, backend=backend, epochs=0, lbfgs_iters=0)
+    q = np.asarray(data[0].inputs)[:, 0]  # Q in SI (a fraction): the trainer's statistics are its mid-range
+    assert fresh.params[f"{name}.x_mean"][0] == pytest.approx((q.max() + q.min()) / 2, rel=1e-12)
+
+
+def test_the_doctors_values_are_found_under_the_extensions_names():
+    """``values_for_extension``: the doctor fits its dependences in functions of its own (``dx_params``, targets
+    grouped its way); the extension names and groups them anew. Each target's bias, weights and output scale and
+    each input's statistics land where the extension's function reads them, so it computes the doctor's law; a
+    function with no counterpart gives None."""
+    from tnn_dsl.compiler.learned import apply
+    from tnn_dsl.doctor.mlp_check import values_for_extension
+
+    two = BASE.replace('sensor T = h  column "T_degC"', 'node k "case"  C = 9 J/K\nG h -- k = 0.1 W/K  as Uk\n'
+                       'sensor T = h  column "T_degC"')
+    fitted_net = tnn_dsl.loads(two + "learn U, Uk as linear(Q, T(k))\n", "f.thn")
+    ext = tnn_dsl.loads(two + "learn Uk, U as linear(T(k), Q)\n", "x.thn")
+    g, f = fitted_net.learned[0], ext.learned[0]
+    fitted_net = fitted_net.model_copy(update={"learned": [g.model_copy(update={"name": "dx_params"})]})
+    g = fitted_net.learned[0]
+    params = {"dx_params.W": np.array([[0.3, -0.2], [0.05, 0.4]]), "dx_params.b": np.array([0.1, -0.3]),
+              "dx_params.x_mean": np.array([0.5, 300.0]), "dx_params.x_scale": np.array([0.5, 4.0]),
+              "dx_params.y_scale": np.array([0.02, 0.1]), "U": np.array(0.021), "x0:0:h": np.array(299.0)}
+    values = values_for_extension(ext, fitted_net, params)
+    assert values is not None and "dx_params.W" not in values and values["U"] == params["U"]
+    x_fit = np.array([[0.2, 301.0], [0.9, 297.5]])  # (Q, T(k)) as the doctor's function reads them
+    mine = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith(f.name + ".")}
+    theirs = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith("dx_params.")}
+    z_fit = apply(np, g, theirs, x_fit)  # columns U, Uk
+    z_ext = apply(np, f, mine, x_fit[:, ::-1])  # columns Uk, U; inputs T(k), Q
+    np.testing.assert_allclose(z_ext, z_fit[:, ::-1], rtol=1e-12)
+    np.testing.assert_array_equal(mine["y_scale"], [0.1, 0.02])
+    other = tnn_dsl.loads(two + "learn Uk, U as linear(T(h), Q)\n", "x.thn")  # T(h): not in the fit
+    assert values_for_extension(other, fitted_net, params) is None
+
+
+@pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
+def test_from_the_fit_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
+    """The nested check (``compare(..., start=)``): the linear law is the fit it is given (here the trainer's fit of
+    the linear extension), not trained again; the MLP starts as that law, only its weights trained. A curved
+    conductance makes it pay against the law it started from; a law the linear clause holds exactly does not."""
+    def pos1(v):
+        return np.logaddexp(0.0, 4.0 * v) / np.logaddexp(0.0, 4.0)
+
+    laws = {"curved": lambda q: 0.02 * (1 + 12 * (q - 0.5) ** 2),
+            "straight": lambda q: 0.02 * float(pos1(1.0 + 0.5 * (q - 0.5) / 0.5))}
+    for shape, law in laws.items():
+        train, val = [_data(law, 900, 1)], [_data(law, 500, 2)]
+        fit = tnn_dsl.train(EXTENDED, train, val, backend=backend, epochs=100)
+        start = values_for_extension_same(fit.params)
+        r = compare(EXTENDED, {"U"}, train, val, backend=backend, time_limit=20.0, start=start)
+        assert r["linear"]["stopped"] == "the doctor's fit" and r["start_dz"] < 1e-6, r
+        # the linear row is the given fit's own free run
+        e = np.concatenate([(np.asarray(p["measured"]) - np.asarray(p["y"])).ravel() for p in fit.predict(val)])
+        assert r["linear"]["val_mae"] == pytest.approx(float(np.nanmean(np.abs(e))), rel=1e-9)
+        if shape == "curved":
+            assert r["choice"] == "mlp" and r["mlp"]["val_mae"] < 0.5 * r["linear"]["val_mae"], r
+        else:
+            assert r["choice"] == "linear" and r["decided"], r
+
+
+def values_for_extension_same(params):
+    """The trainer's values of ``EXTENDED`` under its own names, as ``values_for_extension`` gives them."""
+    from tnn_dsl.doctor.mlp_check import values_for_extension
+
+    values = values_for_extension(EXTENDED, EXTENDED, params)
+    assert values is not None
+    return values

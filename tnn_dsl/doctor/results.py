@@ -150,6 +150,10 @@ class Diagnosis:
     def mlp_text(self) -> str | None:
         """The summary's "linear or MLP" answer (None when the MLP check did not run)."""
         mc = self.extended.get("mlp_check")
+        if mc and "linear" in mc and mc["linear"].get("stopped") == "the doctor's fit":
+            return (f"an MLP trained from the doctor's linear law (held-out MAE linear "
+                    f"{mc['linear']['val_mae']:.4g} K, MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — "
+                    f"{mc['reason']}")
         if mc and "linear" in mc:
             return (f"trained both (held-out MAE linear {mc['linear']['val_mae']:.4g} K, "
                     f"MLP {mc['mlp']['val_mae']:.4g} K): {mc['choice']} — {mc['reason']}")

@@ -1439,19 +1439,22 @@ class _Session:
         if self.deadline is not None and _time.monotonic() + 2 * self.mlp_time >= self.deadline:
             return
         from ..data import split_by_time
-        from .mlp_check import compare
+        from .mlp_check import compare, values_for_extension
 
         t0 = _time.monotonic()
-        self.say("the residual is not white: is an MLP better than the linear law? (training the MLP; the linear law "
-                 "too if the MLP beats the doctor's fit)")
+        self.say("the residual is not white: is an MLP better than the linear law? (an MLP started as the doctor's "
+                 "linear law, trained with the rest held at the doctor's fit)")
         tr_e, va_e = self.train_exps, self.val_exps
         if not va_e:
             parts = [split_by_time(e, 0.7) for e in self.train_exps]
             tr_e, va_e = [a for a, _ in parts], [b for _, b in parts]
         try:
             ext = _check_text(self.ext_text, self.output or (self.path or "extended.thn"))
+            # from the doctor's fit where each of the extension's functions has its counterpart in it (always, for
+            # what the doctor adds); else from nominal values, against the doctor's fit as the bar
+            start = values_for_extension(ext, self.final_eng.net, self.final_eng.params)
             form = compare(ext, targets, tr_e, va_e, backend=self.backend, time_limit=self.mlp_time, say=self.say,
-                           threads=self.threads, bar=res_fin.mae, stop=stop_requested)
+                           threads=self.threads, bar=res_fin.mae, stop=stop_requested, start=start)
         except TnnError as exc:  # e.g. data given as Experiments without the extension's extra columns
             form = {"choice": "linear", "reason": f"not compared: {exc.diagnostics[0].message}"}
         # an MLP that does not beat the doctor's own linear fit by MIN_GAIN is never chosen: ``compare`` checks it

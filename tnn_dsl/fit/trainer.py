@@ -32,7 +32,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -121,8 +121,10 @@ class _Trainer(_Rollouts):
     polish and validation (the rollouts it fits, single or multiple shooting: :class:`~.rollouts._Rollouts`)."""
 
     def __init__(self, net: Network, exps: list, vals: list, cfg: TrainConfig, model, callback=None,
-                 log: Callable[[str], None] | None = None):
+                 log: Callable[[str], None] | None = None, start: Mapping[str, Any] | None = None):
         self.net, self.exps, self.vals, self.cfg, self.model = net, exps, vals, cfg, model
+        self.start = dict(start or {})
+        """The caller's starting values by parameter name (``train(start=...)``), applied after ``init_from``."""
         self.callback = callback
         self.log = log or (lambda msg: None)
         self.ops = Backend(cfg.backend, cfg.dtype)
@@ -186,10 +188,19 @@ class _Trainer(_Rollouts):
                                           hint="initialise from a model of the same network (same names and shapes)"))
             self.loaded.update(copied)
             self.log(f"initialised {len(copied)} arrays from {src}")
+        given = [k for k, v in self.start.items() if k in params and np.shape(params[k]) == np.shape(v)]
+        for k in given:
+            params[k] = np.asarray(self.start[k], dtype=np.float64).copy()
+        if given:
+            self.loaded.update(given)
+            self.log(f"started from {len(given)} given values")
         return params
 
     def nominal_runs(self, params: dict[str, np.ndarray]):
-        """Simulate the nominal (no learned functions) network on the training data."""
+        """Simulate the nominal (no learned functions) network on the training data; with starting values for a
+        learned function (``train(start=...)``: a fitted model to go on from) the network itself at those values,
+        so the windows' first guesses are the starting model's own trajectory. Returns ``(nominal model, its
+        parameters, the runs)``: the nominal model serves the flows' and heat loads' scales either way."""
         from ..compiler import compile as compile_network
 
         nom_net = _nominal_network(self.net)
@@ -207,7 +218,10 @@ class _Trainer(_Rollouts):
         if init in ("estimate", "filter") and not self.plan_rollout()[2]:
             init = "measured"
         sim, sim_params = nom, bp
-        if self.cfg.backend == "torch" and init not in ("estimate", "filter"):
+        started = {k.split(".", 1)[0] for k in self.start if k in params} & {fn.name for fn in self.net.learned}
+        if started:
+            sim, sim_params = self.model, self.model.from_numpy(params)
+        elif self.cfg.backend == "torch" and init not in ("estimate", "filter"):
             # one simulation per file, without gradients: the numpy reference backend takes about half eager
             # torch's time per step (BENCHMARKS.md "Rollout cost": 114 against 247 µs on M3) and compiles no
             # torch graph for one use (M2: 5 → 4 graphs, BENCHMARKS.md "Training time")

@@ -8,7 +8,7 @@ import dataclasses
 import math
 import os
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -32,7 +32,8 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
           config: TrainConfig | dict | str | os.PathLike | None = None,
           out: str | os.PathLike | None = None, force: bool = False,
           callback: Callable[[dict], None] | None = None,
-          log: Callable[[str], None] | None = None, **options: Any) -> TrainedModel:
+          log: Callable[[str], None] | None = None, start: Mapping[str, Any] | None = None,
+          **options: Any) -> TrainedModel:
     """Fit a network's free parameters and learned functions to data (thesis eq. 4.8).
 
     Parameters
@@ -49,6 +50,11 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
     callback : ``f(info)`` after each epoch: ``epoch, epochs, phase, loss, val_mae, best_val_mae,
         elapsed, eta`` (s).
     log : ``f(message)`` for notes and warnings (default: silent).
+    start : starting values, ``{parameter name: array}`` in the compiled model's names and shapes (SI): a physical
+        parameter (``pe.seebeck``) or a learned function's arrays (``fn.W``, ``fn.x_mean``; a function given any
+        array keeps the given statistics, as with ``init_from``); names this network does not have, or of another
+        shape, are ignored. They win over ``init_from``. The model doctor's MLP check starts from its own fit with
+        it (:mod:`tnn_dsl.doctor.mlp_check`).
 
     Returns a :class:`TrainedModel`; ``meta["metrics"]`` holds training and validation errors (K),
     ``meta["curve"]`` the training curve, ``meta["stopped"]`` why training ended
@@ -84,7 +90,7 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                 "epochs; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
-    tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log)
+    tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log, start)
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
@@ -179,12 +185,14 @@ def _estimates(trained: TrainedModel, model: Any, exps: list, cfg: TrainConfig, 
         return None
 
 
-def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):
+def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any,
+                start: Mapping[str, Any] | None = None):
     """The fit → ``(trainer, z, strategies or None)``. Where the trainer goes on as single shooting after its
     windows (:meth:`~.rollouts._Rollouts.wants_single_shooting_finish`), there are two routes to the free run the
     model is judged by: the windowed fit polished as single shooting, and single shooting from the start; the
-    better one (validation MAE, else the free-run training loss) is kept and both scores are returned."""
-    tr, z = _fit(net, exps, vals, cfg, model, callback, log)
+    better one (validation MAE, else the free-run training loss) is kept and both scores are returned. Both routes
+    begin at ``start`` (:func:`train`)."""
+    tr, z = _fit(net, exps, vals, cfg, model, callback, log, start)
     if not (tr.wants_single_shooting_finish() and tr.stopped not in _CUT_SHORT):
         return tr, z, None, tr.warmup_s
     # Ctrl-C from here on keeps the best result so far. The windowed trainer is finished as a shallow copy: the
@@ -201,7 +209,7 @@ def _best_route(net: Network, exps: list, vals: list, cfg: TrainConfig, model: A
     if tr.stopped == "interrupted":  # the single-shooting polish was stopped: not a second route
         return tr, z, None, tr.warmup_s
     try:
-        tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log)
+        tr_s, z_s = _fit(net, exps, vals, dataclasses.replace(cfg, rollout="free"), model, callback, log, start)
         a, b = tr.selection_score(z), tr_s.selection_score(z_s)
     except (KeyboardInterrupt, SystemError) as e:
         if not is_interrupt(e):
@@ -245,9 +253,10 @@ def _fitted(tr: _Trainer, model: Any, final: dict[str, np.ndarray]) -> dict[str,
             for sl in tr.slots if "@" not in sl.name and model.param_specs[sl.name].kind == "physical"}
 
 
-def _fit(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any):
+def _fit(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any,
+         start: Mapping[str, Any] | None = None):
     """One training run (nominal run, normalisation, layout, rollouts, Adam, L-BFGS) → ``(trainer, z)``."""
-    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log)
+    tr = _Trainer(net, exps, vals, cfg, model, callback=callback, log=log, start=start)
     params = tr.initial_params()
     nom, nom_bp, runs = tr.nominal_runs(params)
     tr.set_stats(params, nom, nom_bp, runs)
