@@ -288,3 +288,23 @@ def test_trained_model_view_escapes_and_never_raises(trained: TrainedModel, monk
     monkeypatch.setattr(tm, "parameter_table", broken)  # view and summary both fail: the repr as <pre>
     out = tm._repr_html_()
     assert out.startswith("<pre>TrainedModel(") and SCRIPT not in out and html.escape(SCRIPT) in out
+
+
+def test_a_nested_mlp_check_is_said_so_and_its_weights_have_no_standard_errors() -> None:
+    """An MLP chosen by the check from the doctor's fit (``linear`` row ``stopped: "the doctor's fit"``): the summary
+    says the MLP was trained from the linear law, with both held-out MAEs, and under the values that those are the
+    law's the MLP started from, its own weights without standard errors."""
+    d = _diagnosis()
+    d.extended.update(form="mlp", val_mae=0.05, uncertainty={
+        "method": "Gauss–Newton", "statements": [],
+        "estimates": [{"name": "U1 at T(h1) = 40 °C", "value": 0.031, "se": 0.002, "unit": "W/K", "status": "ok"}]},
+        mlp_check={"choice": "mlp", "reason": "the MLP pays on held-out data (p = 0.012, MAE −29 %)",
+                   "linear": {"val_mae": 0.0617, "stopped": "the doctor's fit"},
+                   "mlp": {"val_mae": 0.05, "stopped": "completed"}})
+    s = d.summary()
+    assert ("linear or MLP: an MLP trained from the doctor's linear law (held-out MAE linear 0.0617 K, MLP 0.05 K): "
+            "mlp — the MLP pays on held-out data") in s, s
+    assert "U1 at T(h1) = 40 °C = 0.031 ± 0.002 W/K" in s
+    assert "started as this law, every other value held at the above, and trained its own weights only" in s
+    d.extended["form"] = "linear"
+    assert "trained its own weights only" not in d.summary()

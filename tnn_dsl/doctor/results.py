@@ -225,6 +225,10 @@ class Diagnosis:
             flag = f"  ({e['status']})" if e["status"] != "ok" else ""
             lines.append(f"  {e['name']} = {e['value']:.4g}{se} {e['unit']}".rstrip() + flag)
         lines += [f"identifiability: {s}" for s in u.get("statements", [])]
+        mc = self.extended.get("mlp_check") or {}
+        if self.extended.get("form") == "mlp" and (mc.get("linear") or {}).get("stopped") == "the doctor's fit":
+            lines.append("the MLP chosen instead of the linear law started as this law, every other value held at "
+                         "the above, and trained its own weights only (they have no standard errors)")
         return lines
 
     def verdict_lines(self) -> list[str]:
