@@ -44,10 +44,11 @@ def register(subparsers) -> None:
                    help="distinct candidates fitted properly per round (default 3: the doctor's SHORTLIST_TOP)")
     p.add_argument("--max-rounds", type=int, default=4, help="rounds of forward selection at most (default 4)")
     p.add_argument("--no-mlp-check", action="store_true",
-                   help="do not train the extension with MLP clauses to compare (done when a structured residual "
-                        "is left)")
+                   help="do not check the doctor's linear clauses against MLPs started as them (done when a "
+                        "structured residual is left)")
     p.add_argument("--mlp-time", type=float, default=60.0, metavar="S",
-                   help="training time for each of the linear and MLP extensions in that comparison (default 60)")
+                   help="training time of that check's MLP (and of the linear law, where the check starts from "
+                        "nominal values) (default 60)")
     add_init(p, ("estimate", "steady", "measured"),
              estimate_help="estimate (default: a training file's fitted with the parameters, a held-out file's from "
                            "a burn-in at its start that is not scored)")
