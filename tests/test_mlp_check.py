@@ -63,9 +63,11 @@ def _data(conductance, n, seed):
 
 @pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])
 def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
+    """From nominal values (``compare`` without ``start``). Each training is given 60 s: torch's, cut at 20 s, ended
+    with the linear law at 1.08 K and the MLP at 1.29 K held out (2026-12-06, before and after the nested check)."""
     curved = lambda q: 0.02 * (1 + 12 * (q - 0.5) ** 2)  # noqa: E731 - convection that rises at both ends
     r = compare(EXTENDED, {"U"}, [_data(curved, 900, 1)], [_data(curved, 500, 2)], backend=backend,
-                time_limit=20.0)
+                time_limit=60.0)
     assert r["choice"] == "mlp", r
     assert r["mlp"]["val_mae"] < 0.5 * r["linear"]["val_mae"]
     assert "learn U as mlp(Q; hidden = [8])" in print_thn(r["network"])
@@ -76,7 +78,7 @@ def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
 
     straight = lambda q: 0.02 * float(pos1(1.0 + 0.5 * (q - 0.5) / 0.5))  # noqa: E731
     r = compare(EXTENDED, {"U"}, [_data(straight, 900, 1)], [_data(straight, 500, 2)], backend=backend,
-                time_limit=20.0)
+                time_limit=60.0)
     assert r["choice"] == "linear", r
     assert "learn U as linear(Q)" in print_thn(r["network"])
 
@@ -322,7 +324,7 @@ def test_from_the_fit_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not
         train, val = [_data(law, 900, 1)], [_data(law, 500, 2)]
         fit = tnn_dsl.train(EXTENDED, train, val, backend=backend, epochs=100)
         start = values_for_extension_same(fit.params)
-        r = compare(EXTENDED, {"U"}, train, val, backend=backend, time_limit=20.0, start=start)
+        r = compare(EXTENDED, {"U"}, train, val, backend=backend, time_limit=60.0, start=start)
         assert r["linear"]["stopped"] == "the doctor's fit" and r["start_dz"] < 1e-6, r
         # the linear row is the given fit's own free run
         e = np.concatenate([(np.asarray(p["measured"]) - np.asarray(p["y"])).ravel() for p in fit.predict(val)])

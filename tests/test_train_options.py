@@ -88,6 +88,34 @@ def test_torch_compile_is_chosen_by_the_training_length(monkeypatch):
     assert torch_compile_pays(torch_cfg, case_study) is None  # tnn_dsl.compile reads the variable
 
 
+def test_a_training_of_one_sequence_per_file_compiles_sooner(monkeypatch):
+    """Files run as one sequence each (single shooting, free runs) pay eager torch's dispatch at every step: their
+    sample-epochs count ``ONE_SEQUENCE_WORK_WEIGHT`` times. ``one_sequence_per_file`` says so only where it is
+    certain: ``rollout`` ``free``, or ``auto`` with every file within three of the shortest windows."""
+    from tnn_dsl.fit.config import (ONE_SEQUENCE_WORK_WEIGHT, TORCH_COMPILE_MIN_WORK, TrainConfig,
+                                    one_sequence_per_file, torch_compile_pays)
+
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+    cfg = TrainConfig(backend="torch", epochs=300)
+    board = 900 + 500  # tests/test_mlp_check.py's one-heater board at 1 s: 62 s eager, 31 s compiled
+    assert torch_compile_pays(cfg, board) is False
+    assert torch_compile_pays(cfg, board, one_sequence=True) is True
+    least = -(-TORCH_COMPILE_MIN_WORK // (300 * ONE_SEQUENCE_WORK_WEIGHT))
+    assert torch_compile_pays(cfg, least, one_sequence=True) is True
+    assert torch_compile_pays(cfg, least - 1, one_sequence=True) is False
+    assert torch_compile_pays(TrainConfig(backend="torch", torch_compile=False), board, one_sequence=True) is False
+
+    def exp(n, dt=1.0):
+        return type("E", (), {"n_steps": n, "dt": dt})()
+
+    assert one_sequence_per_file(cfg, [exp(900), exp(1803)])  # 3 × (600 s + 1 sample)
+    assert not one_sequence_per_file(cfg, [exp(900), exp(1804)])
+    assert one_sequence_per_file(TrainConfig(rollout="free"), [exp(14401)])
+    assert not one_sequence_per_file(TrainConfig(rollout="estimated"), [exp(100)])
+    assert one_sequence_per_file(cfg, [exp(153, 300.0)])  # 5-minute data: windows of 50 samples at least
+    assert not one_sequence_per_file(cfg, [exp(1680, 300.0)])  # Bacher & Madsen's 140 h
+
+
 def test_train_passes_the_chosen_torch_compile_to_the_compiler(tmp_path, monkeypatch):
     """The rule above is what ``train`` compiles with (the compilation itself stubbed out: eager here)."""
     import tnn_dsl.compiler as C

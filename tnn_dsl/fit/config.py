@@ -55,15 +55,43 @@ def free_runs_compile_pay(n_samples: int) -> bool | None:
     return int(n_samples) >= FREE_RUN_COMPILE_MIN_SAMPLES
 
 
-def torch_compile_pays(cfg: "TrainConfig", n_samples: int) -> bool | None:
+ONE_SEQUENCE_WORK_WEIGHT = 20
+"""How many windowed sample-epochs one sample-epoch of a training that runs each file as one sequence (single
+shooting, or free runs: ``rollout`` ``free``, or ``auto`` on files of at most three windows) counts for in
+:func:`torch_compile_pays`. Eager torch pays its per-operation dispatch at every step of such a rollout, where a
+batch of windows shares it: a one-heater board's training (900 + 500 samples at 1 s, 300 epochs, single shooting,
+``tests/test_mlp_check.py``) ran 355 ms an epoch eager and 21 ms compiled (about 250 µs saved per training
+sample-epoch, 220 µs per validation sample), for some 25 s of compiling — 62 s eager against 31 s compiled to the
+same early stop at epoch 150 (2026-12-06, the AMD host; BENCHMARKS.md, issue 18). Compiling pays from about
+10⁵ such sample-epochs: :data:`TORCH_COMPILE_MIN_WORK` / 20."""
+
+
+def one_sequence_per_file(cfg: "TrainConfig", exps: list) -> bool:
+    """Whether a training of ``exps`` certainly runs each file as one sequence: ``rollout`` ``free``, or ``auto``
+    with every file at most three of the shortest windows it could choose (:func:`~.windows.auto_window` or the
+    ``window`` set; the trainer's window may only be longer: ``_Rollouts.plan_rollout``)."""
+    from .windows import auto_window
+
+    if cfg.rollout == "free":
+        return True
+    if cfg.rollout != "auto" or not exps:
+        return False
+    window = float(cfg.window) if cfg.window is not None else auto_window(exps)
+    dt = min(float(e.dt) for e in exps)
+    return max(int(e.n_steps) for e in exps) <= 3 * (window / dt + 1)
+
+
+def torch_compile_pays(cfg: "TrainConfig", n_samples: int, one_sequence: bool = False) -> bool | None:
     """``cfg.torch_compile`` where it is set; otherwise, for the torch backend, ``None`` when the environment
     variable ``TNN_TORCH_COMPILE`` is set (``tnn_dsl.compile`` reads it), else whether ``n_samples`` (training and
-    validation samples, all files) × ``cfg.epochs`` reaches :data:`TORCH_COMPILE_MIN_WORK`."""
+    validation samples, all files) × ``cfg.epochs`` (× :data:`ONE_SEQUENCE_WORK_WEIGHT` where each file runs as
+    ``one_sequence``: :func:`one_sequence_per_file`) reaches :data:`TORCH_COMPILE_MIN_WORK`."""
     if cfg.torch_compile is not None or cfg.backend != "torch":
         return cfg.torch_compile
     if os.environ.get("TNN_TORCH_COMPILE", "").strip():
         return None
-    return int(n_samples) * max(int(cfg.epochs), 1) >= TORCH_COMPILE_MIN_WORK
+    weight = ONE_SEQUENCE_WORK_WEIGHT if one_sequence else 1
+    return int(n_samples) * max(int(cfg.epochs), 1) * weight >= TORCH_COMPILE_MIN_WORK
 
 
 @dataclass
