@@ -92,8 +92,13 @@ def test_a_training_of_one_sequence_per_file_compiles_sooner(monkeypatch):
     """Files run as one sequence each (single shooting, free runs) pay eager torch's dispatch at every step: their
     sample-epochs count ``ONE_SEQUENCE_WORK_WEIGHT`` times. ``one_sequence_per_file`` says so only where it is
     certain: ``rollout`` ``free``, or ``auto`` with every file within three of the shortest windows."""
-    from tnn_dsl.fit.config import (ONE_SEQUENCE_WORK_WEIGHT, TORCH_COMPILE_MIN_WORK, TrainConfig,
-                                    one_sequence_per_file, torch_compile_pays)
+    from tnn_dsl.fit.config import (
+        ONE_SEQUENCE_WORK_WEIGHT,
+        TORCH_COMPILE_MIN_WORK,
+        TrainConfig,
+        one_sequence_per_file,
+        torch_compile_pays,
+    )
 
     monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
     cfg = TrainConfig(backend="torch", epochs=300)
