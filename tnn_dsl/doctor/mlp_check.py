@@ -309,10 +309,7 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
     for (f, _), (e, row) in zip(forms, done):
         errors[f], out[f] = e, row
     k_extra = max(out["mlp"]["k"] - out["linear"]["k"], 1)
-    stat, p, n_eff = held_out_test(errors["linear"], errors["mlp"], k_extra)
-    gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
-    out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
-    pays = p < P_ACCEPT and gain >= MIN_GAIN
+    p, gain, pays = _test(out, errors["linear"], errors["mlp"], k_extra)
     # a training the time limit cut short that could have changed the answer: the MLP's when it did not pay, the
     # linear law's when the MLP did
     cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") in _CUT]
@@ -326,8 +323,7 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         out.update(choice="mlp", network=net_mlp,
                    reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")
     else:
-        why = (f"p = {p:.2g} ≥ {P_ACCEPT}" if p >= P_ACCEPT
-               else f"gain {100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %")
+        why = _why_not(p, gain)
         out.update(choice="linear", network=net, reason=f"the MLP does not pay on held-out data ({why})")
     return out
 
@@ -381,10 +377,7 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
     say(f"    held-out MAE {row['val_mae']:.4g} K against the linear law's {out['linear']['val_mae']:.4g} K "
         f"({row['seconds']} s)")
     out["mlp"] = row
-    stat, p, n_eff = held_out_test(e_lin, e_mlp, max(k_mlp - k_lin, 1))
-    gain = 1 - row["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
-    out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
-    pays = p < P_ACCEPT and gain >= MIN_GAIN
+    p, gain, pays = _test(out, e_lin, e_mlp, max(k_mlp - k_lin, 1))
     cut = not pays and row["stopped"] in _CUT  # a cut MLP that pays is still better than the law it started as
     out["decided"] = not cut
     if cut:
@@ -397,11 +390,25 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
                    reason=(f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} % against the "
                            "doctor's linear law it started as)"))
     else:
-        why = (f"p = {p:.2g} ≥ {P_ACCEPT}" if p >= P_ACCEPT
-               else f"gain {100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %")
+        why = _why_not(p, gain)
         out.update(choice="linear", network=net,
                    reason=f"the MLP, started as the doctor's linear law, does not pay on held-out data ({why})")
     return out
+
+
+def _test(out: dict, e_lin: np.ndarray, e_mlp: np.ndarray, k_extra: int) -> tuple[float, float, bool]:
+    """The held-out test of the MLP's errors against the linear law's (Diebold–Mariano with ``k_extra`` parameters
+    charged) and the MAE gain, written into ``out`` (``dm_stat``, ``p_value``, ``n_eff``, ``mae_gain``) → ``(p, gain,
+    whether the MLP pays)``."""
+    stat, p, n_eff = held_out_test(e_lin, e_mlp, k_extra)
+    gain = 1 - out["mlp"]["val_mae"] / out["linear"]["val_mae"] if out["linear"]["val_mae"] > 0 else 0.0
+    out.update(dm_stat=stat, p_value=p, n_eff=n_eff, mae_gain=gain)
+    return p, gain, p < P_ACCEPT and gain >= MIN_GAIN
+
+
+def _why_not(p: float, gain: float) -> str:
+    """Why an MLP does not pay: its p-value, else its gain."""
+    return f"p = {p:.2g} ≥ {P_ACCEPT}" if p >= P_ACCEPT else f"gain {100 * gain:.1f} % < {100 * MIN_GAIN:.0f} %"
 
 
 def _converted(net: Network, net_mlp: Network) -> set[str]:
