@@ -308,24 +308,8 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         done = side_by_side([lambda tell, f=f, v=v: run(f, v, tell) for f, v in forms], min(threads, 2), say)
     for (f, _), (e, row) in zip(forms, done):
         errors[f], out[f] = e, row
-    k_extra = max(out["mlp"]["k"] - out["linear"]["k"], 1)
-    p, gain, pays = _test(out, errors["linear"], errors["mlp"], k_extra)
-    # a training the time limit cut short that could have changed the answer: the MLP's when it did not pay, the
-    # linear law's when the MLP did
-    cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") in _CUT]
-    out["decided"] = not cut
-    if cut:
-        out.update(choice="linear", network=net,
-                   reason=(f"not decided: the {cut[0]} variant's training was {_cut_words(out[cut[0]], time_limit)} "
-                           f"before its schedule ended (so far the MLP {'pays' if pays else 'does not pay'}, p = "
-                           f"{p:.2g}); the linear law is kept — {_decides(out[cut[0]])}"))
-    elif pays:
-        out.update(choice="mlp", network=net_mlp,
-                   reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %)")
-    else:
-        why = _why_not(p, gain)
-        out.update(choice="linear", network=net, reason=f"the MLP does not pay on held-out data ({why})")
-    return out
+    return _decide(out, errors["linear"], errors["mlp"], max(out["mlp"]["k"] - out["linear"]["k"], 1), net, net_mlp,
+                   time_limit)
 
 
 def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str, np.ndarray], train, val, *,
@@ -377,22 +361,33 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
     say(f"    held-out MAE {row['val_mae']:.4g} K against the linear law's {out['linear']['val_mae']:.4g} K "
         f"({row['seconds']} s)")
     out["mlp"] = row
-    p, gain, pays = _test(out, e_lin, e_mlp, max(k_mlp - k_lin, 1))
-    cut = not pays and row["stopped"] in _CUT  # a cut MLP that pays is still better than the law it started as
+    return _decide(out, e_lin, e_mlp, max(k_mlp - k_lin, 1), net, net_mlp, time_limit, nested=True)
+
+
+def _decide(out: dict, e_lin: np.ndarray, e_mlp: np.ndarray, k_extra: int, net: Network, net_mlp: Network,
+            time_limit: float, nested: bool = False) -> dict:
+    """The answer of both checks, written into ``out``: the held-out test (:func:`_test`), then ``decided`` — False
+    where a training the time limit (or Ctrl-C) cut short could have changed it: the MLP's when it does not pay, the
+    linear law's when the MLP does (``nested``: the linear law is the doctor's fit, never cut) — ``choice``,
+    ``network`` and ``reason``."""
+    p, gain, pays = _test(out, e_lin, e_mlp, k_extra)
+    cut = [f for f in (("linear",) if pays else ("mlp",)) if out[f].get("stopped") in _CUT]
     out["decided"] = not cut
     if cut:
+        row = out[cut[0]]
+        who = "the MLP's training" if nested else f"the {cut[0]} variant's training"
+        so_far = "it does not pay" if nested else f"the MLP {'pays' if pays else 'does not pay'}"
         out.update(choice="linear", network=net,
-                   reason=(f"not decided: the MLP's training was {_cut_words(row, time_limit)} before its schedule "
-                           f"ended (so far it does not pay, p = {p:.2g}); the linear law is kept — "
-                           f"{_decides(row)}"))
+                   reason=(f"not decided: {who} was {_cut_words(row, time_limit)} before its schedule ended (so far "
+                           f"{so_far}, p = {p:.2g}); the linear law is kept — {_decides(row)}"))
     elif pays:
+        against = " against the doctor's linear law it started as" if nested else ""
         out.update(choice="mlp", network=net_mlp,
-                   reason=(f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} % against the "
-                           "doctor's linear law it started as)"))
+                   reason=f"the MLP pays on held-out data (p = {p:.2g}, MAE −{100 * gain:.0f} %{against})")
     else:
-        why = _why_not(p, gain)
+        subject = "the MLP, started as the doctor's linear law," if nested else "the MLP"
         out.update(choice="linear", network=net,
-                   reason=f"the MLP, started as the doctor's linear law, does not pay on held-out data ({why})")
+                   reason=f"{subject} does not pay on held-out data ({_why_not(p, gain)})")
     return out
 
 
