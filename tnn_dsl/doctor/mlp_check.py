@@ -20,7 +20,7 @@ runs any model. The MLP contains the linear law it starts from, so whatever it g
 shape of the law — the nested comparison a statistician makes, and one training instead of two. Measured (issue 18,
 2026-12-06, BENCHMARKS.md): from nominal values the case study's MLP ended at 3.8 mK held out, above the doctor's
 linear fit (3.0 mK), so the check could not have chosen it whatever the law's shape; from the fit it reaches 2.0 mK
-against the law's 2.8 mK (p = 0.012) in 10 s of training instead of 17: the heat pipe's resistances are linear in
+against the law's 2.8 mK (p = 0.012) in 9.8–10.6 s of training (the MLP from nominal values: 17.0–19.4 s): the heat pipe's resistances are linear in
 ``u1`` in the truth, and the linear law's output passes through the positive transform ``nominal·pos1(1 + z)``,
 which bends it where ``u1`` makes them small. On TCLab's ``U12 ~ T(h1)`` the MLP from the fit does not pay (0.6178
 against 0.6195 K, p = 0.21).
@@ -142,8 +142,9 @@ def values_for_extension(ext: Network, fitted_net: Network,
 PAIR_SLOPES = (0.05, 0.1)
 """Input weights (per unit of the normalised input along one of the linear law's directions) of the two hidden units
 that carry that direction in an MLP started as a linear law (:func:`mlp_start`): ``tanh`` is nearly linear there and
-the pair's output weights cancel each other's cubic terms (``tanh(a·u) ≈ a·u − (a·u)³/3``), so the pair computes ``u``
-to about 1e-6 over the data's range with output weights of a few tens (3e-5 with six inputs and three outputs)."""
+the pair's output weights cancel each other's cubic terms (``tanh(a·u) ≈ a·u − (a·u)³/3``), so the MLP computes the
+law to within 1e-6 of its raw output over the data's range for one or two inputs and 4e-5 for up to six, with output
+weights up to 47 (``python benchmarks/check_mlp_start.py``; 1.4e-13 on the case study's one input)."""
 
 
 def mlp_start(net_mlp: Network, start: Mapping[str, np.ndarray], seed: int = 0,
