@@ -20,10 +20,10 @@ runs any model. The MLP contains the linear law it starts from, so whatever it g
 shape of the law — the nested comparison a statistician makes, and one training instead of two. Measured (issue 18,
 2026-12-06, BENCHMARKS.md): from nominal values the case study's MLP ended at 3.8 mK held out, above the doctor's
 linear fit (3.0 mK), so the check could not have chosen it whatever the law's shape; from the fit it reaches 2.0 mK
-against the law's 2.8 mK (p = 0.012) in 9.8–10.6 s of training (the MLP from nominal values: 17.0–19.4 s): the
-heat pipe's resistances are linear in ``u1`` in the truth, and the linear law's output passes through the positive
-transform ``nominal·pos1(1 + z)``, which bends it where ``u1`` makes them small. On TCLab's ``U12 ~ T(h1)`` the MLP from the fit does not pay (0.6178
-against 0.6195 K, p = 0.21).
+against the law's 2.8 mK (p = 0.012) in 9.8–10.6 s of training (the MLP from nominal values: 17.0–19.4 s): the heat
+pipe's resistances are linear in ``u1`` in the truth, and the linear law's output passes through the positive
+transform ``nominal·pos1(1 + z)``, which bends it where ``u1`` makes them small. On TCLab's ``U12 ~ T(h1)`` the MLP
+from the fit does not pay (0.6178 against 0.6195 K, p = 0.21).
 
 **From nominal values** (``compare`` without ``start``; the doctor falls back to it where an extension's function
 has no counterpart in its fit): both variants start from the same nominal values and go through the same trainer.
