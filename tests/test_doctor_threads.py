@@ -213,3 +213,51 @@ def test_fits_on_the_rounds_shared_network_give_their_own_networks_numbers(monke
     np.testing.assert_allclose([f["val_mae_after"] for f in shared["findings"]],
                                [f["val_mae_after"] for f in own["findings"]], rtol=1e-6)
     np.testing.assert_allclose(shared["extended"]["val_mae"], own["extended"]["val_mae"], rtol=1e-6)
+
+
+def _r_hp1_growing_with_u1():
+    """The case study's M1 with its heat pipe's ``R_hp1`` growing with u1: round 1 fits five candidates, every one
+    going on after its first fit."""
+    net = tnn_dsl.load(os.path.join(ROOT, "networks", "peltier_heatpipe", "m1.thn"))
+    return net, plant(net, {"I": (0.0, 3.0), "u1": (0.0, 1.0)}, "param_dependence", "R_hp1", "u1", 0.5, n_train=240,
+                      n_val=120, hold=(20, 60), noise=0.002)
+
+
+def _fitting_order(said: list[str]) -> str:
+    """The order of a round's fitting and continuing lines: "f" and "c"."""
+    return "".join("c" if s.startswith("  continuing") else "f" for s in said
+                   if s.startswith("  continuing") or (s.startswith("  fitting") and s.endswith(") ...")))
+
+
+def test_each_fit_goes_on_in_its_own_job():
+    """Where every first fit still moving goes on (no more of them than ``FIT_CONTINUE``), each goes on right after
+    its first fit, in the same job: no thread waits for the round's slowest first fit (issue 18). One diagnosis (the
+    CI check of the slow test below, which compares it with the barrier's)."""
+    net, pl = _r_hp1_growing_with_u1()
+    lines: list[str] = []
+    d = tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, threads=2,
+                         progress=lines.append)
+    assert _fitting_order(lines).startswith("fc" * 3), lines  # each fit, then its continuation
+    first = d.accepted[0] if d.accepted else None
+    assert first is not None and "R_hp1" in first.target and first.depends_on == ["u1"], d.summary()
+
+
+@pytest.mark.slow  # two diagnoses (27 s); the CI check: the test above
+def test_fits_go_on_in_their_own_jobs_and_give_what_the_barrier_gives():
+    """Each fit going on in its own job gives what the barrier gives: under a budget the round keeps its barrier (the
+    best first fits go on first), so a budget that never runs out takes the other path; the two give the same
+    findings, values and extension, and their progress lines show the two orders."""
+    net, pl = _r_hp1_growing_with_u1()
+    lines: dict[str, list[str]] = {"chained": [], "barrier": []}
+    runs = [tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, threads=2, budget_s=budget,
+                             progress=lines[name].append) for name, budget in (("chained", None), ("barrier", 1e6))]
+    a, b = (d.to_dict() for d in runs)
+    assert [f["words"] for f in a["findings"]] == [f["words"] for f in b["findings"]]
+    assert [f["accepted"] for f in a["findings"]] == [f["accepted"] for f in b["findings"]]
+    assert runs[0].extended_text == runs[1].extended_text
+    np.testing.assert_allclose(a["extended"]["val_mae"], b["extended"]["val_mae"], rtol=1e-12)
+    chained, barrier = _fitting_order(lines["chained"]), _fitting_order(lines["barrier"])
+    n = barrier.count("c")
+    m = barrier.index("c") if n else 0
+    assert n >= 2 and m >= n and barrier[m:m + n] == "c" * n, lines["barrier"]  # the first fits, then the rest
+    assert chained.startswith("fc" * n), lines["chained"]  # each fit, then its continuation

@@ -600,3 +600,45 @@ def test_polish_starts_from_adams_last_state(monkeypatch):
     np.testing.assert_array_equal(seen["out"], seen["fallback"])  # and nothing beat the best: fallback kept
     for k, name in NAMES.items():  # the fallback is the starting point here: the model keeps its values
         assert float(tm.params[name]) == pytest.approx(START[k], rel=1e-12), name
+
+
+@pytest.mark.parametrize("patience", [2, 3])
+def test_validations_beside_the_polish_keep_the_iterate_and_the_stop_of_validations_in_line(monkeypatch, patience):
+    """On JAX the polish validates an iterate on a thread of its own while L-BFGS goes on (issue 18), and takes the
+    result in when the next validation is due: the iterate kept, the validation curve and the patience stop are those
+    of validating in line (``validate_beside`` None, as on torch). A scripted validation MAE (best at the second
+    check, worse after) makes the patience rule stop both runs: with ``patience`` 2 the thread's run learns it at its
+    next check (iteration 50), with 3 only after L-BFGS has converged (iteration 59): what came after the stop is not
+    looked at either way. Torch validates in line by design (the code path of the first run here)."""
+    import tnn_dsl
+    import tnn_dsl.fit.trainer as _train
+
+    polish = _train._Trainer.polish
+
+    def run(beside: bool):
+        calls = {"n": 0}
+
+        def scripted(self, z, exps=None):  # the start, then 0.9, 0.8 (best), then worse and worse
+            calls["n"] += 1
+            return {1: 1.0, 2: 0.9, 3: 0.8}.get(calls["n"], 0.8 + 0.01 * calls["n"])
+
+        monkeypatch.setattr(_train._Trainer, "validate", scripted)
+        monkeypatch.setattr(_train._Trainer, "polish", lambda self, *a, **k: polish(self, *a, patience=patience, **k))
+        if not beside:
+            monkeypatch.setattr(_train._Trainer, "validate_beside", lambda self: None)
+        truth = tnn_dsl.loads(HIDDEN_NET.format(G1="0.05 W/K * (1 + 0.8 * (Q2 - 0.5))"), "truth.thn")
+        model = tnn_dsl.loads(HIDDEN_NET.format(G1="0.05 W/K") + "learn U1 as mlp(h1, Q2; hidden = [6])\n", "m.thn")
+        tm = tnn_dsl.train(model, [_simulated(truth, 1, 300)], [_simulated(truth, 2, 100)], rollout="measured",
+                           window=100.0, epochs=0, lbfgs_iters=400, seed=0, init="steady")
+        monkeypatch.undo()
+        return tm, calls["n"]
+
+    inline, n_inline = run(False)
+    beside, n_beside = run(True)
+    curve = [(c["epoch"], c["val_mae"]) for c in inline.meta["curve"] if c["phase"] == "lbfgs"]
+    assert curve == [(c["epoch"], c["val_mae"]) for c in beside.meta["curve"] if c["phase"] == "lbfgs"]
+    assert curve[1] == (20, 0.8) and len(curve) == 2 + patience, curve  # stopped by patience after the best
+    assert n_inline == 3 + patience and n_beside in (n_inline, n_inline + 1)  # the thread's last one not looked at
+    for name, value in inline.params.items():
+        np.testing.assert_array_equal(np.asarray(beside.params[name]), np.asarray(value), err_msg=name)
+    assert beside.meta["stopped"] == inline.meta["stopped"]
