@@ -331,7 +331,7 @@ def test_a_dependence_of_cp_is_taken_from_the_fit_of_the_same_dependence_of_mdot
     src = {"cand": mdot, "parts": [mdot], "cand_cols": {mdot.key: cols[mdot.key]}, "eng": eng, "params": eng.params,
            "train_sse": info["sse"]}
     assert info["sse"] < 0.2 * eng.sse(start)  # the planted dependence, found
-    ns = SimpleNamespace(net_x=net, accepted=[], round_fits=[src], first_fits_only=False)
+    ns = SimpleNamespace(net_x=net, accepted=[], round_fits=[src])
     eng.params = start
     got = _Session.same_model_fit(ns, [cp], eng, cols)
     assert got is not None and got[0] is src

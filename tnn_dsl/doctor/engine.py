@@ -638,13 +638,6 @@ class _Engine:
                 d_out[s0: s0 + len(part), b * block: b * block + stop] = np.asarray(self._np(o))[: len(part), :stop]
         return d_rhs, d_out
 
-    def warm_point(self, n_rows: int, chunk: int) -> None:
-        """Compile the program of :meth:`point_derivs` for calls over ``n_rows`` samples, ``chunk`` columns a call (one
-        column's derivatives computed at 293.15 K and the data's inputs, and dropped): the score test's first chunk
-        then finds it compiled. Called on a thread of its own while the diagnosis goes on (``_Session.warm_score``)."""
-        U = np.concatenate([e.inputs for e in self.exps], 0)[:n_rows, :len(self.model.input_names)]
-        self.point_derivs([0], np.full((U.shape[0], len(self.model.state_names)), 293.15), U, chunk=chunk)
-
     def rates(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
         """``dT/dt (N, ns)`` K/s at states ``X`` and inputs ``U`` (current parameters, forcing 0)."""
         t = self._to({"X": X, "U": _pad(U, self.n_force)})

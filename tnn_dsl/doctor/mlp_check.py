@@ -55,7 +55,7 @@ from ..analysis import held_out_test
 from ..compiler.backends.adapter import lean_programs
 from ..ir import Network
 from .selection import MIN_GAIN, P_ACCEPT
-from .threads import Background, side_by_side
+from .threads import side_by_side
 
 HIDDEN = 8
 
@@ -272,7 +272,7 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
         return None
     if start is not None:
         return _compare_from_fit(net, net_mlp, n, start, train, val, backend=backend, time_limit=time_limit, say=say,
-                                 stop=stop, threads=threads)
+                                 stop=stop)
     out: dict = {"n_clauses": n}
     errors = {}
 
@@ -315,7 +315,7 @@ def compare(net: Network, targets: set[str], train, val, *, backend: str = "jax"
 
 def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str, np.ndarray], train, val, *,
                       backend: str, time_limit: float, say: Callable[[str], None],
-                      stop: Callable[[], bool] | None, threads: int = 1) -> dict:
+                      stop: Callable[[], bool] | None) -> dict:
     """The nested check from the doctor's fit: the linear law is the doctor's fitted extension (``start``), free-run
     on ``val`` as the trainer runs a model (a burn-in estimate of each file's initial state); the MLP variant starts
     as that law (:func:`mlp_start`) with every other value held at the doctor's fit (``freeze``), and the trainer's
@@ -335,23 +335,14 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
     lin_params = {k: np.asarray(v, float) for k, v in lin_model.to_numpy(lin_model.init_params(seed=0)).items()}
     lin_params.update({k: np.asarray(v, float) for k, v in start.items()
                        if k in lin_params and np.shape(v) == np.shape(lin_params[k])})
+    with lean_programs():
+        linear = TrainedModel(net, lin_params, meta={"backend": backend,
+                                                      "config": TrainConfig(backend=backend).to_dict()})
+        e_lin = _held_out_errors(linear, val)
     k_lin = int(sum(int(np.prod(s.shape)) for name, s in lin_model.param_specs.items()
                     if s.trainable and s.kind != "physical" and name.split(".", 1)[0] in _converted(net, net_mlp)))
-    lin_out: dict = {}
-
-    def run_linear() -> None:
-        """The doctor's law free-run on ``val`` as the trainer runs a model (its errors in ``lin_out``)."""
-        with lean_programs():
-            linear = TrainedModel(net, lin_params, meta={"backend": backend,
-                                                          "config": TrainConfig(backend=backend).to_dict()})
-            lin_out["e"] = _held_out_errors(linear, val)
-        lin_out["seconds"] = round(time.monotonic() - t0, 1)
-
-    # with two threads the law's free run (about a second on the case study, most of it compiling) goes on beside
-    # the MLP's training, whose first second is compiling too (issue 18); the results are the same either way
-    beside = Background(run_linear, "tnn-mlp-linear") if threads > 1 and backend == "jax" else None
-    if beside is None:
-        run_linear()
+    out["linear"] = {"val_mae": float(np.nanmean(np.abs(e_lin))), "val_max": float(np.nanmax(np.abs(e_lin))),
+                     "k": k_lin, "seconds": round(time.monotonic() - t0, 1), "stopped": "the doctor's fit"}
     mlp_values, dz = mlp_start(net_mlp, lin_params)
     out["start_dz"] = dz
     converted = _converted(net, net_mlp)
@@ -360,19 +351,10 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
                     | {fn.name for fn in net_mlp.learned if fn.name not in converted})
     t0 = time.monotonic()
     say(f"  training the MLP from the doctor's linear law (at most {time_limit:.0f} s of training) ...")
-    try:
-        with lean_programs():
-            trained = train_model(net_mlp, train, val, backend=backend, time_limit=time_limit, seed=0, epochs=0,
-                                  freeze=freeze, start=mlp_values, callback=_stopping(stop))
-            e_mlp = _held_out_errors(trained, val)
-    finally:
-        if beside is not None:
-            beside.join()
-    if "e" not in lin_out:  # the free run beside failed: again here, where its error is the user's
-        run_linear()
-    e_lin = lin_out["e"]
-    out["linear"] = {"val_mae": float(np.nanmean(np.abs(e_lin))), "val_max": float(np.nanmax(np.abs(e_lin))),
-                     "k": k_lin, "seconds": lin_out["seconds"], "stopped": "the doctor's fit"}
+    with lean_programs():
+        trained = train_model(net_mlp, train, val, backend=backend, time_limit=time_limit, seed=0, epochs=0,
+                              freeze=freeze, start=mlp_values, callback=_stopping(stop))
+        e_mlp = _held_out_errors(trained, val)
     k_mlp = int(sum(int(np.prod(s.shape)) for name, s in specs.items()
                     if s.trainable and s.kind != "physical" and name.split(".", 1)[0] in converted))
     row = {"val_mae": float(np.nanmean(np.abs(e_mlp))), "val_max": float(np.nanmax(np.abs(e_mlp))), "k": k_mlp,

@@ -38,11 +38,11 @@ from .engine import (
 from .extension import _check_text, changed_lines, doctor_targets, extend_network, extension_text, finding_clause
 from .fitting import _fit_result, _fit_structural, _train_lr_test, continue_fit, refit_from_written
 from .results import Diagnosis, Finding
-from .scoring import FORCED_CHUNK, MIN_R2, _indistinguishable, _score, _score_forced, _shortlist, same_correction
+from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortlist, same_correction
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
 from .stopping import stop_requested
 from .structural import structural_candidates
-from .threads import Background, fit_threads, side_by_side
+from .threads import fit_threads, side_by_side
 from .uncertainty import final_uncertainty
 from .words import _what_is_left, _words
 
@@ -253,10 +253,6 @@ class _Session:
         # torch's forward-mode derivatives (the Gauss–Newton Jacobians) keep their dual levels per thread and fail
         # in a worker thread: torch fits one candidate at a time
         self.threads = fit_threads(threads) if backend == "jax" else 1
-        self.big: tuple | None = None
-        """The score test's extended network (engine, extension, free and candidate columns), made at the first
-        score test or by :meth:`warm_score`."""
-        self.warming: Background | None = None  # :meth:`warm_score`'s compilation, until :meth:`join_warm`
 
     def lap(self, name: str, t0: float) -> None:
         self.timings[name] = round(_time.monotonic() - t0, 3)
@@ -457,15 +453,13 @@ class _Session:
         self.scores_out: list[dict] = []
         self.accepted: list[Candidate] = []
         self.round_fits: list[dict] = []
-        self.first_fits_only = False
-        """Whether :meth:`same_model_fit` takes the round's fits at their first fit (while the shortlist's fits and
-        their continuations run: :meth:`fit_shortlist`)."""
         self.promised: set[str] = set()  # curved terms a probe showed to pay: fitted next round whatever their score
         self.current_val = (res.mae, res.max, eng.sse(which="val"))
         self.final_eng, self.final_ext = eng, self.ext0
         self.with_struct = self.kinds is None or any(k in STRUCTURAL_KINDS for k in self.kinds)
         self.dt_min = min(float(e.dt) for e in self.exps)
         self.remaining = self.candidates_now()
+        self.big = None
 
     # -- stages 3–5: forward selection ----------------------------------------------------------------
 
@@ -530,8 +524,6 @@ class _Session:
                     fits += rivals
                     chosen = _choose(fits, self.current_val, self.e_base_val)
             if self.ml is None:
-                if chosen is not None and rnd < self.max_rounds:
-                    self.warm_score(self.final_eng.n_score_rows)  # for the next round, beside the probes' fits
                 chosen = self.curvature_look_ahead(chosen, fits, current)
             if chosen is not None and self.ml is not None:
                 self.adopt_ml(chosen)
@@ -549,7 +541,6 @@ class _Session:
         """The score test of every remaining candidate at the current fit (the big extended network)."""
         t0 = _time.monotonic()
         acc_keys = self.acc_keys()
-        self.join_warm()
         if self.big is None:
             self.say(f"compiling the extended network ({len(self.ext.candidates)} candidates at their null value) ...")
             self.big = _make_engine(self.ext, self.net_x, self.exps, self.train_mask, self.val_mask, self.backend,
@@ -575,27 +566,6 @@ class _Session:
         if rnd == 1:
             self.scores_out = [dict(s["public"]) for s in scored]
         return scored
-
-    def warm_score(self, n_rows: int) -> None:
-        """The score test's extended network (:attr:`big`, made here if needed) compiles its pointwise derivatives on a
-        thread of its own (JAX, two threads or more) while a round that has chosen a candidate fits its probes, at
-        about one core: the next round's score test then finds the program compiled (the program goes after each score
-        test, for memory). On the case study round 2's score test took 6.8 against 7.9 s (issue 18). Started beside
-        the nominal fit as well, it slowed that fit by as much as it saved (the fit's Jacobians use both cores); started
-        before a round knew it had a candidate, it compiled for a round that never came, and round 2's probe then
-        held 623 MB."""
-        if self.backend != "jax" or self.threads < 2 or self.warming is not None:
-            return
-        if self.big is None:
-            self.big = _make_engine(self.ext, self.net_x, self.exps, self.train_mask, self.val_mask, self.backend,
-                                    self.state, self.ref, [c.key for c in self.ext.candidates], with_candidates=True)
-        b_eng = self.big[0]
-        self.warming = Background(lambda: b_eng.warm_point(n_rows, FORCED_CHUNK), "tnn-warm")
-
-    def join_warm(self) -> None:
-        if self.warming is not None:
-            self.warming.join()
-            self.warming = None
 
     def acc_keys(self) -> list[str]:
         """Keys of the accepted candidates held by the extended network (structural ones live in ``net_x``)."""
@@ -678,32 +648,17 @@ class _Session:
                                            self.ref, self.dt_min, self.deadline, e_base_val, say, delta=small))
             return out
 
-        # successive halving (:meth:`continue_fits`) ranks every first fit before it picks the ones that go on; where
-        # each fit still moving goes on whatever the ranking (no more of them than FIT_CONTINUE), it goes on straight
-        # after its first fit, in the same job, and no thread waits for the round's slowest first fit (issue 18: the
-        # case study's round 1 left one core idle for 2–3 s at that barrier). Not under a budget: then the best
-        # first fits go on first. A fit that takes a twin's values (:meth:`same_model_fit`) takes its first fit's,
-        # as at the barrier (:attr:`first_fits_only`).
-        chain = len(exact) <= FIT_CONTINUE and self.deadline is None
-
         def fit_one(i: int, s_: dict):
             def run(say) -> dict | None:
                 if self.spent():
                     return None
                 say(f"  fitting {s_['cand'].describe()} (k={s_['cand'].k}) ...")
-                f = self.fit_exact(s_, (e_s.clone(), x_s, f_s, c_s), start_params, acc_keys, FIT_ITER_FIRST,
-                                   f", network compiled in {t_c:.1f} s" if i == 0 else "", say=say)
-                if chain and f.get("more"):
-                    self.go_on(f, x_s, say)
-                return f
+                return self.fit_exact(s_, (e_s.clone(), x_s, f_s, c_s), start_params, acc_keys, FIT_ITER_FIRST,
+                                      f", network compiled in {t_c:.1f} s" if i == 0 else "", say=say)
             return run
 
-        self.first_fits_only = True
-        try:
-            done = self.side_by_side(([fit_structural] if structural else [])
-                                     + [fit_one(i, s_) for i, s_ in enumerate(exact)])
-        finally:
-            self.first_fits_only = False
+        done = self.side_by_side(([fit_structural] if structural else [])
+                                 + [fit_one(i, s_) for i, s_ in enumerate(exact)])
         by_id = {id(s_): f for s_, f in zip(exact, done[1:] if structural else done)}
         struct_fits = iter(done[0] if structural else [])
         fits: list[dict] = []
@@ -816,11 +771,10 @@ class _Session:
         t_f = _time.monotonic()
         if same is not None:  # the same model at its twin's solution (verified): that fit, written on these columns
             src, e_s.params, sse = same
-            src_sse = (src["first"] if self.first_fits_only and "first" in src else src)["train_sse"]
             info = {"sse": sse, "capped": bool(src.get("more"))}
             prod = sorted({f"{b.target}·{a.target}" for a, b in zip(parts, src["parts"])})
             tell(f"    the same model as {src['cand'].describe()} ({', '.join(prod)} enter only as one product): its "
-                 f"fit, training SSE {sse:.6g} against {src_sse:.6g} K²")
+                 f"fit, training SSE {sse:.6g} against {src['train_sse']:.6g} K²")
         else:
             info = e_s.fit(act, max_iter=max_iter, init_delta=init, deadline=self.deadline, tol=1e-4, stall=True)
             tell(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} iterations, "
@@ -830,7 +784,6 @@ class _Session:
         f = _fit_result(c if extra is None else _joint(c, extra), s_, e_s, x_s, self.e_base_val)
         f.update(act=act, train_sse=info["sse"], more=bool(info["capped"]), parts=parts,
                  cand_cols={p.key: list(c_s.get(p.key, [])) for p in parts})
-        f["first"] = {"params": f["params"], "train_sse": f["train_sse"], "more": f["more"]}  # never updated
         if info.get("start") == "written":
             f["start"] = "written"
         self.round_fits.append(f)
@@ -848,14 +801,12 @@ class _Session:
         partners = _partners_now(self.net_x, self.accepted)
         if not partners:
             return None
-        for src in list(self.round_fits):
-            # while the shortlist's fits go on in their own jobs, a twin is taken at its first fit, as at the barrier
-            at = src["first"] if self.first_fits_only and "first" in src else src
+        for src in self.round_fits:
             sp = src.get("parts") or []
             if (len(sp) != len(parts) or not all(_same_model(a, b, partners) for a, b in zip(sp, parts))
-                    or not math.isfinite(at["train_sse"])):
+                    or not math.isfinite(src["train_sse"])):
                 continue
-            s_eng, s_par = src["eng"], at["params"]
+            s_eng, s_par = src["eng"], src["params"]
             s_cols = [s_eng.cols[j] for a in sp for j in src["cand_cols"][a.key]]
             d_cols = [e_s.cols[j] for a in parts for j in c_s.get(a.key, [])]
             if len(s_cols) != len(d_cols):
@@ -871,7 +822,7 @@ class _Session:
                 p[cd.key] = flat.reshape(p[cd.key].shape)
             sse = e_s._train_sse(p)[0]
             # to 1e-9, or round-off where the fit is exact (residuals of 1e-10 K)
-            if abs(sse - at["train_sse"]) <= 1e-9 * at["train_sse"] + 1e-20 * e_s.train_idx.size:
+            if abs(sse - src["train_sse"]) <= 1e-9 * src["train_sse"] + 1e-20 * e_s.train_idx.size:
                 return src, p, sse
         return None
 
@@ -1135,23 +1086,26 @@ class _Session:
         first, go on to convergence (the held-out rows never decide who continues), side by side. (Continuing
         each on a network of its own cut the case study's diagnosis from 332 s to 289–292 s but raised its peak
         memory from 946 to 1177 MB; tried in commit 2edc05b, off by default and then removed: BENCHMARKS.md.)"""
-        going = sorted([f for f in fits if f.get("more") and not f.get("continued")],
-                       key=lambda f: f["train_sse"])[:FIT_CONTINUE]
-        self.side_by_side([lambda say, f=f: self.go_on(f, x_s, say) for f in going])
+        going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
 
-    def go_on(self, f: dict, x_s: Extended, say: Callable[[str], None]) -> None:
-        """One fit of :meth:`continue_fits` continued to convergence on its engine, ``f`` updated in place (marked
-        ``continued``)."""
-        if self.spent():
-            return
-        c, e = f["cand"], f["eng"]
-        say(f"  continuing {c.describe()} ...")
-        e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
-        t_f = _time.monotonic()
-        info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4, stall=True)
-        say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations, "
-            f"{info['jacobians']} Jacobians)")
-        f.update({**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"], "continued": True})
+        def go_on(f: dict):
+            def run(say) -> dict | None:
+                if self.spent():
+                    return None
+                c, e = f["cand"], f["eng"]
+                say(f"  continuing {c.describe()} ...")
+                e.params = {k: np.array(v, copy=True) for k, v in f["params"].items()}
+                t_f = _time.monotonic()
+                info = e.fit(f["act"], max_iter=FIT_ITER - FIT_ITER_FIRST, deadline=self.deadline, tol=1e-4,
+                             stall=True)
+                say(f"    fitted in {_time.monotonic() - t_f:.1f} s ({info['iterations']} more iterations, "
+                    f"{info['jacobians']} Jacobians)")
+                return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
+            return run
+
+        for f, new in zip(going, self.side_by_side([go_on(f) for f in going])):
+            if new is not None:
+                f.update(new)
 
     def ml_choose(self, fits: list[dict], current: dict[str, tuple[float, float]]) -> dict | None:
         """The likelihood objective's decision (:mod:`.likelihood`): each candidate whose output-error fit did not
@@ -1312,7 +1266,6 @@ class _Session:
     def end_rounds(self) -> None:
         """After the last round: the score test's extended network (every candidate's column, its compiled
         simulation and derivatives) and the last round's fits are not needed by the extension or the MLP check."""
-        self.join_warm()
         self.big = None
         self.round_fits = []
         self.round_now = -1  # the budget, if spent from here on, cut the final fits

@@ -71,24 +71,3 @@ def _then_release(job: Callable[[Callable[[str], None]], object]) -> Callable[[C
             release_free_memory()
 
     return run
-
-
-class Background:
-    """One job on a thread of its own while the caller goes on: a program compiled ahead of its first use on the core a
-    phase running at about one core leaves idle (issue 18). :meth:`join` waits for it; what it raised is dropped (the
-    program is then compiled at its first use, as without it)."""
-
-    def __init__(self, job: Callable[[], object], name: str):
-        import threading
-
-        def run() -> None:
-            try:
-                job()
-            except Exception:  # noqa: BLE001 -- a warm-up only: the first real call compiles, and raises, as before
-                pass
-
-        self._thread = threading.Thread(target=run, name=name, daemon=True)
-        self._thread.start()
-
-    def join(self) -> None:
-        self._thread.join()

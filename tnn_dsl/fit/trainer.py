@@ -744,75 +744,41 @@ class _Trainer(_Rollouts):
             state["last_loss"] = v
             return v * scale, g * scale
 
-        def take(xk, val, i, loss) -> None:
-            """A validation's result (iterate ``xk`` of iteration ``i``, training loss ``loss``) taken in."""
-            if math.isfinite(val) and val < state["best"]:
-                state["best"], state["z"], state["since"] = val, np.array(xk, copy=True), 0
-            else:
-                state["since"] += 1
-            self.record(epoch0 + i, loss, val, t0, "lbfgs")
-
         def check(xk, final=False):
             if has_val:
-                take(xk, self.validate(xk), it[0], state["last_loss"])
+                val = self.validate(xk)
+                if math.isfinite(val) and val < state["best"]:
+                    state["best"], state["z"], state["since"] = val, np.array(xk, copy=True), 0
+                else:
+                    state["since"] += 1
+                self.record(epoch0 + it[0], state["last_loss"], val, t0, "lbfgs")
             elif final:
                 loss = _safe(full_vg(xk, data))[0]
                 if math.isfinite(loss) and loss <= state["best"]:
                     state["best"], state["z"] = loss, np.array(xk, copy=True)
                 self.record(epoch0 + it[0], loss, math.nan, t0, "lbfgs")
 
-        # the validation of an iterate runs on a thread of its own while L-BFGS goes on (JAX, two cores or more): the
-        # fit's evaluations use about one core, a validation is a free run over the held-out files (the case study's
-        # MLP check: 43 of them, 1.7 s of its 7.3 s polish; issue 18). Its result is taken in when the next one is
-        # due (or at the end), in order, so the iterate kept and the stopping rule are the ones checking in line
-        # gives; on patience the polish stops up to ``val_every`` iterations later, those iterations ignored.
-        beside = self.validate_beside() if has_val else None
-        pending: list = []  # [(iterate, iteration, loss, future)], at most one
-
-        def settle() -> bool:
-            """The pending validation taken in; whether it says stop (patience)."""
-            if not pending:
-                return False
-            xk, i, loss, fut = pending.pop()
-            take(xk, fut.result(), i, loss)
-            return state["since"] >= patience
-
         def cb(xk):
             it[0] += 1
             if self.over_time_limit(t0):
                 raise _Stop
             if it[0] % val_every == 0:
-                if beside is not None:
-                    if settle():
-                        raise _Stop
-                    x = np.array(xk, copy=True)
-                    pending.append((x, it[0], state["last_loss"], beside.submit(self.validate, x)))
-                    return
                 check(xk)
                 if has_val and state["since"] >= patience:
                     raise _Stop  # the validation MAE stopped improving: keep its best iterate
 
         cand = None
         try:
-            try:
-                res = minimize(fun, z, jac=True, method="L-BFGS-B", callback=cb,
-                               options={"maxiter": self.cfg.lbfgs_iters, "ftol": 1e-12, "gtol": 1e-12})
-                cand = res.x
-            except _Stop:
-                pass
-            if settle():  # in line, the polish would have stopped there: what came after is not looked at
-                cand = None
-            elif cand is None and self.over_time_limit(t0):
+            res = minimize(fun, z, jac=True, method="L-BFGS-B", callback=cb,
+                           options={"maxiter": self.cfg.lbfgs_iters, "ftol": 1e-12, "gtol": 1e-12})
+            cand = res.x
+        except _Stop:
+            if self.over_time_limit(t0):
                 self.stopped = "time_limit"
         except (KeyboardInterrupt, SystemError) as e:
             if not is_interrupt(e):
                 raise
             self.note_interrupt("during the L-BFGS polish; kept the best model")
-            if pending and not pending[0][3].cancel():  # the validation running beside: its result as in line
-                settle()
-        finally:
-            if beside is not None:
-                beside.shutdown(wait=True, cancel_futures=True)
         try:  # the last iterate's check: a free run over the validation data (seconds), which Ctrl-C may cut
             if cand is not None and np.all(np.isfinite(cand)) and it[0] % val_every != 0:
                 check(cand, final=True)
@@ -827,21 +793,6 @@ class _Trainer(_Rollouts):
         self.log("the L-BFGS polish did not improve the " + ("validation MAE" if has_val else "training loss")
                  + "; kept the Adam result")
         return np.array(z if fallback is None else fallback, copy=True)
-
-    def validate_beside(self):
-        """A one-thread pool for validations beside the L-BFGS polish (:meth:`polish`), or None where they run in line:
-        torch (its programs are not run from a second thread here), or one CPU for this process."""
-        if self.ops.name != "jax":
-            return None
-        try:
-            cpus = len(os.sched_getaffinity(0))
-        except AttributeError:  # not Linux
-            cpus = os.cpu_count() or 1
-        if cpus < 2:
-            return None
-        from concurrent.futures import ThreadPoolExecutor
-
-        return ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-validate")
 
     def note_interrupt(self, what: str) -> None:
         """Ctrl-C stopped the fit: ``stopped = "interrupted"`` and a warning ``interrupted <what>``. The caller keeps
