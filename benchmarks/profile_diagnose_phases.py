@@ -55,16 +55,16 @@ def main(argv=None) -> int:
     if not Path("/proc/self/stat").is_file():
         print("error: needs Linux's /proc", file=sys.stderr)
         return 1
-    from tnn_dsl.studies.casestudy import generate_case_study
-
-    data = Path(a.dir) / "cs"
-    if not (data / "train.csv").is_file():
-        generate_case_study(data, widen=(), n_ood=0)
     tree = Path(a.tree).resolve()
     if not (tree / "tnn_dsl" / "cli").is_dir() or not (tree / "networks" / "peltier_heatpipe" / "m1.thn").is_file():
         print(f"error: {tree} is not a tnn_dsl checkout (no tnn_dsl/cli or networks/peltier_heatpipe/m1.thn)",
               file=sys.stderr)
         return 1
+    from tnn_dsl.studies.casestudy import generate_case_study
+
+    data = Path(a.dir) / "cs"
+    if not (data / "train.csv").is_file():
+        generate_case_study(data, widen=(), n_ood=0)
     cmd = [sys.executable, "-c", "import sys; from tnn_dsl.cli import main; sys.exit(main())", "diagnose",
            str(tree / "networks" / "peltier_heatpipe" / "m1.thn"), str(data / "train.csv"), "--val",
            str(data / "val.csv"), "--json", str(Path(a.dir) / "diagnosis.json")]
