@@ -262,6 +262,11 @@ def test_null_data_set_gives_no_finding(backend):
     assert d.verdict == "no significant deficiency found" and d.decided and d.budget is None
     assert "white noise" in d.left
     assert d.extended["val_mae"] == pytest.approx(d.baseline["val_mae"])
+    # nothing accepted: the diagnosed model is the network itself at the doctor's baseline fit, and its free runs
+    # (the trained model's, from the same initial-state rule) give the held-out error the doctor reports
+    assert d.model is not None and d.model.network.learned == net.learned and d.model_dir is None
+    assert d.model.meta["diagnosis"]["values"] == "the doctor's baseline fit"
+    assert d.model.evaluate(pl.val)["mae"] == pytest.approx(d.extended["val_mae"], rel=1e-9)
 
 
 @pytest.mark.parametrize("backend", ["jax", "torch"])
@@ -305,12 +310,27 @@ def test_cli_writes_json_report_and_extension(tmp_path, capsys):
     tr, va = tmp_path / "train.csv", tmp_path / "val.csv"
     _write(pl.train[0], net, tr)
     _write(pl.val[0], net, va)
-    out = tmp_path / "ext.thn"
+    out, model = tmp_path / "ext.thn", tmp_path / "model"
     rc = main(["diagnose", TCLAB, str(tr), "--val", str(va), "-o", str(out), "--json", str(tmp_path / "d.json"),
-               "--report", str(tmp_path / "rep"), "--top", "2", "--max-rounds", "1", "--quiet"])
+               "--report", str(tmp_path / "rep"), "--top", "2", "--max-rounds", "1", "--model", str(model), "--quiet"])
     text = capsys.readouterr().out
     assert rc == 0, text
     doc = json.loads((tmp_path / "d.json").read_text())
+    # the diagnosed model: the extension at the doctor's fitted values (the .thn holds them rounded, and no learned
+    # weights), written as `tnnc train` writes a model; `tnnc evaluate` gives the held-out error the report gives
+    assert doc["extended"]["model"] == str(model) and (model / "network.thn").read_text() == out.read_text()
+    rc = main(["evaluate", str(model), str(va), "--json", str(tmp_path / "e.json")])
+    assert rc == 0 and json.loads((tmp_path / "e.json").read_text())["mae"] == pytest.approx(
+        doc["extended"]["val_mae"], rel=1e-9)
+    stored = tnn_dsl.load_model(model)
+    assert stored.meta["diagnosis"]["held_out"]["data"] == [str(va)] and len(stored.meta["initial_states"]) == 1
+    # a second run refuses to write the model over an input, and over a directory that is not a model
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "mine.txt").write_text("keep")
+    for bad in (str(tr), str(tmp_path / "notes")):
+        rc = main(["diagnose", TCLAB, str(tr), "--val", str(va), "--model", bad, "--quiet"])
+        assert rc == 1 and "--model" in capsys.readouterr().err
+    assert (tmp_path / "notes" / "mine.txt").read_text() == "keep"
     assert doc["findings"] and any(f["accepted"] for f in doc["findings"]), text
     best = next(f for f in doc["findings"] if f["accepted"])
     assert best["target"] in ("Q[h2]", "Q_src_h2") and best["depends_on"] == ["Q1"], text

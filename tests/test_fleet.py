@@ -263,6 +263,24 @@ def test_ray_run_equals_units_one_by_one_and_isolates_a_bad_unit(tmp_path, one_b
     assert kept.name.startswith(good + ".") and (kept / "model" / "meta.json").is_file()
 
 
+def test_a_diagnosed_unit_keeps_its_extended_model(tmp_path):
+    """``tnnc fleet diagnose`` in this process on one board with a lag on T1: the unit's result holds, beside its
+    trained model, the doctor's extension as text and as a model at the doctor's values (``extended_model/``), whose
+    free run on the unit's held-out file gives the held-out error the doctor reported."""
+    fl = _fleet(tmp_path, n=1, faulty=1, seed=2)
+    res = run_fleet(template_path(), fl, tmp_path / "out", workers=0, batch=1,
+                    options=FleetOptions(mode="diagnose", epochs=20, top=1, max_rounds=1))
+    (row,) = res.rows
+    assert row["status"] == "ok" and row["findings"][0]["accepted"], row
+    unit = tmp_path / "out" / "units" / row["unit"]
+    ext = tnn_dsl.load_model(unit / "extended_model")
+    assert (unit / "extended_model" / "network.thn").read_text() == (unit / "extended.thn").read_text()
+    assert ext.meta["diagnosis"]["findings"] == [row["findings"][0]["words"]]
+    val = [str(p) for p in sorted((fl / row["unit"]).glob("val*.csv"))]
+    assert ext.evaluate(val)["mae"] == pytest.approx(row["diagnosis"]["gain"]["val_mae_after"], rel=1e-9)
+    assert tnn_dsl.load_model(unit / "model").network.learned == tnn_dsl.load(template_path()).learned
+
+
 def test_a_batch_keeps_each_units_own_column_names_and_a_unit_with_known_values_apart(tmp_path):
     """In this process, batches of up to 3: board-001 logs T1 under another name (a `columns:` override) and is
     fitted with board-000 in one program, its saved model reading its own column; board-002 has a known ambient

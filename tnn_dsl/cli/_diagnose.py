@@ -1,16 +1,18 @@
-"""``tnnc diagnose NET TRAIN... [--val VAL...] [-o EXTENDED.thn] [--report DIR] [--json OUT] [--budget S]``:
-the model doctor.
+"""``tnnc diagnose NET TRAIN... [--val VAL...] [-o EXTENDED.thn] [--model DIR] [--report DIR] [--json OUT]
+[--budget S]``: the model doctor.
 
-Fits the network's free parameters on TRAIN, shows what the free-run simulation gets wrong on held-out
-data (--val, else the last 30 % of each training file), ranks candidate causes taken from the network
-itself (a parameter depending on an input or a temperature, an unmodelled heat load, a missing link, a
-missing radiation path, a sensor offset or lag, a heat capacity behind a link or a source, an unused data
-column, a wrong constant) by a score test, fits the best few, keeps one only if it pays on the held-out data
-(Diebold–Mariano test on the held-out squared errors with a charge for the extra parameters, p < 0.05, and at
-least 10 % lower MAE), and repeats (forward selection). Writes the extended network (-o), a JSON document
-(--json) and a self-contained HTML report (--report). Every free run starts from an estimated initial state
-(--init, default estimate: fitted with the parameters on a training file, from a burn-in that is not scored on
-a held-out file); a file that does not start at rest is named in a warning.
+Fits the network's free parameters on TRAIN, shows what the free-run simulation gets wrong on held-out data
+(--val, else the last 30 % of each training file), ranks candidate causes taken from the network itself (a
+parameter depending on an input or a temperature, an unmodelled heat load, a missing link, a missing radiation
+path, a sensor offset or lag, a heat capacity behind a link or a source, an unused data column, a wrong
+constant) by a score test, fits the best few, keeps one only if it pays on the held-out data (Diebold–Mariano
+test on the held-out squared errors with a charge for the extra parameters, p < 0.05, and at least 10 % lower
+MAE), and repeats (forward selection). Writes the extended network (-o), the diagnosed model at the doctor's
+values (--model: a model directory, the MLP check's trained MLP where it chose one; `tnnc evaluate DIR VAL`
+gives the report's held-out numbers), a JSON document (--json) and a self-contained HTML report (--report).
+Every free run starts from an estimated initial state (--init, default estimate: fitted with the parameters on a
+training file, from a burn-in that is not scored on a held-out file); a file that does not start at rest is
+named in a warning.
 """
 
 from __future__ import annotations
@@ -36,6 +38,10 @@ def register(subparsers) -> None:
         "find what a network gets wrong on measured data, name the cause, extend the model", __doc__)
     add_network_and_data(p, "train", val_help="held-out data files")
     p.add_argument("-o", "--output", default=None, metavar="EXTENDED.thn", help="write the extended network here")
+    p.add_argument("--model", default=None, metavar="DIR",
+                   help="write the diagnosed model here (a model directory: the extension at the doctor's fitted "
+                        "values, the trained MLP where the MLP check chose it; `tnnc evaluate DIR VAL` gives the "
+                        "report's held-out numbers)")
     p.add_argument("--report", default=None, metavar="DIR", help="write an HTML report (DIR/index.html)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the findings as JSON")
     p.add_argument("--budget", type=float, default=None, metavar="S", help="wall-clock budget in seconds")
@@ -64,8 +70,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..core import JSON, THN
     from ..doctor import REPORT_DIR, diagnose
+    from ..fit import MODEL_DIR
 
-    check_outputs(args, [(args.output, THN, "-o"), (args.report, REPORT_DIR, "--report"), (args.json, JSON, "--json")],
+    check_outputs(args, [(args.output, THN, "-o"), (args.model, MODEL_DIR, "--model"), (args.report, REPORT_DIR,
+                                                                                      "--report"),
+                         (args.json, JSON, "--json")],
                   inputs=[args.net, *args.train, *(args.val or [])])
     t0 = time.monotonic()
     # the data's warnings (a sensor column empty, temperatures in the wrong unit), shown even with --quiet
@@ -84,7 +93,8 @@ def run(args) -> int:
     d = diagnose(args.net, args.train, val=args.val, budget_s=args.budget, backend=args.backend,
                  progress=progress, top=args.top, max_rounds=args.max_rounds, output=args.output,
                  mlp_check=not args.no_mlp_check, mlp_time=args.mlp_time, force=args.force, init=args.init,
-                 burn_in=args.burn_in, objective=args.objective, release_jax_caches=True,  # this process is ours
+                 burn_in=args.burn_in, objective=args.objective, model_dir=args.model,
+                 release_jax_caches=True,  # this process is ours
                  stop_on_ctrl_c=True)  # Ctrl-C: what was found so far is reported and written (doctor.stopping)
     print(d.summary())
     if d.diff:

@@ -56,6 +56,7 @@ Steps (see docs/architecture.md, "Diagnosis"):
 
 from __future__ import annotations
 
+import os
 from typing import Any, Callable
 
 from ..compiler.backends.adapter import drop_compiled_caches
@@ -74,7 +75,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
              output: str | None = None, kinds: tuple[str, ...] | None = None, mlp_check: bool = True,
              mlp_time: float = 60.0, force: bool = False, init: str = "estimate",
              burn_in: float | None = None, objective: str = "output-error", threads: int | None = None,
-             release_jax_caches: bool = False, stop_on_ctrl_c: bool = False) -> Diagnosis:
+             release_jax_caches: bool = False, stop_on_ctrl_c: bool = False,
+             model_dir: str | os.PathLike | None = None) -> Diagnosis:
     """Diagnose ``net_or_path`` (a ``.thn`` path or a :class:`Network`) on measured data.
 
     Parameters
@@ -95,6 +97,11 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     output : str, optional
         Where to write the extended ``.thn`` (default: not written; the text is in the result). Checked
         before any work: never an input, never an existing file other than a ``.thn`` unless ``force``.
+    model_dir : str, optional
+        Where to write the diagnosed model (:attr:`Diagnosis.model`, a model directory as ``tnnc train`` writes:
+        the extension at the doctor's values, the MLP check's trained MLP where it chose one, the network itself at
+        its baseline fit where nothing was accepted), which ``tnnc evaluate`` free-runs to the held-out numbers the
+        report gives. Checked before any work, as ``output`` is.
     mlp_check : bool
         When the extended model's held-out residual is still not white (all sensors and both whiteness tests
         together at a family-wise 5 %), train the extension with its
@@ -138,7 +145,8 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
     run = _Session(net_or_path, train, val, budget_s, backend, progress,
                    top=SHORTLIST_TOP if top is None else top, max_rounds=max_rounds,
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
-                   burn_in=burn_in, objective=objective, threads=threads)
+                   burn_in=burn_in, objective=objective, threads=threads,
+                   model_dir=None if model_dir is None else os.fspath(model_dir))
     with one_blas_thread(), ctrl_c_stops(progress or (lambda s: None), enabled=stop_on_ctrl_c):
         # one BLAS thread: small matrices between compiled simulations, where BLAS threads only spin (core.blas)
         return _run(run, max_rounds, release_jax_caches)

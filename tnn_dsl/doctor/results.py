@@ -73,6 +73,13 @@ class Diagnosis:
     objective: str = "output-error"
     """What the selection maximises: ``output-error`` (free-run error, held-out Diebold–Mariano on squared errors)
     or ``ml`` (the Kalman-filter likelihood, likelihood-ratio tests; evidence ``likelihood`` per finding)."""
+    model: Any = None
+    """The diagnosed model (a :class:`~tnn_dsl.fit.TrainedModel`; :mod:`.saved_model`): the extension (or, with
+    nothing accepted, the network itself) at the values the doctor measured it with, the MLP check's trained MLP where
+    it chose one; ``None`` where the doctor's values could not be put under the extension's names (said in
+    :attr:`notes`). ``model.evaluate(val)`` gives the held-out numbers of :attr:`extended`."""
+    model_dir: str | None = None
+    """Where :attr:`model` was written (``diagnose(model_dir=...)``, ``tnnc diagnose --model DIR``), else ``None``."""
     budget: dict | None = None
     """``{"seconds": s, "ran_out": where, "interrupted": bool}`` when the budget (``budget_s``) or Ctrl-C
     (``interrupted``; :mod:`.stopping`) cut the work (``where``: ``"before any candidate was tested"``, ``"in round
@@ -108,7 +115,7 @@ class Diagnosis:
             "residuals": {k: v for k, v in self.residuals.to_dict().items() if k != "dependence"},
             "scores": self.scores[:30],
             "findings": [f.to_dict() for f in self.findings],
-            "extended": {**self.extended, "file": self.extended_file},
+            "extended": {**self.extended, "file": self.extended_file, "model": self.model_dir},
             "gain": self.gain,
             "verdict": self.verdict,
             "decided": self.decided,

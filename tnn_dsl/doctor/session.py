@@ -9,7 +9,7 @@ import math
 import os
 import re
 import time as _time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -209,7 +209,7 @@ class _Session:
                  progress: Callable[[str], None] | None, *, top: int, max_rounds: int, output: str | None,
                  kinds: tuple[str, ...] | None, mlp_check: bool, mlp_time: float, force: bool,
                  init: str = "estimate", burn_in: float | None = None, objective: str = "output-error",
-                 threads: int | None = None):
+                 threads: int | None = None, model_dir: str | None = None):
         from .likelihood import OBJECTIVES
 
         self.t_start = _time.monotonic()
@@ -244,9 +244,15 @@ class _Session:
         self.top, self.max_rounds, self.output, self.kinds = top, max_rounds, output, kinds
         self.mlp_check, self.mlp_time, self.backend = mlp_check, mlp_time, backend
         self.net, self.path, self.text = _load(net_or_path)
+        ins = [self.path, *self.net.source_files, *_paths_of(train), *_paths_of(val)]
         if output:
-            check_output(output, THN, inputs=[self.path, *self.net.source_files, *_paths_of(train),
-                                              *_paths_of(val)], force=force)
+            check_output(output, THN, inputs=ins, force=force)
+        if model_dir:
+            from ..fit import MODEL_DIR
+
+            check_output(model_dir, MODEL_DIR, inputs=[*ins, output], force=force, option="--model")
+        self.model_dir, self.force = model_dir, force
+        self.mlp_model: Any = None  # the MLP check's trained MLP, where it chose the MLP
         if backend not in ("jax", "torch"):
             raise TnnError(Diagnostic(f"unknown backend {backend!r}", hint="use --backend jax or --backend torch"))
         self.train_arg, self.val_arg = train, val
@@ -1463,9 +1469,45 @@ class _Session:
             self.say(f"  {form['reason']}")
             if form["choice"] == "mlp":
                 self.set_extension(form["network"])
-            form = {k: v for k, v in form.items() if k != "network"}
+                self.mlp_model = form.get("model")
+            form = {k: v for k, v in form.items() if k not in ("network", "model")}
         self.form = form
         self.lap("mlp_check", t0)
+
+    def diagnosed_model(self, extended: dict, verdict: str, ext_file: str | None) -> Any:
+        """The network the diagnosis ends with at the values it was measured with (:mod:`.saved_model`), or
+        ``None`` (a note says why) where the doctor's values cannot be put under the extension's names."""
+        from .mlp_check import values_for_extension
+        from .saved_model import diagnosed_model
+
+        eng = self.final_eng
+        net = _check_text(self.ext_text, self.output or (self.path or "extended.thn")) if self.accepted else self.net
+        form = extended.get("form", "linear")
+        values = None if self.mlp_model is not None else values_for_extension(net, eng.net, eng.params)
+        if self.mlp_model is None and values is None:
+            self.notes.append("no model of the extension: the doctor's fitted values could not be put under the "
+                              "names of the extension it printed (a bug: please report it)")
+            return None
+        val_files = [str(p) for p in _paths_of(self.val_arg) if p]
+        train_files = [str(p) for p in _paths_of(self.train_arg) if p]
+        diagnosis = {
+            "verdict": verdict,
+            "findings": [f.words for f in self.findings if f.accepted],
+            "form": form,
+            "values": ("the MLP check's training (the MLP started as the doctor's linear law)"
+                       if self.mlp_model is not None else
+                       "the doctor's fit of the extension" if self.accepted else "the doctor's baseline fit"),
+            "network_file": self.path,
+            "extended_file": ext_file,
+            "held_out": {"mae": extended["val_mae"], "max": extended["val_max"],
+                         "data": val_files if self.val_arg else
+                         "the last 30 % of each training file (a free run over the whole file)",
+                         "burn_in": self.initial.get("burn_in")},
+            "train_files": train_files,
+        }
+        return diagnosed_model(net, values or {}, backend=self.backend, init_rule=self.init_rule, eng=eng,
+                               train_arg=self.train_arg, data_files=[*train_files, *val_files], diagnosis=diagnosis,
+                               trained=self.mlp_model)
 
     def result(self) -> Diagnosis:
         """Write the extension (checked by parsing it) where asked, and assemble the :class:`Diagnosis`."""
@@ -1498,6 +1540,10 @@ class _Session:
                        if self.accepted else
                        f"not decided: {cut}, so no deficiency was found but the search did not finish; "
                        + ("run it to its end" if self.interrupted else "run with a larger --budget (or none)"))
+        model = self.diagnosed_model(extended, verdict, ext_file)
+        if model is not None and self.model_dir:
+            model.save(self.model_dir, force=self.force, source_text=self.ext_text if self.accepted else None)
+            self.say(f"model written to {self.model_dir}")
         self.timings["total"] = round(_time.monotonic() - self.t_start, 3)
         eng = self.eng
         plots = {"t": self.t_all, "y": eng.y, "y_nominal": self.y_nom, "y_extended": self.y_fin,
@@ -1507,7 +1553,8 @@ class _Session:
                          findings=self.findings, extended_text=self.ext_text if self.accepted else self.text,
                          extended_file=ext_file, extended=extended, diff=self.diff, verdict=verdict,
                          left=_what_is_left(res_fin), timings=self.timings, plots=plots, notes=self.notes,
-                         initial=self.initial, objective=self.objective,
+                         initial=self.initial, objective=self.objective, model=model,
+                         model_dir=str(self.model_dir) if model is not None and self.model_dir else None,
                          budget=None if self.budget_cut is None else {"seconds": self.budget_s,
                                                                       "ran_out": self.budget_cut,
                                                                       "interrupted": self.interrupted})

@@ -128,11 +128,14 @@ def save_model(
     meta: dict[str, Any],
     *,
     force: bool = False,
+    source_text: str | None = None,
 ) -> Path:
     """Write a model directory; the path always holds a complete model, the old one or the new one.
 
     ``params``: name -> numpy array (SI). ``meta`` is stored as ``meta.json`` after adding the format
     header and a ``write_id`` (also in the safetensors header, so a reader can tell a mixed read).
+    ``source_text``: the network's ``.thn`` text, written as ``network.thn``, for a network that no file on disk
+    holds as it is (the doctor's extension, printed from the IR); by default the network's source files are copied.
 
     The new model is written to a temporary sibling directory, every file flushed to disk, then swapped
     with an existing model in one atomic step (Linux ``renameat2``, macOS ``renamex_np``; elsewhere two
@@ -161,9 +164,12 @@ def save_model(
     write_id = secrets.token_hex(8)
     try:
         # sources: the main file as network.thn, any included files under include/
-        sources = [Path(s) for s in network.source_files if s and os.path.isfile(s)]
+        sources = [] if source_text is not None else [Path(s) for s in network.source_files if s and os.path.isfile(s)]
         written = []
-        if sources:
+        if source_text is not None:
+            (tmp / "network.thn").write_text(source_text, encoding="utf-8")
+            written.append(tmp / "network.thn")
+        elif sources:
             shutil.copyfile(sources[0], tmp / "network.thn")
             written.append(tmp / "network.thn")
             if len(sources) > 1:
@@ -512,6 +518,12 @@ class TrainedModel:
             self._compiled_here.add(key)  # (the trainer hands over its own model, its compile choice made)
         return self._models[key]
 
+    def release_compiled(self) -> None:
+        """Let the compiled models (and their programs) go; :meth:`compiled` builds them again when next used. For a
+        model kept for its values while other work needs the memory (the doctor's MLP check, issue 18)."""
+        self._models.clear()
+        self._compiled_here.clear()
+
     def _check_params(self, model) -> None:
         specs = model.param_specs
         missing = [k for k in specs if k not in self.params and not k.startswith("scale:")]
@@ -624,9 +636,9 @@ class TrainedModel:
         return [p if isinstance(p, TnnError) else error_metrics([p], sensors)
                 for p in self.predict(data, backend=backend, init=init, burn_in_s=burn_in_s, errors="return")]
 
-    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
-        """Write this model to a directory (atomic; see :func:`save_model` for ``force``)."""
-        p = save_model(path, self.network, self.params, self.meta, force=force)
+    def save(self, path: str | os.PathLike, *, force: bool = False, source_text: str | None = None) -> Path:
+        """Write this model to a directory (atomic; see :func:`save_model` for ``force`` and ``source_text``)."""
+        p = save_model(path, self.network, self.params, self.meta, force=force, source_text=source_text)
         self.path = Path(p)
         return self.path
 

@@ -93,11 +93,12 @@ def _write_unit(out: Path, row: dict[str, Any], key: str) -> dict[str, Any]:
     if tmp.exists():
         shutil.rmtree(tmp)  # our own leftover from a killed run (hidden name with our pid)
     tmp.mkdir(parents=True)
-    model = row.pop("model", None) or {}
-    if model:
-        (tmp / "model").mkdir()
-        for fname, data in model.items():
-            (tmp / "model" / Path(fname).name).write_bytes(data)
+    for sub in ("model", "extended_model"):  # the unit's trained model; the doctor's extended one (diagnose)
+        files = row.pop(sub, None) or {}
+        if files:
+            (tmp / sub).mkdir()
+            for fname, data in files.items():
+                (tmp / sub / Path(fname).name).write_bytes(data)
     if row.get("extended"):
         (tmp / "extended.thn").write_text(row["extended"], encoding="utf-8")
     doc = {**row, "key": key}

@@ -183,9 +183,6 @@ def _score_held_out(tm: Any, vals: list, options: FleetOptions) -> None:
 
 def _fill_row(tm: Any, row: dict) -> None:
     """A fitted unit's row: errors, the network's constants with their standard errors, the saved model's files."""
-    import tempfile
-    from pathlib import Path
-
     metrics = tm.meta.get("metrics") or {}
     row["train_mae"] = _finite((metrics.get("train") or {}).get("mae"))
     row["val_mae"] = _finite((metrics.get("validation") or {}).get("mae"))
@@ -198,9 +195,17 @@ def _fill_row(tm: Any, row: dict) -> None:
                                "status": r.get("status"), "unit_si": r.get("unit_si"), "display": r.get("display")}
     if tm.meta.get("joint"):
         row["joint"] = {k: tm.meta["joint"][k] for k in ("sets", "seconds", "stopped")}
+    row["model"] = _model_files(tm)
+
+
+def _model_files(tm: Any, source_text: str | None = None) -> dict[str, bytes]:
+    """A model directory's files as ``{name: bytes}`` (written by the fleet's driver under the unit's result)."""
+    import tempfile
+    from pathlib import Path
+
     with tempfile.TemporaryDirectory(prefix="tnn-fleet-") as tmp:
-        out = tm.save(Path(tmp) / "model")
-        row["model"] = {p.name: p.read_bytes() for p in sorted(Path(out).iterdir()) if p.is_file()}
+        out = tm.save(Path(tmp) / "model", source_text=source_text)
+        return {p.name: p.read_bytes() for p in sorted(Path(out).iterdir()) if p.is_file()}
 
 
 def _diagnose(net: Network, exps: list, vals: list, options: FleetOptions, row: dict) -> None:
@@ -216,6 +221,8 @@ def _diagnose(net: Network, exps: list, vals: list, options: FleetOptions, row: 
     gain = doc.get("gain") or {}
     row["gain"] = _finite(gain.get("val_mae_ratio")) if d.accepted else 1.0
     row["extended"] = d.extended_text if d.accepted else None
+    if d.accepted and d.model is not None:  # the extended model at the doctor's values (tnnc diagnose --model)
+        row["extended_model"] = _model_files(d.model, source_text=d.extended_text)
     row["diagnosis"] = {k: doc.get(k) for k in ("verdict", "decided", "budget", "notes", "baseline", "gain", "left",
                                                 "diff")}
 
