@@ -86,11 +86,11 @@ def test_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not(backend):
 class _Trained:
     """What ``compare`` reads of a trained model: held-out predictions, how the training stopped, the parameters."""
 
-    def __init__(self, err: np.ndarray, stopped: str, k: int):
-        self.err, self.meta, self.k = err, {"stopped": stopped}, k
+    def __init__(self, err: np.ndarray, stopped: str, k: int, burn_in: int = 0):
+        self.err, self.meta, self.k, self.burn_in = err, {"stopped": stopped}, k, burn_in
 
     def predict(self, vals, check=False):
-        return [{"measured": self.err, "y": np.zeros_like(self.err)}]
+        return [{"measured": self.err, "y": np.zeros_like(self.err), "burn_in": self.burn_in}]
 
     def compiled(self):
         spec = type("Spec", (), {"shape": (self.k,), "trainable": True})
@@ -127,6 +127,28 @@ def test_a_training_cut_by_the_time_limit_leaves_the_answer_undecided_only_where
         assert f"the {cut} variant" in r["reason"] and "--mlp-time" in r["reason"]
     else:
         assert r["choice"] == ("mlp" if mlp_pays else "linear"), r["reason"]
+
+
+def test_the_check_scores_what_the_doctor_scores(monkeypatch):
+    """The held-out rows of both variants are the doctor's and ``evaluate``'s: each file's burn-in (its initial
+    state's fit) is not scored, and a sensor's missing readings are left out — they are not a diverged run, which the
+    held-out test rejects outright (before, a gap in a held-out file made any MLP "not pay", p = 1)."""
+    rng = np.random.default_rng(1)
+    e_lin = rng.normal(0.0, 0.05, (1000, 2))
+    e_lin[:100] = 5.0  # the burn-in: large errors, the same for both, never scored
+    e_mlp = e_lin * 0.3
+    e_mlp[:100] = 0.0
+    e_lin[400:420, 1] = e_mlp[400:420, 1] = np.nan  # a gap in sensor 2's log
+
+    def fake_train(variant, train, val, **kw):
+        is_mlp = any(fn.kind == "mlp" for fn in variant.learned)
+        return _Trained(e_mlp if is_mlp else e_lin, "completed", 45 if is_mlp else 8, burn_in=100)
+
+    monkeypatch.setattr("tnn_dsl.fit.train", fake_train)
+    r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0)
+    assert r["choice"] == "mlp" and r["p_value"] < 1e-6, r["reason"]
+    assert r["linear"]["val_mae"] == pytest.approx(float(np.nanmean(np.abs(e_lin[100:]))), rel=1e-12)
+    assert r["mlp"]["val_mae"] == pytest.approx(0.3 * r["linear"]["val_mae"], rel=1e-12)
 
 
 def test_a_training_whose_other_route_the_time_limit_cut_is_reported_as_cut(monkeypatch):
