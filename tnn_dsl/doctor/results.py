@@ -218,6 +218,10 @@ class Diagnosis:
         lines += ["  " + ln for ln in self.uncertainty_lines()]
         if self.extended_file:
             lines.append(f"  extended network written to {self.extended_file}")
+        if self.model_dir:
+            what = "extended model" if self.accepted else "model (the network at the baseline fit)"
+            lines.append(f"  {what} written to {self.model_dir} (`tnnc evaluate {self.model_dir} …` on the held-out "
+                         "files gives the held-out numbers above)")
         return "\n".join(lines)
 
     def uncertainty_lines(self) -> list[str]:
