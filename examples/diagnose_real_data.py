@@ -17,8 +17,9 @@ Madsen (and CTSM-R) answer the *one-step predictor* one (a Kalman-filter likelih
 state); on this file that path is Ti → TiTh → TiTeTh. Fitted as a free run, the slow envelope is what pays
 first, as the data README says. The selection printed at the end is compared with theirs in those terms.
 
-Each run prints the doctor's summary, the extension's diff and the held-out gain; `--out DIR` keeps the
-JSON documents, the extended networks and the HTML reports.
+Each run prints the doctor's summary, the extension's diff and the held-out gain, and for TCLab the diagnosed model's
+own free run on the held-out file (the report's number again); `--out DIR` keeps the JSON documents, the extended
+networks, the diagnosed models (`NAME/model`, model directories) and the HTML reports.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ def run_one(name: str, net: Path, train: list[Path], val: list[Path] | None, arg
                          backend=args.backend, budget_s=args.budget, top=args.top, init=args.init,
                          objective=args.objective,
                          output=str(out / "extended.thn") if out else None,
+                         model_dir=str(out / "model") if out else None,
                          progress=lambda s: print(f"  [{time.perf_counter() - t0:6.1f} s] {s}", flush=True))
     print(d.summary())
     if d.diff:
@@ -65,6 +67,12 @@ def run_one(name: str, net: Path, train: list[Path], val: list[Path] | None, arg
     g = d.gain
     print(f"{name}: held-out MAE {g['val_mae_before']:.4g} → {g['val_mae_after']:.4g} K, "
           f"max {g['val_max_before']:.4g} → {g['val_max_after']:.4g} K, {time.perf_counter() - t0:.0f} s")
+    if val and d.model is not None:
+        # the diagnosed model (the extension at the doctor's values; --out keeps it as NAME/model, a model directory
+        # `tnnc evaluate` reads): its own free run on the held-out file gives the report's number
+        m = d.model.evaluate([str(p) for p in val])
+        print(f"{name}: the diagnosed model ({d.extended['form']} extension) free-run on "
+              f"{', '.join(p.name for p in val)}: MAE {m['mae']:.10g} K (the report's {g['val_mae_after']:.10g} K)")
     return {"diagnosis": d, "seconds": time.perf_counter() - t0}
 
 
