@@ -135,6 +135,9 @@ def test_real_tclab_sensor_lags_pay_on_the_set_point_run(backend, kinds):
     assert d.baseline["val_mae"] / d.extended["val_mae"] >= (1.6 if kinds is None else 1.55), d.summary()
     # every accepted cause is physical (no node far outside the data, no value beyond the network's scales)
     assert all(f.evidence["plausibility"] == "ok" for f in d.accepted), d.summary()
+    # the diagnosed model (two lag states, the doctor's values) free-runs the measured held-out run to the error the
+    # report gives: what `tnnc diagnose --model DIR` writes and `tnnc evaluate` reads
+    assert d.model.evaluate([SETPOINT])["mae"] == pytest.approx(d.extended["val_mae"], rel=1e-9)
 
 
 def test_a_caution_never_names_a_twin_the_held_out_run_separates():
