@@ -46,6 +46,17 @@ def test_source_copied(tmp_path):
     assert (d / "network.thn").read_text() == src.read_text()
 
 
+def test_a_network_printed_from_the_ir_is_written_as_given_not_its_files_copy(tmp_path):
+    """The doctor's extension is parsed under the user's file name (no ``-o``): its source file is the user's, which
+    must not be copied as the model's ``network.thn``; ``source_text`` is written instead, and nothing is included."""
+    src = tmp_path / "net.thn"
+    src.write_text("network tiny\n# the user's file, not the extension\n")
+    net = _net().model_copy(update={"source_files": [str(src), str(tmp_path / "part.thn")]})
+    d = save_model(tmp_path / "m", net, _params(), {}, source_text="network tiny\n# the extension\n")
+    assert (d / "network.thn").read_text() == "network tiny\n# the extension\n"
+    assert not (d / "include").exists() and src.read_text().endswith("not the extension\n")
+
+
 def test_overwrite_is_atomic(tmp_path):
     d = save_model(tmp_path / "m", _net(), _params(), {"run": 1})
     with pytest.raises(Exception):
