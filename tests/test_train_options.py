@@ -68,6 +68,21 @@ def test_stored_metrics_use_the_training_integrator(tmp_path, backend):
     assert abs(rk4_mae - stored) > 1e-4 * stored
 
 
+@pytest.mark.parametrize("backend, objective", [("jax", "output-error"), ("torch", "output-error"), ("jax", "ml")])
+def test_a_frozen_constant_is_not_estimated(tmp_path, backend, objective):
+    """``freeze`` holds a constant at its value during the training (the doctor's MLP check holds every physical
+    value so): it gets no standard error, the estimates say they are conditional on it, and the likelihood refit does
+    not move it either (before, both were reported as estimated and the likelihood refit fitted them again)."""
+    net = tnn_dsl.loads(RC, "rc.thn")
+    tm = tnn_dsl.train(net, _record(tmp_path), backend=backend, epochs=30, lbfgs_iters=20, freeze=["Rn"],
+                       objective=objective)
+    est = tm.meta["estimation"]
+    names = [r["name"] for r in est["rows"]]
+    assert "C_n" in names and "Rn" not in names, names
+    assert any("conditional on Rn" in n and "freeze" in n for n in est["notes"]), est["notes"]
+    assert float(tm.params["Rn"]) == 0.5  # as written, after the training and its estimates
+
+
 def test_torch_compile_is_chosen_by_the_training_length(monkeypatch):
     """``torch_compile`` unset: a torch training compiles its rollouts when samples × epochs reach
     ``TORCH_COMPILE_MIN_WORK``; an explicit value and ``TNN_TORCH_COMPILE`` win; JAX is not concerned."""

@@ -64,20 +64,34 @@ def scored_records(trained: Any, model: Any, exps: list, cfg: Any) -> list[tuple
     return out
 
 
-def _free_constants(model: Any, net: Any) -> list[str]:
+def _free_constants(model: Any, net: Any, cfg: Any = None) -> list[str]:
+    """The constants the training fitted: free in the network, not per experiment, not held by ``cfg.freeze``."""
     pe = {p.name for p in net.params if getattr(p, "per_experiment", False)}
-    return [k for k, s in model.param_specs.items() if s.kind == "physical" and s.trainable and k not in pe]
+    held = set(getattr(cfg, "freeze", None) or ())
+    return [k for k, s in model.param_specs.items()
+            if s.kind == "physical" and s.trainable and k not in pe and k not in held]
+
+
+def _held_note(model: Any, cfg: Any) -> list[str]:
+    """The note for constants a training held at their values (``freeze``): the estimates are conditional on them,
+    which have no standard errors (they were not estimated)."""
+    held = set(getattr(cfg, "freeze", None) or ())
+    names = [k for k, s in model.param_specs.items() if s.kind == "physical" and s.trainable and k in held]
+    return [f"conditional on {', '.join(names)} (held at their values by this training's freeze: not estimated, "
+            "no standard errors)"] if names else []
 
 
 def output_error_summary(trained: Any, model: Any, exps: list, cfg: Any) -> Estimates:
-    """Standard errors of the trainer's fit (module docstring)."""
+    """Standard errors of the trainer's fit (module docstring). Constants the training held (``cfg.freeze``) are not
+    among the estimates: they were not fitted."""
     notes = []
     if trained.network.learned:
         notes.append("conditional on the learned functions' weights (held at their fitted values)")
     if any(getattr(p, "per_experiment", False) for p in trained.network.params):
         notes.append("conditional on the per-experiment values (held at their fitted values)")
+    notes += _held_note(model, cfg)
     est = output_error_estimates(model, trained.backend_params(cfg.backend), scored_records(trained, model, exps, cfg),
-                                 free=_free_constants(model, trained.network), integrator=cfg.integrator,
+                                 free=_free_constants(model, trained.network, cfg), integrator=cfg.integrator,
                                  substeps=cfg.substeps, notes=notes)
     return file_temperatures(est, trained.network)
 
@@ -86,8 +100,10 @@ def ml_refit(trained: Any, model: Any, exps: list, cfg: Any, log: Callable[[str]
     """Maximise the EKF likelihood from the output-error fit and write the estimates into ``trained`` (its
     parameters and its training files' initial states). Returns the fit's :class:`Estimates`."""
     recs = scored_records(trained, model, exps, cfg)
-    free = _free_constants(model, trained.network)
-    free += [k for k, s in model.param_specs.items() if s.kind == "weights" and s.trainable]
+    free = _free_constants(model, trained.network, cfg)  # never what the training held (freeze)
+    held = set(getattr(cfg, "freeze", None) or ())
+    free += [k for k, s in model.param_specs.items()
+             if s.kind == "weights" and s.trainable and k not in held and k.split(".", 1)[0] not in held]
     records = [SimpleNamespace(name=n, inputs=U, outputs=Y, dt=dt) for n, U, Y, dt, _ in recs]
     fitted = trained.backend_params(cfg.backend)
     written = model.to_numpy(fitted)
@@ -111,6 +127,7 @@ def ml_refit(trained: Any, model: Any, exps: list, cfg: Any, log: Callable[[str]
     label, est = max(good, key=lambda lr: lr[1].loglik)
     others = ", ".join(f"{r.loglik:.2f} from {lab}" for lab, r in good if r is not est)
     est.notes.insert(0, f"started from {label} (log L {est.loglik:.2f}" + (f"; {others}" if others else "") + ")")
+    est.notes += _held_note(model, cfg)
     if log is not None:
         log(f"likelihood fit: log L {est.loglik:.2f} from {label}" + (f" ({others})" if others else ""))
     new = {name: np.asarray(v, dtype=np.float64).reshape(np.shape(trained.params[name]))
