@@ -325,6 +325,12 @@ def test_cli_writes_json_report_and_extension(tmp_path, capsys):
         doc["extended"]["val_mae"], rel=1e-9)
     stored = tnn_dsl.load_model(model)
     assert stored.meta["diagnosis"]["held_out"]["data"] == [str(va)] and len(stored.meta["initial_states"]) == 1
+    # `tnnc inspect` of it shows the doctor's values with their standard errors, as the summary does
+    capsys.readouterr()
+    assert main(["inspect", str(model)]) == 0
+    shown = capsys.readouterr().out
+    assert "the model doctor's verdict: " + doc["verdict"] in shown and "values of the extended model (±" in shown
+    assert all(f"{e['name']} = " in shown for e in doc["extended"]["uncertainty"]["estimates"])
     # a second run refuses to write the model over an input, and over a directory that is not a model
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "mine.txt").write_text("keep")

@@ -108,6 +108,13 @@ def run(args) -> int:
         from ..estimation import estimation_summary
 
         print("\n" + estimation_summary(meta["estimation"]), file=out)
+    diag = meta.get("diagnosis") or {}
+    if diag.get("uncertainty"):  # a model written by `tnnc diagnose --model`: the doctor's standard errors
+        from ..doctor.results import uncertainty_text
+
+        print(f"\nthe model doctor's verdict: {diag.get('verdict', '?')}", file=out)
+        for line in uncertainty_text(diag["uncertainty"], bool(diag.get("mlp_from_fit"))):
+            print(line if line.startswith("  ") else "  " + line, file=out)
     summ = learned_summary(tm)
     for s in summ:
         fn = next(f for f in tm.network.learned if f.name == s["name"])

@@ -48,6 +48,25 @@ class Finding:
         })
 
 
+def uncertainty_text(u: dict | None, mlp_from_fit: bool = False) -> list[str]:
+    """Lines of the extended model's values with standard errors and what the sensors cannot tell apart (``u``:
+    ``Diagnosis.extended["uncertainty"]``, :mod:`tnn_dsl.doctor.uncertainty`; SI units); ``mlp_from_fit``: the MLP
+    check chose an MLP started as the law these values are of (its weights have none). Nothing without estimates.
+    The summary shows them, and ``tnnc inspect`` of a diagnosed model (``meta["diagnosis"]["uncertainty"]``)."""
+    if not u or not u.get("estimates"):
+        return []
+    lines = ["values of the extended model (± one standard error, SI; " + u["method"] + "):"]
+    for e in u["estimates"]:
+        se = f" ± {e['se']:.2g}" if e.get("se") is not None and math.isfinite(e["se"]) else ""
+        flag = f"  ({e['status']})" if e["status"] != "ok" else ""
+        lines.append(f"  {e['name']} = {e['value']:.4g}{se} {e['unit']}".rstrip() + flag)
+    lines += [f"identifiability: {s}" for s in u.get("statements", [])]
+    if mlp_from_fit:
+        lines.append("the MLP chosen instead of the linear law started as this law, every other value held at "
+                     "the above, and trained its own weights only (they have no standard errors)")
+    return lines
+
+
 @dataclass
 class Diagnosis:
     """What ``diagnose`` found. ``to_dict()`` is the ``--json`` document."""
@@ -227,20 +246,9 @@ class Diagnosis:
     def uncertainty_lines(self) -> list[str]:
         """The extended model's values with standard errors and what the sensors cannot tell apart
         (:mod:`tnn_dsl.doctor.uncertainty`), SI units; nothing when no finding was accepted."""
-        u = self.extended.get("uncertainty")
-        if not u or not u.get("estimates"):
-            return []
-        lines = ["values of the extended model (± one standard error, SI; " + u["method"] + "):"]
-        for e in u["estimates"]:
-            se = f" ± {e['se']:.2g}" if math.isfinite(e["se"]) else ""
-            flag = f"  ({e['status']})" if e["status"] != "ok" else ""
-            lines.append(f"  {e['name']} = {e['value']:.4g}{se} {e['unit']}".rstrip() + flag)
-        lines += [f"identifiability: {s}" for s in u.get("statements", [])]
         mc = self.extended.get("mlp_check") or {}
-        if self.extended.get("form") == "mlp" and (mc.get("linear") or {}).get("stopped") == "the doctor's fit":
-            lines.append("the MLP chosen instead of the linear law started as this law, every other value held at "
-                         "the above, and trained its own weights only (they have no standard errors)")
-        return lines
+        return uncertainty_text(self.extended.get("uncertainty"), self.extended.get("form") == "mlp" and (
+            mc.get("linear") or {}).get("stopped") == "the doctor's fit")
 
     def verdict_lines(self) -> list[str]:
         """The verdict, the linear-or-MLP choice, the gain and what is left, one line each (summary and notebook

@@ -1504,6 +1504,10 @@ class _Session:
                          "the last 30 % of each training file (a free run over the whole file)",
                          "burn_in": self.initial.get("burn_in")},
             "train_files": train_files,
+            # the values with their standard errors and what the data cannot tell apart (tnnc inspect shows them)
+            "uncertainty": extended.get("uncertainty"),
+            "mlp_from_fit": self.mlp_model is not None and ((extended.get("mlp_check") or {}).get("linear") or {}
+                                                            ).get("stopped") == "the doctor's fit",
         }
         return diagnosed_model(net, values or {}, backend=self.backend, init_rule=self.init_rule, eng=eng,
                                train_arg=self.train_arg, data_files=[*train_files, *val_files], diagnosis=diagnosis,
