@@ -162,3 +162,7 @@ def test_a_parameter_depending_on_an_unused_column_is_found_and_the_column_decla
     assert fan and fan[0].column == "fan"  # the column is declared as an input in the extension
     assert any("fan" in [x.name for x in fn.inputs] and "U1" in [t.name for t in fn.targets] for fn in ext.learned)
     assert d.extended["val_mae"] < 0.5 * d.baseline["val_mae"], d.summary()
+    # the diagnosed model reads the column the extension declared, and free-runs the held-out file to the report's
+    # error (the doctor's values, not the .thn's rounded ones)
+    assert [i.name for i in d.model.network.inputs if i.column == "fan"] == ["fan"]
+    assert d.model.evaluate([val])["mae"] == pytest.approx(d.extended["val_mae"], rel=1e-9)

@@ -333,6 +333,26 @@ def test_the_doctors_values_are_found_under_the_extensions_names():
     np.testing.assert_array_equal(mine["y_scale"], [0.1, 0.02])
     other = tnn_dsl.loads(two + "learn Uk, U as linear(T(h), Q)\n", "x.thn")  # T(h): not in the fit
     assert values_for_extension(other, fitted_net, params) is None
+    # a round that also tried the law's curvature fits it as a poly (terms Q, T(k), Q², Q·T(k), T(k)²): with the
+    # curved terms at zero its linear law lands in the extension's linear function; a curved term the fit uses
+    # goes only into a poly of the extension, term by term
+    poly_net = tnn_dsl.loads(two + "learn U, Uk as poly(Q, T(k); degree = 2)\n", "f.thn")
+    gp = poly_net.learned[0].model_copy(update={"name": "dx_params"})
+    poly_net = poly_net.model_copy(update={"learned": [gp]})
+    Wp = np.zeros((5, 2))
+    Wp[:2] = params["dx_params.W"]
+    pp = {**params, "dx_params.W": Wp}
+    lin = values_for_extension(ext, poly_net, pp)
+    assert lin is not None and np.array_equal(lin[f"{f.name}.W"], values[f"{f.name}.W"])
+    Wp[2, 1] = 0.07  # Uk (column 1) curved in Q
+    assert values_for_extension(ext, poly_net, pp) is None
+    curved = tnn_dsl.loads(two + "learn Uk, U as poly(T(k), Q; degree = 2)\n", "x.thn")
+    cv = values_for_extension(curved, poly_net, pp)
+    fc = curved.learned[0]
+    z_fit = apply(np, gp, {k.split(".", 1)[1]: v for k, v in pp.items() if k.startswith("dx_params.")}, x_fit)
+    z_ext = apply(np, fc, {k.split(".", 1)[1]: v for k, v in cv.items() if k.startswith(fc.name + ".")},
+                  x_fit[:, ::-1])
+    np.testing.assert_allclose(z_ext, z_fit[:, ::-1], rtol=1e-12)
 
 
 @pytest.mark.parametrize("backend", ["jax", pytest.param("torch", marks=pytest.mark.slow)])

@@ -78,17 +78,36 @@ def mlp_variant(net: Network, targets: set[str]) -> tuple[Network, int]:
     return net.model_copy(update={"learned": learned}), n
 
 
+_MONOMIAL_KINDS = ("const", "linear", "poly")
+"""Learned-function kinds that are sums of monomials of the normalised inputs, mapped term by term."""
+
+
+def _monomials(fn, ins: list) -> list[tuple]:
+    """The terms of a ``linear`` or ``poly`` function's weight rows (``W``), each the sorted tuple of the variables it
+    multiplies (``ins``: the function's inputs as ``(kind, name)``); none for ``const``."""
+    from ..compiler.learned import monomial_index
+
+    if fn.kind == "const":
+        return []
+    if fn.kind == "linear":
+        return [(v,) for v in ins]
+    return [tuple(sorted(ins[i - 1] for i in row if i > 0)) for row in monomial_index(len(ins), int(fn.degree or 2))]
+
+
 def values_for_extension(ext: Network, fitted_net: Network,
                          params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     """The doctor's fitted values (``params``: its engine's values, SI, for the network it fitted, ``fitted_net``) by
     the names of the extension it printed (``ext``): physical parameters by name; a learned function's arrays by
     what they mean, not by its name (the doctor fits its dependences in functions of its own, ``dx_params``; the
     extension names them anew and groups the targets by their variables). For each target of an extension's
-    function, the fitted function holding that target gives its bias, its weights for each input (0 for an input
-    it does not read) and its output scale; each input's statistics come from a fitted function reading it (the
-    mid-range and half-range of the same training rows in every function). ``const`` and ``linear`` functions are
-    mapped so; another kind only where the fitted network has the same function (name, kind, inputs, targets).
-    Returns None where an extension's function has no counterpart (then there is no fit to start from)."""
+    function, the fitted function holding that target gives its bias, its weight for each term (a variable, or for a
+    ``poly`` a square or product of them, matched by the variables it multiplies; 0 for a term it does not have) and
+    its output scale; each input's statistics come from a fitted function reading it (the mid-range and half-range of
+    the same training rows in every function). ``const``, ``linear`` and ``poly`` functions are mapped so (the doctor
+    fits a round's dependences as a ``poly`` when the round also tries their curvature; a curved term it did not
+    accept is zero there); another kind only where the fitted network has the same function (name, kind, inputs,
+    targets). Returns None where an extension's function has no counterpart, or the fit uses a term the extension's
+    function cannot hold (then there is no fit to start from)."""
     fitted_fns = {fn.name: fn for fn in fitted_net.learned}
     out = {k: np.asarray(v, float) for k, v in params.items() if k.split(".", 1)[0] not in fitted_fns}
     holder = fitted_net.learned_targets()
@@ -106,14 +125,15 @@ def values_for_extension(ext: Network, fitted_net: Network,
             names = [k for k in params if k.startswith(fn.name + ".")]
             out.update({k: np.asarray(params[k], float) for k in names})
             continue
-        if fn.kind not in ("const", "linear") or any(k not in holder for k in keys):
+        if fn.kind not in _MONOMIAL_KINDS or any(k not in holder for k in keys):
             return None
-        W, b = np.zeros((len(ins), len(keys))), np.zeros(len(keys))
+        monos = _monomials(fn, ins)  # the extension's terms, each a sorted tuple of its variables
+        W, b = np.zeros((len(monos), len(keys))), np.zeros(len(keys))
         x_mean, x_scale, y_scale = np.zeros(len(ins)), np.ones(len(ins)), np.ones(len(keys))
         found = [False] * len(ins)
         for j, key in enumerate(keys):
             g, col = holder[key]
-            if g.kind not in ("const", "linear"):
+            if g.kind not in _MONOMIAL_KINDS:
                 return None
             bias = arr(g, "c" if g.kind == "const" else "b")
             if bias is None:
@@ -122,13 +142,17 @@ def values_for_extension(ext: Network, fitted_net: Network,
             ysc = arr(g, "y_scale")
             y_scale[j] = 1.0 if ysc is None else ysc.reshape(-1)[col]
             g_ins = [(i.kind, i.name) for i in g.inputs]
-            Wg = arr(g, "W") if g.kind == "linear" else None
+            Wg = arr(g, "W")
+            weights = {} if g.kind == "const" or Wg is None else {
+                m: float(Wg[row, col]) for row, m in enumerate(_monomials(g, g_ins))}
+            if any(w != 0.0 and m not in monos for m, w in weights.items()):
+                return None  # a term the fit uses that the extension's function cannot hold
+            for row, m in enumerate(monos):
+                W[row, j] = weights.get(m, 0.0)
             for r, var in enumerate(ins):
                 if var not in g_ins:
                     continue
                 q = g_ins.index(var)
-                if Wg is not None:
-                    W[r, j] = Wg[q, col]
                 xm, xs = arr(g, "x_mean"), arr(g, "x_scale")
                 if xm is not None and xs is not None:
                     x_mean[r], x_scale[r], found[r] = xm[q], xs[q], True
