@@ -319,7 +319,7 @@ def test_cli_writes_json_report_and_extension(tmp_path, capsys):
     # the diagnosed model: the extension at the doctor's fitted values (the .thn holds them rounded, and no learned
     # weights), written as `tnnc train` writes a model; `tnnc evaluate` gives the held-out error the report gives
     assert doc["extended"]["model"] == str(model) and (model / "network.thn").read_text() == out.read_text()
-    assert f"extended model written to {model}" in text
+    assert f"extended model written to {model} (`tnnc evaluate {model} {va}` gives the held-out numbers" in text
     rc = main(["evaluate", str(model), str(va), "--json", str(tmp_path / "e.json")])
     assert rc == 0 and json.loads((tmp_path / "e.json").read_text())["mae"] == pytest.approx(
         doc["extended"]["val_mae"], rel=1e-9)

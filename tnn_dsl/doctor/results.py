@@ -239,8 +239,12 @@ class Diagnosis:
             lines.append(f"  extended network written to {self.extended_file}")
         if self.model_dir:
             what = "extended model" if self.accepted else "model (the network at the baseline fit)"
-            lines.append(f"  {what} written to {self.model_dir} (`tnnc evaluate {self.model_dir} …` on the held-out "
-                         "files gives the held-out numbers above)")
+            held = (((self.model.meta if self.model is not None else {}).get("diagnosis") or {}).get("held_out")
+                    or {}).get("data")
+            how = (f"`tnnc evaluate {self.model_dir} {' '.join(held)}` gives the held-out numbers above"
+                   if isinstance(held, list) and held else
+                   "the held-out numbers above are its free run over each training file, scored on the last 30 %")
+            lines.append(f"  {what} written to {self.model_dir} ({how})")
         return "\n".join(lines)
 
     def uncertainty_lines(self) -> list[str]:
