@@ -137,6 +137,8 @@ def test_lean_programs_give_the_default_programs_numbers(backend):
     """``jit(..., lean=True)`` (XLA's loop emitters on a CPU, issue 18) changes how a program is compiled, not what it
     computes: case-study M3's rollout (an MLP heat pipe, RK4) and its forward-mode Jacobian agree with the default
     program's to round-off, and the installed XLA knows the lean options (else they would be silently dropped)."""
+    from conftest import FUSED_XLA_OPTIONS
+
     import tnn_dsl
     from tnn_dsl.compiler.backends.adapter import _lean_options_accepted
     from tnn_dsl.studies.casestudy import network_path
@@ -156,8 +158,11 @@ def test_lean_programs_give_the_default_programs_numbers(backend):
         return B.batched_jvp(run, (T,), (eye,))
 
     for f in (run, jac):
-        ref = B.numpy(B.jit(B.no_grad(f) if f is run else f)(T0))
-        lean = B.numpy(B.jit(B.no_grad(f) if f is run else f, lean=True)(T0))
+        g = B.no_grad(f) if f is run else f
+        # the reference as a user's process compiles it: XLA's default code generation, whatever the test session's
+        # XLA_FLAGS choose (conftest.LEAN_TEST_XLA_FLAG)
+        ref = B.numpy(B.jax.jit(g, compiler_options=FUSED_XLA_OPTIONS)(T0) if backend == "jax" else B.jit(g)(T0))
+        lean = B.numpy(B.jit(g, lean=True)(T0))
         assert np.all(np.isfinite(ref))
         np.testing.assert_allclose(lean, ref, rtol=1e-11, atol=1e-11 * np.abs(ref).max())
     if backend == "jax":
