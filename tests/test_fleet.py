@@ -203,6 +203,22 @@ def test_the_units_share_the_jax_cache_the_environment_names(tmp_path, monkeypat
     assert _cache_env(tmp_path / "out")["JAX_COMPILATION_CACHE_DIR"] == str((tmp_path / "kept").resolve())
 
 
+def test_ray_workers_keep_the_users_xla_flags_and_run_one_thread_each(tmp_path, monkeypatch):
+    """A local Ray's workers start with the user's ``XLA_FLAGS`` (Ray's ``env_vars`` replace the variable, so they
+    were dropped before), then the fleet's one-thread flags; one thread per numerical library; JAX's cache."""
+    from tnn_dsl.fleet.engine import WORKER_XLA_FLAGS, _cache_env, worker_env
+
+    cache = _cache_env(tmp_path / "out")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env = worker_env(cache)
+    assert env["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=false " + WORKER_XLA_FLAGS
+    assert env["OMP_NUM_THREADS"] == env["MKL_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == "1"
+    assert env["JAX_COMPILATION_CACHE_DIR"] == cache["JAX_COMPILATION_CACHE_DIR"]
+    monkeypatch.delenv("XLA_FLAGS")
+    env = worker_env({})
+    assert env["XLA_FLAGS"] == WORKER_XLA_FLAGS and "JAX_COMPILATION_CACHE_DIR" not in env
+
+
 def _strip(row: dict) -> dict:
     return {k: v for k, v in row.items() if k not in ("seconds", "key")}
 

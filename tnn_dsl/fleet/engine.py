@@ -263,6 +263,19 @@ def _cache_env(out: Path) -> dict[str, str]:
             **{env: f"{value:g}" for env, (_, value) in CACHE_THRESHOLDS.items()}}
 
 
+WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+"""XLA's flags for a local Ray's workers: one thread each (the workers share the cores)."""
+
+
+def worker_env(cache_env: dict[str, str]) -> dict[str, str]:
+    """The environment variables a local Ray's workers start with: one thread per numerical library, JAX's cache
+    (``cache_env``, :func:`_cache_env`), and ``XLA_FLAGS`` holding the user's own flags (this process's, which a
+    worker would otherwise not see: Ray's ``env_vars`` replace a variable) followed by :data:`WORKER_XLA_FLAGS`."""
+    xla = " ".join(f for f in (os.environ.get("XLA_FLAGS", "").strip(), WORKER_XLA_FLAGS) if f)
+    return {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "XLA_FLAGS": xla,
+            **cache_env}
+
+
 def _use_cache_here(env: dict[str, str]) -> None:
     """JAX's persistent compilation cache for the units run in this process."""
     import jax
@@ -407,9 +420,7 @@ def _run_on_ray(tasks: list, workers: int, address: str | None, arrived: Callabl
                                        "--workers 0")) from None
     started = False
     if not ray.is_initialized():
-        env = {"env_vars": {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-                            "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
-                            **(cache_env if address is None else {})}}  # a cluster's nodes: no shared cache path
+        env = {"env_vars": worker_env(cache_env if address is None else {})}  # a cluster's nodes: no shared cache path
         kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "runtime_env": env,
                               "logging_level": "ERROR"}
         t = time.perf_counter()
