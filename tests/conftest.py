@@ -24,7 +24,7 @@ generators, the reference compiled with :data:`FUSED_XLA_OPTIONS`). Measured (20
 pytest -q -n 2 --dist worksteal -m "not slow" tests`, 1382 passed each): with XLA's defaults 909 s at 08:03
 and 846 s at 09:17, with this flag 715 s at 09:00; the torch-only compiling tests the same (±2 s), the JAX-heavy
 ones 15–35 % faster. Set in the environment, so the processes the tests start (``tnnc``, the benchmark scripts) get
-it too; Ray's workers get the fleet's own ``XLA_FLAGS`` (``fleet.engine``)."""
+it too, and a local Ray's workers, the fleet's one-thread flags after it (``fleet.engine.worker_env``)."""
 
 FUSED_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": True}
 """``jax.jit(..., compiler_options=FUSED_XLA_OPTIONS)``: a program compiled as outside the tests (XLA's default code
