@@ -295,6 +295,12 @@ def test_a_diagnosed_unit_keeps_its_extended_model(tmp_path):
     val = [str(p) for p in sorted((fl / row["unit"]).glob("val*.csv"))]
     assert ext.evaluate(val)["mae"] == pytest.approx(row["diagnosis"]["gain"]["val_mae_after"], rel=1e-9)
     assert tnn_dsl.load_model(unit / "model").network.learned == tnn_dsl.load(template_path()).learned
+    # the report points at them: the unit's files in report.json and the HTML, the extended models in the text
+    (u,) = res.report["units"]
+    assert u["files"] == [f"units/{row['unit']}/{f}" for f in ("extended.thn", "extended_model", "model")]
+    assert all((tmp_path / "out" / f).exists() for f in u["files"])
+    assert f"OUT/units/UNIT/extended_model for 1 unit ({row['unit']})" in report_text(res.report)
+    assert f"units/{row['unit']}/extended_model" in (tmp_path / "out" / "report.html").read_text()
 
 
 def test_a_batch_keeps_each_units_own_column_names_and_a_unit_with_known_values_apart(tmp_path):

@@ -93,15 +93,18 @@ def _write_unit(out: Path, row: dict[str, Any], key: str) -> dict[str, Any]:
     if tmp.exists():
         shutil.rmtree(tmp)  # our own leftover from a killed run (hidden name with our pid)
     tmp.mkdir(parents=True)
+    written = []  # what the unit's directory holds beside its result, for the report to point at
     for sub in ("model", "extended_model"):  # the unit's trained model; the doctor's extended one (diagnose)
         files = row.pop(sub, None) or {}
         if files:
             (tmp / sub).mkdir()
             for fname, data in files.items():
                 (tmp / sub / Path(fname).name).write_bytes(data)
+            written.append(sub)
     if row.get("extended"):
         (tmp / "extended.thn").write_text(row["extended"], encoding="utf-8")
-    doc = {**row, "key": key}
+        written.append("extended.thn")
+    doc = {**row, "files": sorted(written), "key": key}
     (tmp / RESULT_FILE).write_text(json.dumps(doc, indent=1, default=_jsonable), encoding="utf-8")
     fsync_dir(tmp)
     if final.exists():  # the unit's previous result (its key changed): kept under OUT/replaced/, never deleted

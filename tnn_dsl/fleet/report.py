@@ -130,7 +130,9 @@ def fleet_report(rows: list[dict[str, Any]], net: Network, mode: str = "train") 
     """The report (``mode``: the fleet run's, ``train`` or ``diagnose``) as a JSON-able dict: ``units`` (per
     unit: ``unit``, ``status``, ``reason``, ``val_mae``,
     ``gain``, ``findings`` (accepted ones, as ``tnnc diagnose --json``), ``params``, ``flagged``, ``why``,
-    ``undecided``: why its diagnosis is not decided, or ``None``),
+    ``undecided``: why its diagnosis is not decided, or ``None``; ``files``: what its directory holds beside its
+    result, relative to the run's directory — ``model``, and where the doctor accepted a finding ``extended.thn`` and
+    ``extended_model``),
     ``distributions`` (per parameter: ``n``, ``median``, ``s``, ``q10``, ``q90``, unit), ``outliers`` (``unit``,
     ``parameter``, ``z``, ``value``, ``median``, ``se``, ``reading``), ``groups`` (``finding`` -> units) and
     ``counts``."""
@@ -176,7 +178,8 @@ def fleet_report(rows: list[dict[str, Any]], net: Network, mode: str = "train") 
                       "val_mae": r.get("val_mae"), "train_mae": r.get("train_mae"), "gain": r.get("gain"),
                       "findings": acc, "params": r.get("params") or {},
                       "flagged": r.get("status") == "ok" and bool(why), "why": why + ([undecided] if undecided else []),
-                      "undecided": undecided, "seconds": r.get("seconds")})
+                      "undecided": undecided, "seconds": r.get("seconds"),
+                      "files": [f"units/{r['unit']}/{f}" for f in r.get("files") or []]})
     counts = {"units": len(rows), "ok": len(ok), "failed": sum(r.get("status") == "failed" for r in rows),
               "error": sum(r.get("status") == "error" for r in rows), "flagged": sum(u["flagged"] for u in units),
               "undecided": sum(bool(u["undecided"]) for u in units)}
@@ -207,6 +210,12 @@ def report_text(rep: dict[str, Any], max_units: int = 40) -> str:
         lines.append(f"{u['unit']:<{w}}  {u['status']:<7} {_g(u['val_mae'], 3):>9} {_g(u['gain'], 3):>6}  {why}")
     if len(units) > max_units:
         lines.append(f"... {len(units) - max_units} more units in report.json")
+    extended = [u for u in units if any(f.endswith("/extended_model") for f in u.get("files") or [])]
+    if extended:
+        lines.append("")
+        lines.append(f"extended models (the doctor's extension at its values; `tnnc evaluate DIR FILE` runs one): "
+                     f"OUT/units/UNIT/extended_model for {len(extended)} unit{'s' if len(extended) != 1 else ''}"
+                     f" ({', '.join(u['unit'] for u in extended[:8])}{', ...' if len(extended) > 8 else ''})")
     if rep["groups"]:
         lines.append("")
         lines.append("units by finding:")
@@ -291,12 +300,12 @@ def report_html(rep: dict[str, Any]) -> str:
                          f"<td>{e(o['reading'])}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Units</h2><table><tr><th>unit</th><th>status</th><th>held-out MAE (K)</th><th>gain</th>"
-                 "<th>why flagged / reason</th></tr>")
+                 "<th>why flagged / reason</th><th>files (under the run's directory)</th></tr>")
     for u in sorted(rep["units"], key=lambda u: (not u["flagged"], u["unit"])):
         why = "; ".join(u["why"]) if u["status"] == "ok" else u["reason"]
         parts.append(f"<tr class='{'flag' if u['flagged'] else ''}'><td>{e(u['unit'])}</td><td>{e(u['status'])}</td>"
                      f"<td class='num'>{e(_g(u['val_mae'], 3))}</td><td class='num'>{e(_g(u['gain'], 3))}</td>"
-                     f"<td>{e(why)}</td></tr>")
+                     f"<td>{e(why)}</td><td>{e(', '.join(u.get('files') or []))}</td></tr>")
     parts.append("</table></body></html>")
     return "\n".join(parts)
 
