@@ -390,3 +390,25 @@ def values_for_extension_same(params):
     values = values_for_extension(EXTENDED, EXTENDED, params)
     assert values is not None
     return values
+
+
+@pytest.mark.parametrize("backend,from_fit", [("jax", True), ("jax", False), pytest.param("torch", True,
+                                                                                           marks=pytest.mark.slow)])
+def test_the_held_out_files_judge_the_laws_and_never_steer_a_training(backend, from_fit):
+    """The check's p-value is computed on the held-out files, so no training of the check may stop on them or keep
+    the iterate they score best (on real data they may be files kept for validation only): each training validates
+    on the end of its own training files (``EARLY_STOP_FRACTION``). Two different held-out runs of the same board
+    give the same trained MLP, to the bit, and two different scores of it."""
+    curved = lambda q: 0.02 * (1 + 12 * (q - 0.5) ** 2)  # noqa: E731
+    train = [_data(curved, 900, 1)]
+    start = values_for_extension_same(tnn_dsl.train(EXTENDED, train, backend=backend, epochs=100).params) \
+        if from_fit else None
+    runs = [compare(EXTENDED, {"U"}, train, [_data(curved, 500, seed)], backend=backend, time_limit=60.0,
+                    start=start) for seed in (2, 3)]
+    for r in runs:
+        assert r["choice"] == "mlp" and r["decided"], r["reason"]
+    a, b = (r["model"].params for r in runs)
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)
+    assert runs[0]["mlp"]["val_mae"] != runs[1]["mlp"]["val_mae"]
