@@ -329,11 +329,41 @@ def test_central_differences_give_the_exact_derivatives(monkeypatch):
     exact, free = _nominal_engine("jax", "measured")
     central, _ = _nominal_engine("jax", "measured")
     monkeypatch.setattr(E._Engine, "by_differences", property(lambda self: self is central))
+    monkeypatch.setattr(E, "LINEAR_STEPS_MAX", 0)  # the forcing block by differences, not by the linearised steps
     assert central.by_differences and not exact.by_differences and exact.n_force > 0
     calls = []
     monkeypatch.setattr(central, "_forced_central", lambda *a, f=central._forced_central: calls.append(1) or f(*a))
     _same_derivatives(exact, central, free)
     assert calls, "the forcing columns were taken by central differences"
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_the_forcing_block_through_the_linearised_steps_is_the_forward_mode_one(backend, monkeypatch):
+    """The score test's forcing columns (``forced_jacobian``'s second block) through the tangent-linear model of the
+    simulation — each sample's step and outputs differentiated at its state, then ``x_k+1 = Φ_k·x_k + Γ_k·F_k`` —
+    equal JAX's forward mode through the whole rollout to round-off, on both backends (torch's engine took them by
+    central differences before, 1e-8). A steady start moves with the forcing's first sample: no linearised steps
+    there; nor beyond ``LINEAR_STEPS_MAX`` numbers, nor on JAX below ``LINEAR_STEPS_MIN_ROWS`` samples."""
+    exact, _ = _nominal_engine("jax", "measured")
+    eng, _ = _nominal_engine(backend, "measured")
+    eng.params = {k: np.array(v, copy=True) for k, v in exact.params.items()}
+    assert eng._by_steps() == (backend == "torch")  # 300 samples: JAX keeps forward mode below LINEAR_STEPS_MIN_ROWS
+    monkeypatch.setattr(E, "LINEAR_STEPS_MIN_ROWS", 0)
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(5, exact.n_score_rows, exact.n_force)) * np.array([1.0, 50.0, 0.1, 3.0, 7.0])[:, None, None]
+    with monkeypatch.context() as m:
+        m.setattr(E, "LINEAR_STEPS_MAX", 0)
+        assert not exact._by_steps()
+        want = exact.forced_jacobian([0], F, chunk=4)  # forward mode through the rollout
+    assert eng._by_steps()
+    got = eng.forced_jacobian([0], F, chunk=4)
+    assert got.shape == want.shape == (exact.train_idx.size, 6)
+    assert np.all(np.abs(got - want).max(0) <= 1e-11 * np.abs(want).max(0)), np.abs(got - want).max(0)
+    assert "_lin_memo" in eng.__dict__
+    eng.forget_linear_steps()
+    assert "_lin_memo" not in eng.__dict__
+    steady, _ = _nominal_engine(backend, "steady")
+    assert not steady._by_steps()
 
 
 def test_the_doctor_compiles_torch_rollouts_for_long_files_unless_told_otherwise(monkeypatch):

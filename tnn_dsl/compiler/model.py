@@ -45,7 +45,7 @@ from . import learned as _learned
 from .assembly import PACKED_KEY, SPARSE_MIN_STATES
 from .backends import get_xp
 from .core import _Core
-from .integrators import INTEGRATORS, check_step, euler, expeuler, rk4
+from .integrators import INTEGRATORS, StepSizeWarning, check_step, euler, expeuler, rk4
 from .krylov import KRYLOV_MAXITER, KRYLOV_TOL, torch_solve
 from .plan import NOMINAL_T, T_SCALE, _Plan
 
@@ -710,6 +710,20 @@ class Model:
             return stepper(T, ctx)
 
         return SampleSteps(step, lambda T, u: core.outputs(prep, T, u), lambda T, u: core.rhs(prep, T, u), step_all)
+
+    def steps_of_rows(self, params: Mapping[str, Any], T: Any, inputs: Any, dt: float, integrator: str = "rk4",
+                      substeps: int | None = None) -> Any:
+        """Row ``k`` of ``T (N, n_states)`` K stepped over one sample interval of ``dt`` s with ``inputs[k]`` (N,
+        n_inputs) held: ``(N, n_states)`` K, each row what :meth:`rollout` makes of that state and sample (the same
+        step, ``substeps`` resolved as it resolves them), all rows at once and independently — no time loop. For a
+        caller that linearises a simulated trajectory sample by sample (the model doctor's score test,
+        ``doctor.engine``); differentiable in forward and reverse mode on both backends (torch eager)."""
+        tau, where = self.fastest_time_constant()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", StepSizeWarning)  # the rollout of these states has said so already
+            sub = check_step(integrator, float(dt), tau, substeps, where)
+        prep = self._prepare(params)
+        return self._stepper(prep, float(dt), integrator, sub)(T, self._core.rhs_u(prep, inputs))
 
     def _stepper(self, prep, dt, integrator, sub, core=None, traced=False):
         """``step(T, ctx) -> T_next`` over one sample interval; ``ctx`` is one sample of

@@ -8,7 +8,7 @@ import math
 import re
 import time as _time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -151,7 +151,8 @@ def _even_chunk(m: int, most: int | None) -> int | None:
     return -(-m // -(-m // most))
 
 
-_PROGRAMS = ("_sim", "_sim_train", "_jac", "_jac_diff", "_jac_forced", "_forced_diff", "_point", "_inv_cap")
+_PROGRAMS = ("_sim", "_sim_train", "_jac", "_jac_diff", "_jac_forced", "_forced_diff", "_point", "_inv_cap",
+             "_lin_programs")
 """The engine's compiled programs (:meth:`_Engine._setup_backend`), let go by :meth:`_Engine.release_programs` and
 built again on first use."""
 
@@ -210,6 +211,7 @@ class _Engine:
         twins, sub-models, replacements or probes) frees them before the next phase compiles its own, instead of
         holding every one to the round's end (issue 18: ~35–45 MB a network on the case study).
         Data, columns and parameters stay; a later call compiles what it needs again (:meth:`__getattr__`)."""
+        self.forget_linear_steps()
         for name in _PROGRAMS:
             self.__dict__.pop(name, None)
         cache = getattr(self.model, "_jit_cache", None)
@@ -442,6 +444,23 @@ class _Engine:
                             B.xp.ones(tuple(U.shape[:-1]) + (nf,), dtype=B.dtype)], -1)
             return B.jvp(lambda uu: model.rhs(base, X, uu), (U,), (dU,))[1]
 
+        def linear_steps(base, X, u, dt):
+            """One file's step linearised at each of its samples ``k`` (``X (n, ns)`` its simulated states K, ``u (n,
+            n_in)`` its inputs with the forcing inputs at 0 W): ``(∂x_k+1/∂x_k (n, ns, ns), ∂x_k+1/∂F_k (n, ns, nf),
+            ∂y_k/∂x_k (n, n_out, ns), ∂y_k/∂F_k (n, n_out, nf))`` — every sample at once, no time loop."""
+            ns, n, n_in = X.shape[1], X.shape[0], u.shape[1]
+            eye = B.asarray(np.eye(ns + nf))
+
+            def f(x, uu):
+                return model.steps_of_rows(base, x, uu, dt), model.outputs(base, x, uu)
+
+            tx = xp.broadcast_to(eye[:, None, :ns], (ns + nf, n, ns))
+            tu = xp.concat([B.zeros((ns + nf, n, n_in - nf)), xp.broadcast_to(eye[:, None, ns:], (ns + nf, n, nf))],
+                           axis=-1)
+            dx, dy = B.batched_jvp(f, (X, u), (tx, tu))  # (ns + nf, n, ns), (ns + nf, n, n_out)
+            dx, dy = xp.moveaxis(dx, 0, -1), xp.moveaxis(dy, 0, -1)  # (n, ns, ns + nf), (n, n_out, ns + nf)
+            return dx[:, :, :ns], dx[:, :, ns:], dy[:, :, :ns], dy[:, :, ns:]
+
         # every program here is compiled for one network of one diagnosis and called a few hundred times at most:
         # XLA's lean options (``Backend.jit``), half the compilation time and a fraction of its memory (issue 18)
         jit = lambda f: B.jit(f, lean=True)  # noqa: E731
@@ -455,6 +474,32 @@ class _Engine:
         self._forced_diff = B.no_grad(forced_diff)
         self._point = jit(point)
         self._inv_cap = jit(inv_cap)
+
+        def lin_programs() -> tuple[Callable, Callable, Callable[[], None]]:
+            """The score test's two programs of the linearised steps (:meth:`_linear_steps_now`,
+            :meth:`_forced_by_steps`) and a function that empties their caches of compiled code, built on the score
+            test's first call and let go with its steps (:meth:`forget_linear_steps`): the step's derivatives at every
+            sample (one program per sampling interval) and the recursion over the samples — one compiled scan on
+            JAX; on torch a loop in numpy over the linearised steps (numpy arrays on both backends), a torch call a
+            sample costing ten times as much."""
+            made: dict[Any, Callable] = {}
+
+            def lin_steps(base, X, u, dt):
+                if dt not in made:
+                    made[dt] = jit(B.no_grad(lambda b, x_, u_: linear_steps(b, x_, u_, dt)))
+                return made[dt](base, X, u)
+
+            if B.name == "jax":
+                made["recursion"] = jit(_forced_response)
+
+            def clear() -> None:
+                for f in made.values():
+                    getattr(f, "clear_cache", lambda: None)()
+                made.clear()
+
+            return lin_steps, made.get("recursion", _forced_response), clear
+
+        self._lin_programs = lin_programs
         self._to = B.tree
         # what goes straight into a compiled JAX program: float64 numpy arrays, which the call transfers itself
         # (``B.tree``'s per-array ``jnp.asarray`` took 2.4 ms for the nominal case study's 43 parameters, as long as
@@ -565,7 +610,11 @@ class _Engine:
     def forced_jacobian(self, active: list[int], forcing: np.ndarray | None = None, chunk: int = 32) -> np.ndarray:
         """∂ y_model[train rows] w.r.t. the columns ``active`` (first block) and w.r.t. the forcing heat-flow
         time series ``forcing (m, N_score, n_force)`` W (second block): shape (n_train, len(active) + m).
-        One compiled shape: ``chunk`` tangents per call."""
+        One compiled shape: ``chunk`` tangents per call. The forcing block goes through the linearised steps
+        (:meth:`_forced_by_steps`) where they apply (:meth:`_by_steps`)."""
+        if forcing is not None and forcing.shape[0] and self._by_steps():
+            blocks = [self.forced_jacobian(active, None, chunk)] if len(active) else []
+            return np.concatenate(blocks + [self._forced_by_steps(forcing)], axis=1)
         if self.by_differences and self.init.rule != "steady":
             return self._forced_central(active, forcing, chunk)
         base = self._arg(self.params)
@@ -589,6 +638,78 @@ class _Engine:
             jc = np.asarray(self._np(self._jac_forced(base, t["a"], t["f"], self.train_idx)))
             out.append(jc[: min(chunk, total - s0)].T)
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
+
+    def _by_steps(self) -> bool:
+        """Whether :meth:`forced_jacobian` takes its forcing block through the linearised steps: every file the score
+        test simulates starts from fitted initial states (a steady start would move with the forcing's first sample)
+        and the per-sample derivatives of its steps stay within :data:`LINEAR_STEPS_MAX` numbers; on JAX, only from
+        :data:`LINEAR_STEPS_MIN_ROWS` samples on."""
+        if self.init.rule == "steady" or not all(self.x0_keys(i) for i in range(self.n_score_exps)):
+            return False
+        if self.backend == "jax" and self.n_score_rows < LINEAR_STEPS_MIN_ROWS:
+            return False
+        ns, no = len(self.model.state_names), len(self.model.output_names)
+        return self.n_score_rows * (ns + no) * (ns + self.n_force) <= LINEAR_STEPS_MAX
+
+    def _linear_steps_now(self) -> list[tuple]:
+        """Each score-test file's steps linearised along the current simulation (``_setup_backend``'s
+        ``linear_steps``), kept with the parameters they were taken at (the score test asks for them once per chunk
+        of forcing series) until :meth:`forget_linear_steps`."""
+        memo = self.__dict__.get("_lin_memo")
+        if memo is not None and _same_values(memo[0], self.params):
+            return memo[1]
+        _, X = self.simulate()
+        base = self._arg(self.params)
+        progs = self.__dict__.get("_lin_progs") or self._lin_programs()
+        self._lin_progs = progs
+        out, s0 = [], 0
+        for e in self.exps[: self.n_score_exps]:
+            n = e.n_steps
+            # LINEAR_STEPS_ROWS samples a call, the last block padded (one compiled shape): the derivatives' scratch
+            # grows with the samples times the states and forcing inputs (on the whole 4 h case study the second
+            # score test peaked at 875 MB, issue 18)
+            rows = min(n, LINEAR_STEPS_ROWS)
+            pad = -n % rows
+            Xe, Ue = X[s0: s0 + n], _pad(e.inputs, self.n_force)
+            s0 += n
+            if pad:
+                Xe = np.concatenate([Xe, np.repeat(Xe[-1:], pad, 0)])
+                Ue = np.concatenate([Ue, np.repeat(Ue[-1:], pad, 0)])
+            parts = []
+            for b in range(0, n + pad, rows):
+                a = self._arg({"X": Xe[b: b + rows], "u": Ue[b: b + rows]})
+                lin = progs[0](base, a["X"], a["u"], float(e.dt))
+                parts.append(tuple(np.asarray(self._np(v)) for v in lin))
+            out.append(tuple(np.concatenate([p[i] for p in parts])[:n] for i in range(4)))
+        self._lin_memo = (_snapshot(self.params), out)
+        return out
+
+    def forget_linear_steps(self) -> None:
+        """Let the linearised steps of :meth:`_linear_steps_now` go (about 13 MB on the case study's 4 h), and their
+        programs: a score test's are not called again before the next one's steps."""
+        self.__dict__.pop("_lin_memo", None)
+        progs = self.__dict__.pop("_lin_progs", None)
+        if progs is not None:
+            progs[2]()
+
+    def _forced_by_steps(self, forcing: np.ndarray) -> np.ndarray:
+        """:meth:`forced_jacobian`'s forcing block, ``(n_train, m)`` for ``forcing (m, N_score, n_force)`` W, from the
+        tangent-linear model of the simulation: the derivative of the outputs with respect to a heat flow added
+        over each sample is the response of ``x_k+1 = Φ_k·x_k + Γ_k·F_k``, ``y_k = H_k·x_k + D_k·F_k`` from ``x_0 =
+        0`` (fitted initial states do not move with the forcing), ``Φ_k, Γ_k, H_k, D_k`` the derivatives of the
+        rollout's own step and outputs at its states (:meth:`_linear_steps_now`) — the same derivative as a
+        forward-mode one through the rollout, to round-off, for a matrix product a sample instead of the step's
+        every operation on every tangent (issue 18: 15 against 58 ms per 8 series on the case study's 4 h, JAX;
+        torch's central differences of 16 simulations a chunk replaced by a loop in numpy)."""
+        m = int(forcing.shape[0])
+        ys, s0 = [], 0
+        lins = self._linear_steps_now()
+        recursion = self.__dict__["_lin_progs"][1]
+        for e, lin in zip(self.exps[: self.n_score_exps], lins):
+            F = np.ascontiguousarray(forcing[:, s0: s0 + e.n_steps])
+            s0 += e.n_steps
+            ys.append(np.asarray(self._np(recursion(*lin, F))))
+        return np.concatenate(ys, 0).reshape(-1, m)[self.train_idx]
 
     def _forced_central(self, active: list[int], forcing: np.ndarray | None, chunk: int) -> np.ndarray:
         """:meth:`forced_jacobian` by central differences (:attr:`by_differences`): the columns ``active`` as
@@ -858,6 +979,52 @@ def _same_values(kept: dict[str, np.ndarray], params) -> bool:
         if a.dtype != b.dtype or a.shape != b.shape or a.tobytes() != b.tobytes():
             return False
     return True
+
+
+LINEAR_STEPS_ROWS = 2048
+"""Samples whose steps :meth:`_Engine._linear_steps_now` linearises in one call (the last block padded)."""
+
+LINEAR_STEPS_MIN_ROWS = 8000
+"""The fewest samples (of the files the score test simulates) from which a JAX engine takes the score test's forcing
+columns through the linearised steps: each score test compiles their two programs (about 0.6 s on the case study)
+and saves about 3 µs a sample for each chunk of 8 series against forward mode through the rollout (15 against 58 ms
+a chunk at 14 401 samples), some 25 chunks a score test — even at about 8000 samples. Below it the hidden-effect
+suite's short TCLab runs took 0.4 s longer (4.6–5.0 against 4.2–4.5 s, 2026-12-06). torch's engine takes them always
+(its alternatives: central differences of 16 simulations a chunk, or forward mode through an eager rollout)."""
+
+LINEAR_STEPS_MAX = 4_000_000
+"""The most numbers the score test's linearised steps may hold (:meth:`_Engine._by_steps`: rows × (states +
+outputs) × (states + forcing inputs), 32 MB in float64); a larger network takes its forced Jacobian by forward mode
+through the rollout (JAX) or central differences (torch), whose memory grows with the nodes, not their square. The
+case study's 4 h: 14 401 × 8 × 14 = 1.6 million."""
+
+
+def _forced_response(Phi, G, H, D, F):
+    """The outputs' response ``(n, n_out, m)`` K of one file to forcing heat flows ``F (m, n, nf)`` W held over each
+    sample, through its linearised steps (``Phi (n, ns, ns)``, ``G (n, ns, nf)``, ``H (n, n_out, ns)``, ``D (n,
+    n_out, nf)``; :meth:`_Engine._forced_by_steps`) from a zero start. JAX arrays: one ``lax.scan`` (the engine
+    compiles it); numpy: a loop over the samples (torch's engine)."""
+    if isinstance(Phi, np.ndarray):
+        Fk = np.moveaxis(F, 0, -1)  # (n, nf, m)
+        g = G @ Fk  # (n, ns, m)
+        S = np.empty_like(g)
+        x = np.zeros(g.shape[1:])
+        for k in range(g.shape[0]):
+            S[k] = x
+            x = Phi[k] @ x + g[k]
+        return H @ S + D @ Fk
+    import jax
+    import jax.numpy as jnp
+
+    Fk = jnp.moveaxis(F, 0, -1)
+    g = G @ Fk
+
+    def body(x, a):
+        P, gk = a
+        return P @ x + gk, x
+
+    _, S = jax.lax.scan(body, jnp.zeros(g.shape[1:], g.dtype), (Phi, g))
+    return H @ S + D @ Fk
 
 
 def _numpy_tree(d):

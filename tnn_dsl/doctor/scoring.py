@@ -110,6 +110,7 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
         mass_rows += [row for _, row in part_f]
         blocks.append(cur.forced_jacobian([], np.stack([f for f, _ in part_f]), chunk=FORCED_CHUNK))
         del part_f
+    cur.forget_linear_steps()
     J_all = np.concatenate(blocks, axis=1)
     del blocks
     if struct:
