@@ -699,8 +699,9 @@ class _Engine:
         0`` (fitted initial states do not move with the forcing), ``Φ_k, Γ_k, H_k, D_k`` the derivatives of the
         rollout's own step and outputs at its states (:meth:`_linear_steps_now`) — the same derivative as a
         forward-mode one through the rollout, to round-off, for a matrix product a sample instead of the step's
-        every operation on every tangent (issue 18: 15 against 58 ms per 8 series on the case study's 4 h, JAX;
-        torch's central differences of 16 simulations a chunk replaced by a loop in numpy)."""
+        every operation on every tangent (issue 18, a throwaway script on round 1's engine of the case study's 4 h: 64
+        series in 0.09–0.15 s against 0.43–0.49 s on JAX; on torch the forced Jacobians 7.2 → 2.1 s a score test, the
+        central differences of 16 simulations a chunk replaced by a loop in numpy; BENCHMARKS.md)."""
         m = int(forcing.shape[0])
         ys, s0 = [], 0
         lins = self._linear_steps_now()
@@ -988,7 +989,7 @@ LINEAR_STEPS_MIN_ROWS = 8000
 """The fewest samples (of the files the score test simulates) from which a JAX engine takes the score test's forcing
 columns through the linearised steps: each score test compiles their two programs (about 0.6 s on the case study)
 and saves about 3 µs a sample for each chunk of 8 series against forward mode through the rollout (15 against 58 ms
-a chunk at 14 401 samples), some 25 chunks a score test — even at about 8000 samples. Below it the hidden-effect
+a chunk at 14 401 samples, a throwaway script on 2026-12-06), some 25 chunks a score test — even at about 8000 samples. Below it the hidden-effect
 suite's short TCLab runs took 0.4 s longer (4.6–5.0 against 4.2–4.5 s, 2026-12-06). torch's engine takes them always
 (its alternatives: central differences of 16 simulations a chunk, or forward mode through an eager rollout)."""
 
