@@ -989,8 +989,9 @@ LINEAR_STEPS_MIN_ROWS = 8000
 """The fewest samples (of the files the score test simulates) from which a JAX engine takes the score test's forcing
 columns through the linearised steps: each score test compiles their two programs (about 0.6 s on the case study)
 and saves about 3 µs a sample for each chunk of 8 series against forward mode through the rollout (15 against 58 ms
-a chunk at 14 401 samples, a throwaway script on 2026-12-06), some 25 chunks a score test — even at about 8000 samples. Below it the hidden-effect
-suite's short TCLab runs took 0.4 s longer (4.6–5.0 against 4.2–4.5 s, 2026-12-06). torch's engine takes them always
+a chunk at 14 401 samples, a throwaway script on 2026-12-06), some 25 chunks a score test — even at about 8000
+samples. Below it the hidden-effect suite's short TCLab runs took 0.4 s longer (4.6–5.0 against 4.2–4.5 s,
+2026-12-06). torch's engine takes them always
 (its alternatives: central differences of 16 simulations a chunk, or forward mode through an eager rollout)."""
 
 LINEAR_STEPS_MAX = 4_000_000
