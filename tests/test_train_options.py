@@ -136,6 +136,47 @@ def test_a_training_of_one_sequence_per_file_compiles_sooner(monkeypatch):
     assert not one_sequence_per_file(cfg, [exp(1680, 300.0)])  # Bacher & Madsen's 140 h
 
 
+def test_a_windowed_training_followed_by_single_shooting_counts_both_routes(monkeypatch):
+    """Files of at most ``SINGLE_SHOOTING_MAX_STEPS`` samples trained in windows (``rollout`` ``auto``, the
+    ``estimate`` or ``filter`` rule, an L-BFGS polish) are trained again as one sequence per file (the windowed fit
+    polished as single shooting, and single shooting from the start): their sample-epochs count
+    ``1 + ONE_SEQUENCE_WORK_WEIGHT`` times. Bacher & Madsen's first 70 % at 5 min (1184 samples, 300 epochs) trained
+    eager for 132 s on the doctor's nominal Ti model on torch and compiled in 22 s."""
+    from tnn_dsl.fit.config import (
+        ONE_SEQUENCE_WORK_WEIGHT,
+        SINGLE_SHOOTING_MAX_STEPS,
+        TORCH_COMPILE_MIN_WORK,
+        TrainConfig,
+        one_sequence_per_file,
+        single_shooting_route,
+        torch_compile_pays,
+    )
+
+    monkeypatch.delenv("TNN_TORCH_COMPILE", raising=False)
+
+    def exp(n, dt=300.0):
+        return type("E", (), {"n_steps": n, "dt": dt})()
+
+    cfg = TrainConfig(backend="torch", epochs=300)
+    bm = [exp(1184)]
+    assert not one_sequence_per_file(cfg, bm) and single_shooting_route(cfg, bm)
+    assert torch_compile_pays(cfg, 1184) is False
+    assert torch_compile_pays(cfg, 1184, single_route=True) is True
+    least = -(-TORCH_COMPILE_MIN_WORK // (300 * (1 + ONE_SEQUENCE_WORK_WEIGHT)))
+    assert torch_compile_pays(cfg, least, single_route=True) is True
+    assert torch_compile_pays(cfg, least - 1, single_route=True) is False
+    assert torch_compile_pays(TrainConfig(backend="torch", torch_compile=False), 1184, single_route=True) is False
+    # no second route: longer files, a fixed layout, a rule that does not fit the start, no polish, one sequence
+    assert single_shooting_route(cfg, [exp(SINGLE_SHOOTING_MAX_STEPS)])
+    assert not single_shooting_route(cfg, [exp(SINGLE_SHOOTING_MAX_STEPS + 1)])
+    assert not single_shooting_route(TrainConfig(rollout="estimated"), bm)
+    assert not single_shooting_route(TrainConfig(init="steady"), bm)
+    assert single_shooting_route(TrainConfig(init="filter"), bm)
+    assert not single_shooting_route(TrainConfig(lbfgs_iters=0), bm)
+    assert not single_shooting_route(cfg, [exp(153)])  # within three windows: one sequence already
+    assert not single_shooting_route(cfg, [])
+
+
 def test_train_passes_the_chosen_torch_compile_to_the_compiler(tmp_path, monkeypatch):
     """The rule above is what ``train`` compiles with (the compilation itself stubbed out: eager here)."""
     import tnn_dsl.compiler as C
@@ -157,6 +198,14 @@ def test_train_passes_the_chosen_torch_compile_to_the_compiler(tmp_path, monkeyp
     seen.clear()
     monkeypatch.setattr(cfgmod, "TORCH_COMPILE_MIN_WORK", 10**12)
     tnn_dsl.train(net, _record(tmp_path), backend="torch", epochs=2, lbfgs_iters=0)
+    assert seen and seen[0] is False
+    # 300 samples in windows, then single shooting: 300 × 2 epochs × (1 + 20) sample-epochs, not 300 × 2
+    seen.clear()
+    monkeypatch.setattr(cfgmod, "TORCH_COMPILE_MIN_WORK", 300 * 2 * 21)
+    tm = tnn_dsl.train(net, _record(tmp_path, n=300), backend="torch", epochs=2, lbfgs_iters=1)
+    assert seen and seen[0] is True and tm.meta["strategies"] is not None  # both routes ran
+    seen.clear()
+    tnn_dsl.train(net, _record(tmp_path, n=300), backend="torch", epochs=2, lbfgs_iters=0)  # no polish: windows only
     assert seen and seen[0] is False
 
 

@@ -81,16 +81,46 @@ def one_sequence_per_file(cfg: "TrainConfig", exps: list) -> bool:
     return max(int(e.n_steps) for e in exps) <= 3 * (window / dt + 1)
 
 
-def torch_compile_pays(cfg: "TrainConfig", n_samples: int, one_sequence: bool = False) -> bool | None:
+SINGLE_SHOOTING_MAX_STEPS = 8000
+"""``rollout=auto`` with the ``estimate`` rule: after multiple shooting, files of at most this many samples are
+fitted once more as one free run each from a fitted initial state (single shooting, an L-BFGS polish from the
+windowed solution): the free run the model is judged by, without the windows' seams. The training then also runs
+single shooting from the start and keeps the better of the two routes (:func:`single_shooting_route`)."""
+
+
+def finishes_as_single_shooting(cfg: "TrainConfig", exps: list) -> bool:
+    """The options' and files' part of whether a windowed fit of ``exps`` goes on as single shooting
+    (:data:`SINGLE_SHOOTING_MAX_STEPS`; the trainer adds that its layout is windowed:
+    :meth:`~tnn_dsl.fit.rollouts._Rollouts.wants_single_shooting_finish`)."""
+    from .initial import check_rule
+
+    return (cfg.rollout == "auto" and check_rule(cfg.init) in ("estimate", "filter") and cfg.lbfgs_iters > 0
+            and bool(exps) and max(int(e.n_steps) for e in exps) <= SINGLE_SHOOTING_MAX_STEPS)
+
+
+def single_shooting_route(cfg: "TrainConfig", exps: list) -> bool:
+    """Whether a training of ``exps`` runs in windows and then also as one sequence per file: the windowed fit
+    polished as single shooting, and a second training by single shooting from the start
+    (:func:`finishes_as_single_shooting`, and not :func:`one_sequence_per_file`). Where the windows come out as
+    long as the files (a slow node's time constant) the training is one sequence per file instead; either way
+    most of its eager cost is that of one sequence per file."""
+    return finishes_as_single_shooting(cfg, exps) and not one_sequence_per_file(cfg, exps)
+
+
+def torch_compile_pays(cfg: "TrainConfig", n_samples: int, one_sequence: bool = False,
+                       single_route: bool = False) -> bool | None:
     """``cfg.torch_compile`` where it is set; otherwise, for the torch backend, ``None`` when the environment
     variable ``TNN_TORCH_COMPILE`` is set (``tnn_dsl.compile`` reads it), else whether ``n_samples`` (training and
-    validation samples, all files) × ``cfg.epochs`` (× :data:`ONE_SEQUENCE_WORK_WEIGHT` where each file runs as
-    ``one_sequence``: :func:`one_sequence_per_file`) reaches :data:`TORCH_COMPILE_MIN_WORK`."""
+    validation samples, all files) × ``cfg.epochs`` × a weight reaches :data:`TORCH_COMPILE_MIN_WORK`. The weight:
+    :data:`ONE_SEQUENCE_WORK_WEIGHT` where each file runs as ``one_sequence`` (:func:`one_sequence_per_file`);
+    ``1 +`` that where a windowed training is followed by a ``single_route`` (:func:`single_shooting_route`:
+    Bacher & Madsen's 70 % at 5 min, 1184 samples and 300 epochs, trained eager for 132 s on the doctor's
+    nominal Ti model, 22 s compiled, 15 s of it compiling; 2026-12-06, BENCHMARKS.md); else 1."""
     if cfg.torch_compile is not None or cfg.backend != "torch":
         return cfg.torch_compile
     if os.environ.get("TNN_TORCH_COMPILE", "").strip():
         return None
-    weight = ONE_SEQUENCE_WORK_WEIGHT if one_sequence else 1
+    weight = ONE_SEQUENCE_WORK_WEIGHT if one_sequence else 1 + (ONE_SEQUENCE_WORK_WEIGHT if single_route else 0)
     return int(n_samples) * max(int(cfg.epochs), 1) * weight >= TORCH_COMPILE_MIN_WORK
 
 

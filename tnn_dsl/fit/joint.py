@@ -32,7 +32,7 @@ import numpy as np
 from ..core import Diagnostic, TnnError
 from ..data import Experiment
 from ..ir import Network
-from .config import TrainConfig, one_sequence_per_file, torch_compile_pays
+from .config import TrainConfig, one_sequence_per_file, single_shooting_route, torch_compile_pays
 from .initial import fingerprint
 from .model_files import TrainedModel
 from .trainer import _net_of
@@ -93,7 +93,8 @@ def train_jointly(network: Network | str | os.PathLike, sets: Sequence[tuple[Seq
     cfg = make_config(config, {**options, "val_fraction": 0.0})
     say = log or (lambda s: None)
     exps = [list(train)[0] for train, _ in sets]
-    auto = torch_compile_pays(cfg, sum(int(e.n_steps) for e in exps), one_sequence_per_file(cfg, exps))
+    auto = torch_compile_pays(cfg, sum(int(e.n_steps) for e in exps), one_sequence_per_file(cfg, exps),
+                              single_shooting_route(cfg, exps))
     if auto is not None and auto != cfg.torch_compile:
         cfg = dataclasses.replace(cfg, torch_compile=auto)
     joint = joint_network(net)

@@ -14,16 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from .config import finishes_as_single_shooting
 from .initial import check_rule, fingerprint, initial_state, measured_arrays, sensed_states
 from .simulation import start_range
 from .transforms import _NumpyOps
 from .windows import _Window, _windows, auto_window
-
-SINGLE_SHOOTING_MAX_STEPS = 8000
-"""``rollout=auto`` with the ``estimate`` rule: after multiple shooting, files of at most this many samples are
-fitted once more as one free run each from a fitted initial state (single shooting, an L-BFGS polish from the
-windowed solution): the free run the model is judged by, without the windows' seams."""
-
 
 
 def _safe(res: tuple[float, np.ndarray]) -> tuple[float, np.ndarray]:
@@ -101,10 +96,8 @@ class _Rollouts:
     """(mode, window s) of the windowed phase when :meth:`finish_single_shooting` followed it."""
 
     def wants_single_shooting_finish(self) -> bool:
-        """Whether a windowed fit goes on as single shooting (:data:`SINGLE_SHOOTING_MAX_STEPS`)."""
-        return (self.cfg.rollout == "auto" and not self.single_shooting and self.mode != "free"
-                and check_rule(self.cfg.init) in ("estimate", "filter") and self.cfg.lbfgs_iters > 0
-                and max(e.n_steps for e in self.exps) <= SINGLE_SHOOTING_MAX_STEPS)
+        """Whether a windowed fit goes on as single shooting (:data:`~.config.SINGLE_SHOOTING_MAX_STEPS`)."""
+        return not self.single_shooting and self.mode != "free" and finishes_as_single_shooting(self.cfg, self.exps)
 
     def finish_single_shooting(self, z: np.ndarray) -> np.ndarray:
         """The windowed solution ``z`` polished as single shooting: each file one free run from a fitted initial

@@ -16,7 +16,7 @@ from ..core import Diagnostic, TnnError
 from ..core.interrupt import is_interrupt
 from ..data import as_experiments
 from ..ir import Network
-from .config import TrainConfig, load_config, one_sequence_per_file, torch_compile_pays
+from .config import TrainConfig, load_config, one_sequence_per_file, single_shooting_route, torch_compile_pays
 from .estimates import check_objective, estimation_meta, ml_refit, output_error_summary
 from .model_files import MODEL_DIR, TrainedModel, data_records, load_model, versions
 from .trainer import _net_of, _Trainer
@@ -82,14 +82,15 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
             raise TnnError(Diagnostic(f"{e.path}: {e.name} has no sensor measurement at all",
                                       hint="check the sensor columns named in the network"))
     check_objective(net, cfg.objective, cfg.backend)
-    one_sequence = one_sequence_per_file(cfg, exps)
-    auto = torch_compile_pays(cfg, sum(e.n_steps for e in exps + vals), one_sequence)
+    one_sequence, single_route = one_sequence_per_file(cfg, exps), single_shooting_route(cfg, exps)
+    auto = torch_compile_pays(cfg, sum(e.n_steps for e in exps + vals), one_sequence, single_route)
     if auto is not None and auto != cfg.torch_compile:
         cfg = dataclasses.replace(cfg, torch_compile=auto)
         if auto and log is not None:
+            how = (", each file one sequence" if one_sequence
+                   else ", windows, then each file one sequence" if single_route else "")
             log(f"torch: compiling the rollouts ({sum(e.n_steps for e in exps + vals)} samples × {cfg.epochs} "
-                f"epochs{', each file one sequence' if one_sequence else ''}; torch_compile=False or "
-                "TNN_TORCH_COMPILE=0 to run eager)")
+                f"epochs{how}; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
     tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log, start)
