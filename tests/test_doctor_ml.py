@@ -91,12 +91,33 @@ def _first_step(backend: str, tmp_path, kinds=("source_mass", "sensor_lag")):
 @needs_bm
 @pytest.mark.parametrize("backend,rival", [("jax", False), pytest.param("jax", True, marks=pytest.mark.slow),
                                            pytest.param("torch", True, marks=pytest.mark.slow)])
-def test_likelihood_takes_the_heater_node_first_on_bacher_madsen(backend, rival, tmp_path):
+def test_likelihood_takes_the_heater_node_first_on_bacher_madsen(backend, rival, tmp_path, monkeypatch):
     """Bacher & Madsen's first step from Ti is TiTh (their log L 3904.7 over the whole file against TiTe's 3286.6
     and a sensor's lag). On the first 70 % the heater node reaches TiTh's own optimum; a lag on the sensor, the
     equally fast alternative the score test cannot tell apart, has the smaller likelihood (with the rival offered:
     slow; the CI variant offers the heater node alone)."""
+    from tnn_dsl.doctor.likelihood import with_ml_values
+    from tnn_dsl.doctor.session import _Session
+
+    judged: list = []  # (candidate's fit, values) of each judgement of a likelihood fit's values
+    judge_of = _Session.judge
+
+    def recorded(self, f, current, params=None):
+        if params is not None:
+            judged.append((f, params))
+        return judge_of(self, f, current, params)
+
+    monkeypatch.setattr(_Session, "judge", recorded)
     d, out = _first_step(backend, tmp_path, ("source_mass", "sensor_lag") if rival else ("source_mass",))
+    # the likelihood's values are judged from initial states refitted to them, not the output-error fit's: those
+    # started the heater node at 157 °C, which with the likelihood's 6× weaker coupling heated the room to 47 °C
+    # and called the heater node non-physical
+    heater = [(f, p) for f, p in judged if f["cand"].kind == "source_mass" and "Q_heat" in f["cand"].describe()]
+    assert heater, [f["cand"].describe() for f, _ in judged]
+    for f, p in heater:
+        x0 = {k: float(v) for k, v in p.items() if k.startswith("x0:")}
+        assert x0 and all(260.0 < v < 320.0 for v in x0.values()), x0
+        assert f["eng"].sse(p) <= f["eng"].sse(with_ml_values(f["params"], f["ml_fit"])), x0
     acc = d.accepted
     assert acc and acc[0].kind == "source_mass" and "Q_heat" in acc[0].words, d.summary()
     lk = acc[0].evidence["likelihood"]

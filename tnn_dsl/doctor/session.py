@@ -202,6 +202,7 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
     return out
 
 
+
 class _Session:
     """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
 
@@ -1118,7 +1119,7 @@ class _Session:
         diverge written as a network (the current model plus it) and fitted by maximum likelihood, then judged
         physical or not on those values; of the physical ones passing the likelihood-ratio test and the held-out
         check, the largest log-likelihood."""
-        from .likelihood import P_LR, with_ml_values, with_plausible_bounds
+        from .likelihood import P_LR, with_plausible_bounds
 
         ml = self.ml
         # an output-error fit that diverged gives no start; a non-physical one may still reach physical values
@@ -1144,8 +1145,8 @@ class _Session:
             if fit is None:
                 f["reason"] = "its likelihood fit failed"
                 continue
-            f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)))
-            self.judge(f, current, params=with_ml_values(f["params"], fit))  # the likelihood's values count
+            f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)), ml_params=self.ml_values(f, fit))
+            self.judge(f, current, params=f["ml_params"])  # the likelihood's values count
         paying = []
         for f in ok:
             t = f.get("ml")
@@ -1398,19 +1399,30 @@ class _Session:
             return
         go_on(info)
 
+    def ml_values(self, f: dict, fit) -> dict[str, np.ndarray]:
+        """Candidate ``f``'s parameter table with its likelihood fit's physical constants (by name and shape) put in,
+        then only the training files' initial states refitted to them (output error, on a clone of its engine): the
+        values :meth:`judge` runs and :meth:`adopt_ml` takes. The initial states of the output-error fit belong to
+        its own constants: on Bacher & Madsen's Ti the heater node's fit started it at 157 °C, which with the
+        likelihood's 6× weaker coupling heated the room to 47 °C an hour later, past the start-up rows the judge
+        leaves out, and the best candidate was called non-physical."""
+        from .likelihood import with_ml_values
+
+        eng = f["eng"].clone()
+        eng.params = with_ml_values(f["params"], fit)
+        x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith(X0_PREFIX)]
+        if x0_cols and not self.spent():
+            eng.fit(x0_cols, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
+        return eng.params
+
     def adopt_ml(self, chosen: dict) -> None:
         """Under ``ml``: the chosen candidate's likelihood estimates (its physical constants, by name and shape) put
         in its engine, then only the training files' initial states refitted to them (output error), and its
         held-out numbers taken again: the next round starts from the likelihood fit, and the words, the JSON, the
         written ``.thn`` and the free run reported are the likelihood fit's. A learned function's coefficients keep
         their output-error values (the likelihood fits them as weights of another layout); the evidence says so."""
-        from .likelihood import with_ml_values
-
         eng = chosen["eng"]
-        eng.params = with_ml_values(chosen["params"], chosen["ml_fit"])
-        x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith(X0_PREFIX)]
-        if x0_cols and not self.spent():
-            eng.fit(x0_cols, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
+        eng.params = {k: np.array(v, copy=True) for k, v in chosen["ml_params"].items()}
         keep = {k: chosen[k] for k in ("score", "act", "net", "ml", "ml_fit", "ml_net", "physical", "why")
                 if k in chosen}
         chosen.update(_fit_result(chosen["cand"], chosen["score"], eng, chosen["ext"], self.e_base_val), **keep)
