@@ -21,7 +21,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.doctor.plausibility import judge, network_scales, start_up_rows
-from tnn_dsl.doctor.session import _moved
+from tnn_dsl.doctor.session import _moved, sub_step_note
 from tnn_dsl.studies.planted import plant
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -175,3 +175,15 @@ def test_a_fitted_initial_states_start_up_transient_is_not_judged():
     assert judge(net, params, X, ["h1", "h2"], scales, start=m)[0] == "ok"
     X[50, 0] = 305.0 - 900.0  # the same excursion later in the run is held against the candidate
     assert judge(net, params, X, ["h1", "h2"], scales, start=m)[0] != "ok"
+
+
+def test_the_report_names_the_sub_steps_a_short_time_constant_takes():
+    """RK4 at Bacher & Madsen's 5-min samples on a room of C = 0.01 kWh/K behind Ria = 5.4 K/kW (τ = 194.4 s, under
+    RK4's stable step of 1.25 τ = 243.6 s): two sub-steps of 150 s; one-minute samples need none."""
+    text = open(os.path.join(os.path.dirname(HERE), "networks", "building", "ti.thn"), encoding="utf-8").read()
+    text = text.replace("C = 2.9 kWh/K  free in [0.1 kWh/K", "C = 0.01 kWh/K  free in [0.001 kWh/K")
+    model = tnn_dsl.compile(tnn_dsl.loads(text), backend="numpy")
+    note = sub_step_note(model, [300.0, 60.0, 300.0], "the network")
+    assert note is not None and "194.4 s (node ti)" in note, note
+    assert "2 sub-steps of 150 s per 300 s sample" in note and "60 s sample" not in note, note
+    assert sub_step_note(model, [60.0], "the network") is None

@@ -57,9 +57,11 @@ Steps (see docs/architecture.md, "Diagnosis"):
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Any, Callable
 
 from ..compiler.backends.adapter import drop_compiled_caches
+from ..compiler.integrators import StepSizeWarning
 from ..core.blas import one_blas_thread
 from ..core.memory import large_blocks_mapped, release_free_memory
 from .results import Diagnosis, Finding
@@ -147,8 +149,12 @@ def diagnose(net_or_path: Any, train: Any, val: Any = None, budget_s: float | No
                    output=output, kinds=kinds, mlp_check=mlp_check, mlp_time=mlp_time, force=force, init=init,
                    burn_in=burn_in, objective=objective, threads=threads,
                    model_dir=None if model_dir is None else os.fspath(model_dir))
-    with one_blas_thread(), ctrl_c_stops(progress or (lambda s: None), enabled=stop_on_ctrl_c):
+    with one_blas_thread(), ctrl_c_stops(progress or (lambda s: None), enabled=stop_on_ctrl_c), \
+            warnings.catch_warnings():
         # one BLAS thread: small matrices between compiled simulations, where BLAS threads only spin (core.blas)
+        # the rollouts' sub-steps said once in the report (session.sub_step_note), not as a StepSizeWarning from
+        # every call site of every candidate's fit (19 of them on Bacher & Madsen's Ti)
+        warnings.simplefilter("ignore", StepSizeWarning)
         return _run(run, max_rounds, release_jax_caches)
 
 

@@ -203,6 +203,23 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
 
 
 
+def sub_step_note(model, dts: list[float], which: str) -> str | None:
+    """The report's line when RK4, the doctor's integrator, takes sub-steps at the files' sample periods ``dts`` (s)
+    on ``model``'s network at its written values (:func:`~tnn_dsl.compiler.integrators.stable_substeps`), else
+    ``None``. The diagnosis says it once for the written and the extended network instead of the rollouts'
+    ``StepSizeWarning`` from every call site of every fit (:func:`~tnn_dsl.doctor.diagnosis.diagnose` silences
+    those): a lag or a heat capacity the doctor tries often has a time constant under the sample period."""
+    from ..compiler.integrators import stable_substeps
+
+    tau, where = model.fastest_time_constant()
+    need = {dt: stable_substeps("rk4", dt, tau) for dt in sorted(set(dts))}
+    more = {dt: n for dt, n in need.items() if n > 1}
+    if not more:
+        return None
+    steps = ", ".join(f"{n} sub-steps of {dt / n:.4g} s per {dt:g} s sample" for dt, n in more.items())
+    return (f"integration: {which}'s fastest time constant is {tau:.4g} s (node {where}), under the stable step of "
+            f"RK4: its simulations take {steps}")
+
 class _Session:
     """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
 
@@ -401,6 +418,9 @@ class _Session:
                               "first readings (--init measured)")
         else:
             self.notes.append("initial states: the steady state of the first inputs (--init steady)")
+        step = sub_step_note(eng.model, [float(e.dt) for e in self.exps], "the network")
+        if step:
+            self.notes.append(step)
         for i, e in enumerate(self.exps):
             gap = eng.steady_gap(i)
             if not np.isfinite(gap).any() or np.nanmax(np.abs(gap)) <= FAR_FROM_STEADY_K:
@@ -532,8 +552,6 @@ class _Session:
                     chosen = _choose(fits, self.current_val, self.e_base_val)
             if self.ml is None:
                 chosen = self.curvature_look_ahead(chosen, fits, current)
-            if chosen is not None and self.ml is not None:
-                self.adopt_ml(chosen)
         finally:
             self.end_round_net(fits)  # its shared network's programs go before the chosen one's compile
         self.record(fits, scored, chosen, rnd)
@@ -1145,8 +1163,9 @@ class _Session:
             if fit is None:
                 f["reason"] = "its likelihood fit failed"
                 continue
-            f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)), ml_params=self.ml_values(f, fit))
-            self.judge(f, current, params=f["ml_params"])  # the likelihood's values count
+            f.update(ml_fit=fit, ml_net=net_c, ml=ml.test(fit, len(ok)))
+            self.take_ml_values(f)
+            self.judge(f, current)  # the likelihood's values count
         paying = []
         for f in ok:
             t = f.get("ml")
@@ -1289,6 +1308,13 @@ class _Session:
         self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
         self.ext_net = extend_network(self.net_x, self.acc_small, self.final_eng.params, self.unused)
         self.set_extension(self.ext_net)
+        if self.accepted:
+            from ..compiler import compile as compile_network
+
+            step = sub_step_note(compile_network(self.ext_net, backend="numpy"), [float(e.dt) for e in self.exps],
+                                 "the extended network")
+            if step and step not in self.notes:
+                self.notes.append(step)
         self.lap("extend", t0)
         self.y_fin, _ = self.final_eng.simulate()
         e_fin = np.where(self.final_eng.val_mask, self.final_eng.y - self.y_fin, np.nan)
@@ -1299,7 +1325,7 @@ class _Session:
         """The extended model fitted to convergence on the training rows (all free parameters and the accepted
         findings' together; each round stopped early), then every accepted finding's words and clause made from
         these final values, so the verdict, the JSON and the written ``.thn`` say the same numbers. Under ``ml`` the
-        values are the likelihood fit's, taken at acceptance (:meth:`adopt_ml`), and are not refitted here."""
+        values are the likelihood fit's (:meth:`take_ml_values`) and are not refitted here."""
         if not self.accepted or not self.final_act:
             return
         eng = self.final_eng
@@ -1399,36 +1425,31 @@ class _Session:
             return
         go_on(info)
 
-    def ml_values(self, f: dict, fit) -> dict[str, np.ndarray]:
-        """Candidate ``f``'s parameter table with its likelihood fit's physical constants (by name and shape) put in,
-        then only the training files' initial states refitted to them (output error, on a clone of its engine): the
-        values :meth:`judge` runs and :meth:`adopt_ml` takes. The initial states of the output-error fit belong to
-        its own constants: on Bacher & Madsen's Ti the heater node's fit started it at 157 °C, which with the
-        likelihood's 6× weaker coupling heated the room to 47 °C an hour later, past the start-up rows the judge
-        leaves out, and the best candidate was called non-physical."""
+    def take_ml_values(self, f: dict) -> None:
+        """Under ``ml``: candidate ``f``'s likelihood estimates (its physical constants, by name and shape) put in a
+        clone of its engine, then only the training files' initial states refitted to them (output error), and its
+        held-out numbers taken again: the judge, the words, the clause and the held-out MAE of every finding fitted by
+        likelihood say the likelihood's values, and for the chosen one the next round starts from them and the JSON,
+        the written ``.thn`` and the free run reported are the likelihood fit's. A learned function's coefficients
+        keep their output-error values (the likelihood fits them as weights of another layout); the evidence says so.
+
+        The initial states must follow: those of the output-error fit belong to its own constants. On Bacher &
+        Madsen's Ti the heater node's output-error fit started it at 157 °C, which with the likelihood's 6× weaker
+        coupling heated the room to 47 °C after the start-up rows the judge leaves out, and the best candidate was
+        called non-physical; a rejected sensor lag was worded with its output-error 60 s beside its likelihood
+        estimate of 489 s."""
         from .likelihood import with_ml_values
 
         eng = f["eng"].clone()
-        eng.params = with_ml_values(f["params"], fit)
+        eng.params = with_ml_values(f["params"], f["ml_fit"])
         x0_cols = [j for j, col in enumerate(eng.cols) if col.key.startswith(X0_PREFIX)]
         if x0_cols and not self.spent():
             eng.fit(x0_cols, max_iter=FIT_ITER, deadline=self.deadline, tol=1e-6)
-        return eng.params
-
-    def adopt_ml(self, chosen: dict) -> None:
-        """Under ``ml``: the chosen candidate's likelihood estimates (its physical constants, by name and shape) put
-        in its engine, then only the training files' initial states refitted to them (output error), and its
-        held-out numbers taken again: the next round starts from the likelihood fit, and the words, the JSON, the
-        written ``.thn`` and the free run reported are the likelihood fit's. A learned function's coefficients keep
-        their output-error values (the likelihood fits them as weights of another layout); the evidence says so."""
-        eng = chosen["eng"]
-        eng.params = {k: np.array(v, copy=True) for k, v in chosen["ml_params"].items()}
-        keep = {k: chosen[k] for k in ("score", "act", "net", "ml", "ml_fit", "ml_net", "physical", "why")
-                if k in chosen}
-        chosen.update(_fit_result(chosen["cand"], chosen["score"], eng, chosen["ext"], self.e_base_val), **keep)
-        dep = chosen["cand"].kind not in STRUCTURAL_KINDS or any(c.kind not in STRUCTURAL_KINDS for c in self.accepted)
-        chosen["values_from"] = ("the likelihood fit" + (" (a learned function's coefficients: the output-error fit)"
-                                                         if dep else ""))
+        keep = {k: f[k] for k in ("score", "act", "net", "ml", "ml_fit", "ml_net") if k in f}
+        f.update(_fit_result(f["cand"], f["score"], eng, f["ext"], self.e_base_val), **keep)
+        dep = f["cand"].kind not in STRUCTURAL_KINDS or any(c.kind not in STRUCTURAL_KINDS for c in self.accepted)
+        f["values_from"] = ("the likelihood fit" + (" (a learned function's coefficients: the output-error fit)"
+                                                    if dep else ""))
 
     def set_extension(self, ext_net: Network) -> None:
         """The extension's text, its diff from the original and its changed statements (``clauses``)."""
