@@ -170,8 +170,9 @@ def test_a_rounds_sub_model_runs_on_the_rounds_one_network(monkeypatch):
     (``_Session.foreseen``): when the round fits it (``Q_src_h2`` wrong, the sub-model of ``Q_src_h2`` depending on
     Q1), it runs on that network's programs, and no network is compiled for it; the square of a dependence whose
     function also depends on a temperature in the round (``Q_src_h2`` on T(h2)) stays out, so the probe compiles
-    its own (issue 18). The answer is the planted dependence. JAX (one diagnosis, 14 s); the numbers' agreement with
-    a network of its own: ``test_doctor_lm.py`` on both backends, and the slow test below."""
+    its own; without one it joins the round's network (issue 18). The answer is the planted dependence. JAX (one
+    diagnosis, 14 s); the numbers' agreement with a network of its own: ``test_doctor_lm.py`` on both backends, and
+    the slow test below."""
     from tnn_dsl.doctor import session as S
 
     built: list[list[str]] = []
@@ -185,8 +186,15 @@ def test_a_rounds_sub_model_runs_on_the_rounds_one_network(monkeypatch):
     assert any("Q_src_h2 has the wrong value (k=1), the sub-model of" in line for line in lines), lines
     assert any("(a probe)" in line for line in lines), lines
     assert built[:2] == [[], ["big"]], built
-    assert "wrong_constant:Q_src_h2:" in built[2] and "param_dependence:Q_src_h2:Q1²" not in built[2], built
-    assert built[3:] == [["param_dependence:Q_src_h2:Q1", "param_dependence:Q_src_h2:Q1²"]], built  # the probe's
+    round_net = built[2]
+    assert "wrong_constant:Q_src_h2:" in round_net, built
+    # which dependences the score test shortlists here turns on round-off (the AMD hosts' differ): the rule is checked
+    # on whichever the round holds
+    if any(k.startswith("param_dependence:Q_src_h2:T(") for k in round_net):  # beside a temperature: out, own network
+        assert "param_dependence:Q_src_h2:Q1²" not in round_net, built
+        assert built[3:] == [["param_dependence:Q_src_h2:Q1", "param_dependence:Q_src_h2:Q1²"]], built  # the probe's
+    else:  # input-only: the square joins the round's network, and the probe compiles nothing
+        assert "param_dependence:Q_src_h2:Q1²" in round_net and built[3:] == [], built
     first = d.accepted[0] if d.accepted else None
     assert first is not None and first.target == "Q_src_h2" and first.depends_on == ["Q1"], d.summary()
 
