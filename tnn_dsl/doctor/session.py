@@ -202,7 +202,6 @@ def _moved(net: Network, fitted: dict[tuple[str, int], float]) -> list[dict]:
     return out
 
 
-
 def sub_step_note(model, dts: list[float], which: str) -> str | None:
     """The report's line when RK4, the doctor's integrator, takes sub-steps at the files' sample periods ``dts`` (s)
     on ``model``'s network at its written values (:func:`~tnn_dsl.compiler.integrators.stable_substeps`), else
@@ -219,6 +218,7 @@ def sub_step_note(model, dts: list[float], which: str) -> str | None:
     steps = ", ".join(f"{n} sub-steps of {dt / n:.4g} s per {dt:g} s sample" for dt, n in more.items())
     return (f"integration: {which}'s fastest time constant is {tau:.4g} s (node {where}), under the stable step of "
             f"RK4: its simulations take {steps}")
+
 
 class _Session:
     """The state one diagnosis builds up, and its stages (called in this order by ``diagnose``)."""
