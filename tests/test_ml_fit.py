@@ -177,3 +177,49 @@ def test_at_bound_and_not_identifiable_get_no_standard_error():
     cov, singular = _covariance(H, np.zeros(3, dtype=bool))
     assert singular.tolist() == [True, True, False] and cov[2, 2] == pytest.approx(0.25)
     assert np.isnan(cov[0, 0])
+
+
+@pytest.mark.parametrize("backend", ["jax", "torch"])
+def test_a_run_that_ends_on_a_diverged_filter_stops_at_its_best_finite_point(backend, monkeypatch):
+    """The likelihood turning non-finite in a run's last line search (the filter diverged; here from the 6th
+    evaluation of the first run on) ends the fit at the best finite point it evaluated, reported not converged, with
+    no restart from there (a doctor's candidate crawled 1000 iterations from such a restart). Without it, the same
+    fit restarts once and converges."""
+    import scipy.optimize
+
+    from tnn_dsl.estimation import ml_fit
+
+    U, Y = simulate(30, seed=5)
+    net = tnn_dsl.loads(RC, "rc.thn")
+    real_minimize, real_vg = scipy.optimize.minimize, ml_fit._Joint.value_and_grad
+    runs: list[list[float]] = []  # the values each L-BFGS-B run evaluated
+    state = {"diverge": True, "inside": False}
+
+    def minimize(fun, x0, **kw):
+        runs.append([])
+        state["inside"] = True
+        try:
+            return real_minimize(fun, x0, **kw)
+        finally:
+            state["inside"] = False
+
+    def value_and_grad(self, z):
+        f, g = real_vg(self, z)
+        if state["inside"]:
+            if state["diverge"] and len(runs) == 1 and len(runs[0]) >= 5:
+                f, g = math.nan, np.full_like(g, math.nan)
+            runs[-1].append(f)
+        return f, g
+
+    monkeypatch.setattr(scipy.optimize, "minimize", minimize)
+    monkeypatch.setattr(ml_fit._Joint, "value_and_grad", value_and_grad)
+    kw = dict(backend=backend, integrator="expeuler", hessian="fd")
+    r = fit_ml(net, (U, Y, 5.0), **kw)
+    assert len(runs) == 1 and any(math.isnan(f) for f in runs[0])
+    best = min(f for f in runs[0] if np.isfinite(f))
+    assert not r.converged and "non-finite" in r.message and r.loglik == pytest.approx(-best, abs=1e-9)
+    assert np.all(np.isfinite(r.z)) and any("non-finite" in n for n in r.notes)
+    runs.clear()
+    state["diverge"] = False
+    ok = fit_ml(net, (U, Y, 5.0), **kw)
+    assert len(runs) == 2 and ok.converged and ok.loglik > r.loglik

@@ -7,7 +7,9 @@ scipy's L-BFGS-B on :class:`~tnn_dsl.estimation.likelihood.LikelihoodProblem`'s 
 parameters and σ's in log space, the declared ranges as bounds), started from the written values, ``σ_v = 0.1 K``
 and ``σ_w = 1e-3 K/√s`` (LikelihoodProblem's default; 0.017 K per 5-min sample: starting from 0.01 K per sample
 instead, TiTh stops in a local optimum at log L = 3841 with the solar gain at zero), then restarted once from
-where it stopped (a fresh quasi-Newton memory; the better end is kept). If a free parameter then sits at a bound
+where it stopped (a fresh quasi-Newton memory; the better end is kept) — unless the likelihood turned non-finite in
+its last line search (the filter diverged): the run then ends at the best finite point it evaluated, reported not
+converged, without a restart. If a free parameter then sits at a bound
 of its declared range, one more start (``release=True``): the fitted point with each such parameter moved back
 to its starting value (the middle of its range where the start is at the bound), the better optimum kept — a
 local optimum with a parameter pinned at a bound is the usual sign of a wrong basin (TiTh from the written values
@@ -42,7 +44,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -225,7 +227,8 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
     hessian : ``"exact"`` (``jax.hessian``, JAX only; its compilation costs 3–10 s), ``"fd"`` (central
         differences of the gradient, step ``1e-4``), ``"auto"`` (the default: central differences at ``1e-4``
         and ``5e-5`` with one Richardson step, ``4n`` gradients, on either backend)
-    restart : run L-BFGS-B a second time from where the first stopped, keep the better end
+    restart : run L-BFGS-B a second time from where the first stopped, keep the better end (not after a run that
+        stopped on a non-finite likelihood: that run's result is its best finite point, not converged)
     release : if a free parameter ends at a bound of its declared range, start once more from the fitted point
         with each such parameter moved back to its starting value (to the middle of its range where the start
         is itself at the bound), and keep the better optimum
@@ -234,7 +237,7 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
     -------
     :class:`MLResult`
     """
-    from scipy.optimize import minimize
+    from scipy.optimize import OptimizeResult, minimize
 
     if hessian not in HESSIAN_METHODS:
         raise TnnError(f"unknown hessian method {hessian!r}; use one of: {', '.join(HESSIAN_METHODS)}")
@@ -267,11 +270,23 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
     opts = {"maxiter": maxiter, "ftol": 1e-14, "gtol": 1e-8, "maxcor": 20}
 
     def run(start):
-        r = minimize(joint.value_and_grad, start, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+        best = _BestFinite(joint.value_and_grad)
+        r = minimize(best, start, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
+        if not np.isfinite(r.fun):
+            # the filter diverged in the last line search (RK4 unstable, or the covariance lost): the run ends at the
+            # best finite point it evaluated, not converged. No restart from there: on a candidate of the doctor (BM
+            # Ti with a heat capacity behind the solar gain, its coupling's time constant shrinking below the step)
+            # the restart crawled 1000 iterations from log L 1638.3 to 1664.7 (torch: a noise level to exp(−9884)),
+            # where the other start reaches 2301.4
+            if best.z is not None:
+                r = OptimizeResult(x=best.z, fun=best.f, nit=r.nit, success=False,
+                                   message=f"the likelihood became non-finite after {r.nit} iterations (the filter "
+                                           "diverged); stopped at the best finite point evaluated")
+            return r
         if restart:
             r2 = minimize(joint.value_and_grad, r.x, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
             r2.nit += r.nit
-            if r2.fun <= r.fun or not np.isfinite(r.fun):
+            if r2.fun <= r.fun:  # a non-finite end compares False: the first run's kept
                 return r2
             r.nit = r2.nit
         return r
@@ -335,6 +350,21 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
                     backend=B.name, network=model.network.name, records=tuple(r[0] for r in recs),
                     converged=converged, message=str(res.message), nit=nit, seconds=seconds, notes=notes,
                     objective="ml", fitted=fitted, initial_states=initial_states)
+
+
+class _BestFinite:
+    """``value_and_grad`` passed through, keeping the point of the lowest finite value evaluated (``z``, ``f``)."""
+
+    def __init__(self, value_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]]):
+        self.value_and_grad = value_and_grad
+        self.z: np.ndarray | None = None
+        self.f = math.inf
+
+    def __call__(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = self.value_and_grad(z)
+        if np.isfinite(f) and f < self.f and np.all(np.isfinite(g)):
+            self.z, self.f = np.array(z, dtype=np.float64), float(f)
+        return f, g
 
 
 def _fitted_values(joint: _Joint, z: np.ndarray) -> tuple[dict[str, Any], list[list[float]]]:
