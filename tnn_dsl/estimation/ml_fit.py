@@ -273,11 +273,10 @@ def fit_ml(net_or_model: Any, experiments: Any, *, backend: str = "jax", free: S
         best = _BestFinite(joint.value_and_grad)
         r = minimize(best, start, jac=True, method="L-BFGS-B", bounds=bounds, options=opts)
         if not np.isfinite(r.fun):
-            # the filter diverged in the last line search (RK4 unstable, or the covariance lost): the run ends at the
-            # best finite point it evaluated, not converged. No restart from there: on a candidate of the doctor (BM
-            # Ti with a heat capacity behind the solar gain, its coupling's time constant shrinking below the step)
-            # the restart crawled 1000 iterations from log L 1638.3 to 1664.7 (torch: a noise level to exp(−9884)),
-            # where the other start reaches 2301.4
+            # the filter diverged in the last line search: the run ends at the best finite point it evaluated, not
+            # converged. No restart from there: on a candidate of the doctor (BM Ti with a heat capacity behind the
+            # solar gain, diverging as its new link's resistance fell) the restart crawled 1000 iterations from log L
+            # 1638.3 to 1664.7 (torch: a noise level to exp(−9884)), where the other start reaches 2301.4
             if best.z is not None:
                 r = OptimizeResult(x=best.z, fun=best.f, nit=r.nit, success=False,
                                    message=f"the likelihood became non-finite after {r.nit} iterations (the filter "
