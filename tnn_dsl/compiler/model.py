@@ -109,7 +109,7 @@ benchmarks/bench_rollout.py --only jax,torchc --torch-chunk K`` measures it with
 
 TORCH_CPP_WRAPPER = True
 """torch's compiled scans (the forward one of :meth:`Model._compiled_torch_rollout`, and the forward and adjoint
-ones of :mod:`.torch_adjoint`) are built with inductor's C++ wrapper (:func:`_inductor_options`): the loop over
+ones of :mod:`.torch_adjoint`) are built with inductor's C++ wrapper (:func:`inductor_options`): the loop over
 the samples, the body's buffer allocations (one per intermediate result of the step, ~90 per iteration of 4 steps
 on M3) and its kernel calls run in C++ instead of a Python function per iteration; wrapper and kernels are built
 apart (``cpp_wrapper_build_separate``: as one translation unit M2's reverse scan took 31 s to build). Case study
@@ -183,7 +183,7 @@ def _torch_vectorize() -> bool:
     return TORCH_VECTORIZE if not env else env == "1"
 
 
-def _inductor_options() -> dict:
+def inductor_options() -> dict:
     """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`, :data:`TORCH_VECTORIZE`,
     :data:`TORCH_CACHE_SCANS`)."""
     opts: dict = {"cpp_wrapper": True, "cpp_wrapper_build_separate": True} if TORCH_CPP_WRAPPER else {}
@@ -692,16 +692,27 @@ class Model:
         else:
             def split(v, ax):
                 return [xp.take(v, k, axis=ax) for k in range(xp.shape(v)[ax])]
-        s_l = {k: split(v, -1) for k, v in ctx["s"].items()}
-        v_l = {k: split(v, -2) for k, v in ctx["v"].items()}
-        u_l = split(ctx["u"], -2)
+        # the context split into samples from the second step on; the first takes its sample alone (a filter that
+        # steps every sample at once, step_all, steps one sample for its Jacobian: torch's unbind of Bacher &
+        # Madsen's 1691 samples and its reverse cost ~50 ms of such an evaluation's ~100, 2026-12-06)
+        rows: list = []
         stepper = self._stepper(prep, dt, integrator, sub)
         compiled = self._compiled_torch_step(prep, dt, integrator, sub) if self.torch_compile else None
 
         def step(T, k, eager=False):
             k = int(k)
-            c = {"s": {name: a[k] for name, a in s_l.items()}, "v": {name: a[k] for name, a in v_l.items()},
-                 "u": u_l[k]}
+            if not rows:
+                rows.append(None)
+                c = {"s": {name: split(v[..., k:k + 1], -1)[0] for name, v in ctx["s"].items()},
+                     "v": {name: split(v[..., k:k + 1, :], -2)[0] for name, v in ctx["v"].items()},
+                     "u": split(ctx["u"][..., k:k + 1, :], -2)[0]}
+            else:
+                if rows[0] is None:
+                    rows[0] = ({name: split(v, -1) for name, v in ctx["s"].items()},
+                               {name: split(v, -2) for name, v in ctx["v"].items()}, split(ctx["u"], -2))
+                s_l, v_l, u_l = rows[0]
+                c = {"s": {name: a[k] for name, a in s_l.items()}, "v": {name: a[k] for name, a in v_l.items()},
+                     "u": u_l[k]}
             if not eager and compiled is not None and _needs_grad(params, T, inputs) and not _functorch_active():
                 return compiled(T, c)
             return stepper(T, c)
@@ -881,7 +892,7 @@ class Model:
                               f"{str(e)[:200]}); its gradients are computed uncompiled", TorchCompileWarning,
                               stacklevel=2)
             runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed,
-                                                           options=_inductor_options())
+                                                           options=inductor_options())
         return runner
 
     def _forward_scan(self, prep, T0, inputs, dt, integrator, sub):
@@ -993,7 +1004,7 @@ class Model:
             # torch keeps compiled code per code object, with a limit on variants: a code object of this
             # model's own keeps models apart (and one model's shapes from exhausting another's limit)
             compiled = self._jit_cache[key] = CompiledScan(roll, f"tnn_rollout_{id(self):x}_{len(self._jit_cache)}",
-                                                           _inductor_options())
+                                                           inductor_options())
         M = inputs.shape[-2]
         n_chunks = -(-M // chunk)
         pad = n_chunks * chunk - M
@@ -1074,7 +1085,7 @@ class Model:
                 return scan(body, T0, xs)[1].movedim(0, 1)
 
             compiled = self._jit_cache[key] = CompiledScan(
-                roll, f"tnn_param_batch_{id(self):x}_{len(self._jit_cache)}", _inductor_options())
+                roll, f"tnn_param_batch_{id(self):x}_{len(self._jit_cache)}", inductor_options())
         B, k = len(preps), TORCH_PARAM_BATCH
         P = [torch.stack(ts) for ts in zip(*(scalars_as_vectors(f[0]) for f in flats))]
         T0 = T0.contiguous()

@@ -59,7 +59,9 @@ Jacobians inside the filter are forward-mode JVPs on JAX and one reverse pass ke
 forward mode runs through Python reference implementations; reverse mode differentiates either again). Eager torch
 prepares the model once per record (``Model.sample_steps``) and, with a constant linearisation, integrates every
 sample's interval at once, the step then being affine in the state (:func:`_parts`), and runs the stretches where
-the covariance has settled as one vectorised linear recursion (:func:`_stationary_runs`).
+the covariance has settled as one vectorised linear recursion (:func:`_stationary_runs`). A torch fit of a long
+record (:class:`LikelihoodProblem`, :data:`SCAN_MIN_SAMPLES`) with a constant linearisation runs that filter as
+compiled scans instead (:mod:`.torch_filter`), whether or not the covariance settles.
 
 Entry points: :func:`nll` (a backend scalar, differentiable), :func:`loglik` (a float),
 :func:`innovations` (one-step predictions and standardised residuals, numpy), and
@@ -368,9 +370,10 @@ def _depends(jaxpr, flags: list[bool]) -> list[bool]:
     return [not isinstance(v, Literal) and v in dep for v in jaxpr.outvars]
 
 
-def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
+def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0, scan: bool = False):
     """``(−log L, (ŷ⁻ (N, n_out), ε (N, n_out), √diag(H P⁻ Hᵀ + R) (N, n_out), x⁻ (N, n), √diag P⁻ (N, n)))``
-    with ε zero where a reading is missing (backend arrays)."""
+    with ε zero where a reading is missing (backend arrays). ``scan``: on torch, a constant linearisation runs as
+    the compiled scans of :mod:`.torch_filter` (:func:`_scan_pays`)."""
     m = B.xp
     ns, no = len(model.state_names), len(model.output_names)
     I_s = B.asarray(np.eye(ns))
@@ -429,7 +432,12 @@ def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
     zero = 0.0 * U[:, :1]  # (N, 1) zeros of the floating type (U is finite)
     Y0, okf = m.where(mask, Y, zero), m.where(mask, 1.0 + zero, zero)
     index = B.asarray(np.arange(U.shape[0]))  # the sample's index (the torch step's prepared inputs; JAX ignores it)
-    if st.constant and affine is not None and _STATIONARY:
+    scanned = None
+    if st.constant and affine is not None and scan and _SCAN_USABLE:
+        scanned = _filter_scan(x0, P0, H0, F0, Qd0, sv2, step.phi, Y0, okf, out(x0[None, :] + zero, U) - x0 @ H0.T)
+    if scanned is not None:
+        terms, yhat, eps, sd_y, xs, sd_x = scanned
+    elif st.constant and affine is not None and _STATIONARY:
         terms, yhat, eps, sd_y, xs, sd_x = _stationary_runs(
             B, body, (x0, P0), (U, Y0, okf, index), H0=H0, F0=F0, sv2=sv2, x_ref=x0, phi=step.phi, outputs_at=out)
     else:
@@ -440,6 +448,51 @@ def _filter(B, model, st: _Static, params, U, Y, lsw, lsv, x0, lp0):
 _STATIONARY = True
 """Eager torch, constant linearisation: run the stretches where the filter's covariance has settled as one
 vectorised recursion (:func:`_stationary_runs`; the tests switch it off to compare)."""
+SCAN_MIN_SAMPLES = 1000
+"""Records of at least this many samples: a torch fit (:class:`LikelihoodProblem`) of a constant linearisation runs
+the filter as compiled scans (:mod:`.torch_filter`), unless the environment variable ``TNN_TORCH_COMPILE`` decides
+(``1`` always, ``0`` never). Bacher & Madsen's Ti with a second node (1691 samples, ``python
+benchmarks/bench_likelihood.py``, 2026-12-06, the AMD host): one value and gradient 46 ms compiled against 122 ms
+eager where the covariance settles and 1.9 s where it does not, for some 5–13 s of compiling, once per process and
+per ``(states, sensors)`` shape — every candidate of a model doctor of that shape shares it; a fit takes 100–300
+evaluations."""
+_SCAN_USABLE = True
+"""False once torch failed to compile the scans in this process (warned once; the eager filter runs)."""
+
+
+def _scan_pays(B, n_samples: int) -> bool:
+    """Whether a torch fit of ``n_samples`` runs its filter as compiled scans (:data:`SCAN_MIN_SAMPLES`)."""
+    import os
+
+    if B.name != "torch" or not _SCAN_USABLE:
+        return False
+    env = os.environ.get("TNN_TORCH_COMPILE", "").strip()
+    if env in ("0", "1"):
+        return env == "1"
+    return int(n_samples) >= SCAN_MIN_SAMPLES
+
+
+def _filter_scan(x0, P0, H0, F0, Qd0, sv2, phi, Y0, okf, d):
+    """:func:`.torch_filter.filter_scan` (``x_ref = x0``), or ``None`` when torch cannot compile it here (inside a
+    ``torch.func`` transform, or its compiler failed: warned once, and the eager filter serves the process)."""
+    global _SCAN_USABLE
+    import torch
+
+    if torch._C._are_functorch_transforms_active():
+        return None
+    from .torch_filter import filter_scan
+
+    try:
+        return filter_scan(x0, P0, H=H0, F=F0, Q=Qd0, sv2=sv2, x_ref=x0, phi=phi, Y0=Y0, okf=okf, d=d)
+    except Exception as e:  # noqa: BLE001 - compiler infrastructure, not the user's model
+        from ..compiler.model import TorchCompileWarning
+
+        _SCAN_USABLE = False
+        warnings.warn(f"torch.compile failed on the likelihood's filter ({type(e).__name__}: {str(e)[:200]}); it "
+                      "runs eager", TorchCompileWarning, stacklevel=2)
+        return None
+
+
 _SETTLED_RTOL = 1e-15
 """The covariance has settled when one sample moves no entry of ``P⁻`` by more than this times its largest entry,
 two samples in a row."""
@@ -718,6 +771,7 @@ class LikelihoodProblem:
         self._x0_ref_b = B.asarray(self.x0_ref)
         self._fixed_b = {k: None if v is None else B.asarray(v) for k, v in self.fixed.items()}
         self._vg = None
+        self._scan = _scan_pays(B, U.shape[0])
 
     def unpack(self, z: Any) -> dict[str, Any]:
         """``{"params", "log_sigma_w", "log_sigma_v", "x0", "log_p0_std"}`` as backend arrays from ``z``."""
@@ -746,7 +800,7 @@ class LikelihoodProblem:
             z = self.B.asarray(np.asarray(z, dtype=np.float64))
         a = self.unpack(z)
         return _filter(self.B, self.model, self.static, a["params"], self.U, self.Y, a["log_sigma_w"],
-                       a["log_sigma_v"], a["x0"], a["log_p0_std"])[0]
+                       a["log_sigma_v"], a["x0"], a["log_p0_std"], scan=self._scan)[0]
 
     def value_and_grad(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         """``(−log L, ∂(−log L)/∂z)`` at a numpy ``z`` (JAX: compiled once)."""
