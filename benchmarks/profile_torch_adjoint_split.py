@@ -60,8 +60,8 @@ def main(argv=None) -> int:
     compiled_model.TORCH_VECTORIZE = bool(args.vectorize)
     extra = dict(_option(o) for o in args.inductor_option)
     if extra:
-        base = compiled_model._inductor_options
-        compiled_model._inductor_options = lambda: {**base(), **extra}
+        base = compiled_model.inductor_options
+        compiled_model.inductor_options = lambda: {**base(), **extra}
     torch.set_num_threads(1)
     case = br.Case(br.parse(["--steps", str(args.steps), "--batch", str(args.batch)]))
     model = tnn_dsl.compile(case.net, "torch", torch_compile=True)

@@ -1,6 +1,6 @@
 """Inductor options for the compiled adjoint scans, tried on one training step (issue 18): the case study's M2 on
 24 windows × 601 samples (dt 1 s, RK4, float64), forward with gradients and the backward pass, with a set of
-``torch.compile`` options added to the model's own (``compiler.model._inductor_options``). Prints one JSON line:
+``torch.compile`` options added to the model's own (``compiler.model.inductor_options``). Prints one JSON line:
 the first call (tracing and compiling both scans, into the inductor cache the environment names) and the median
 and fastest of 15 further calls.
 
@@ -36,8 +36,8 @@ def main(argv=None) -> int:
     from tnn_dsl.compiler import model as compiled_model
 
     torch.set_num_threads(1)
-    base = compiled_model._inductor_options
-    compiled_model._inductor_options = lambda: {**base(), **opts}
+    base = compiled_model.inductor_options
+    compiled_model.inductor_options = lambda: {**base(), **opts}
     m = compile_network(tnn_dsl.load(ROOT / "networks" / "peltier_heatpipe" / "m2.thn"), backend="torch",
                         torch_compile=True)
     p = {k: v.detach().clone().requires_grad_(v.dtype.is_floating_point) if torch.is_tensor(v) else v

@@ -450,13 +450,13 @@ def test_simd_kernels_follow_the_environment(monkeypatch):
 
     monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", False)
     monkeypatch.delenv("TNN_TORCH_SIMD", raising=False)
-    assert compiled_model._inductor_options().get("cpp.vec_isa_ok") is False
+    assert compiled_model.inductor_options().get("cpp.vec_isa_ok") is False
     monkeypatch.setenv("TNN_TORCH_SIMD", "1")
-    opts = compiled_model._inductor_options()
+    opts = compiled_model.inductor_options()
     assert "cpp.vec_isa_ok" not in opts
     monkeypatch.setenv("TNN_TORCH_SIMD", "0")
     monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", True)
-    assert compiled_model._inductor_options().get("cpp.vec_isa_ok") is False
+    assert compiled_model.inductor_options().get("cpp.vec_isa_ok") is False
     monkeypatch.setenv("TNN_TORCH_SIMD", "yes")
     with pytest.raises(tnn_dsl.TnnError, match="TNN_TORCH_SIMD must be 0 or 1"):
         tnn_dsl.compile(tnn_dsl.loads(CHAIN, "chain.thn"), "torch", torch_compile=True)

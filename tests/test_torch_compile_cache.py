@@ -26,7 +26,7 @@ RAW_SCANS = r"""
 import json, sys, torch
 from torch._higher_order_ops import scan
 from torch._dynamo.utils import counters
-from tnn_dsl.compiler.model import _inductor_options
+from tnn_dsl.compiler.model import inductor_options
 
 def run(k, w, const):
     torch._dynamo.reset()
@@ -42,7 +42,7 @@ def run(k, w, const):
     T0 = torch.ones(3, dtype=torch.float64)
     xs = torch.linspace(0.0, 1.0, 12, dtype=torch.float64).reshape(4, 3)
     before = dict(counters["inductor"])
-    out = torch.compile(roll, fullgraph=True, options=_inductor_options())(T0, xs)
+    out = torch.compile(roll, fullgraph=True, options=inductor_options())(T0, xs)
     T, ref = T0, []
     for x in xs:
         T = T * k + x * w + c

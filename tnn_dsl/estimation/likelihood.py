@@ -452,10 +452,10 @@ SCAN_MIN_SAMPLES = 1000
 """Records of at least this many samples: a torch fit (:class:`LikelihoodProblem`) of a constant linearisation runs
 the filter as compiled scans (:mod:`.torch_filter`), unless the environment variable ``TNN_TORCH_COMPILE`` decides
 (``1`` always, ``0`` never). Bacher & Madsen's Ti with a second node (1691 samples, ``python
-benchmarks/bench_likelihood.py``, 2026-12-06, the AMD host): one value and gradient 46 ms compiled against 122 ms
-eager where the covariance settles and 1.9 s where it does not, for some 5–13 s of compiling, once per process and
-per ``(states, sensors)`` shape — every candidate of a model doctor of that shape shares it; a fit takes 100–300
-evaluations."""
+benchmarks/bench_likelihood.py``, 2026-12-06, the AMD host): one value and gradient 48 ms compiled (JAX 38 ms)
+against 130 ms eager where the covariance settles and 1.9 s where it does not, for 13 s of compiling on an empty
+inductor cache, once per process and per ``(states, sensors)`` shape — every candidate of a model doctor of that
+shape shares it; a fit takes 100–300 evaluations."""
 _SCAN_USABLE = True
 """False once torch failed to compile the scans in this process (warned once; the eager filter runs)."""
 

@@ -11,13 +11,15 @@ prior ``(x⁻, P⁻)``, the sample's data and a few constant matrices, whatever 
 
 Eager torch pays its per-operation dispatch some forty times a sample, forward and reverse: one value and gradient
 of Bacher & Madsen's Ti with a second node (1691 samples) took 1.9 s wherever the covariance does not settle and
-:func:`~tnn_dsl.estimation.likelihood._stationary_runs` cannot vectorise, 122 ms where it settles, and 46 ms here
-(2026-12-06, the AMD host; BENCHMARKS.md, issue 18). Here the recursion of ``(x⁻, P⁻)`` runs
-as the compiled forward and adjoint scans of :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`, the state
-being ``[x⁻, vec P⁻]`` and the constants its prepared values; every per-sample output (the likelihood's terms,
-``ŷ⁻``, ``ε``, the standard deviations) is then one vectorised expression of the stored priors, differentiated by
-autograd as usual. The step is the same for every network of ``n`` states and ``m`` sensors: the compiled programs
-are kept per ``(n, m, dtype)`` for the process, not per model, so a model doctor's candidates share them.
+:func:`~tnn_dsl.estimation.likelihood._stationary_runs` cannot vectorise, 130 ms where it settles, and 48 ms here
+(JAX 38 ms; ``python benchmarks/bench_likelihood.py``, 2026-12-06, the AMD host).
+
+Here the recursion of ``(x⁻, P⁻)`` runs as the compiled forward and adjoint scans of
+:class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout`, the state being ``[x⁻, vec P⁻]`` and the constants its
+prepared values; every per-sample output (the likelihood's terms, ``ŷ⁻``, ``ε``, the standard deviations) is then
+one vectorised expression of the stored priors, differentiated by autograd as usual. The step is the same for
+every network of ``n`` states and ``m`` sensors: the compiled programs are kept per ``(n, m, dtype)`` for the
+process, not per model, so a model doctor's candidates share them.
 
 The matrix products are written as multiplications and sums: inductor fuses them (as library calls the forward
 and reverse scans took 28 and 62 ms of that evaluation, against 12 and 21 ms). ``S⁻¹`` is a Cholesky factorisation
@@ -31,6 +33,7 @@ Hessian is taken by differences of the gradient)."""
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 __all__ = ["filter_scan"]
@@ -125,10 +128,14 @@ def _padded(a, how: int):
 
 def _rollout():
     if not _ROLLOUT:
-        from ..compiler.model import inductor_options
+        from ..compiler.model import TorchCompileWarning, inductor_options
         from ..compiler.torch_adjoint import AdjointRollout
 
-        _ROLLOUT.append(AdjointRollout(_stepper, "tnn_kalman", options=inductor_options()))
+        def failed(e: Exception) -> None:
+            warnings.warn(f"torch.compile failed in the likelihood filter's backward pass ({type(e).__name__}: "
+                          f"{str(e)[:200]}); its gradients are computed uncompiled", TorchCompileWarning, stacklevel=2)
+
+        _ROLLOUT.append(AdjointRollout(_stepper, "tnn_kalman", failed, options=inductor_options()))
     return _ROLLOUT[0]
 
 
