@@ -122,10 +122,13 @@ apart and its diagnosis accepted two more terms (BENCHMARKS.md, 2026-11-29), so 
 doctor's answers were measured with. The forward-mode tangents, tried the same way once, gained nothing from chunks
 (each chunk recomputes the primal), so they stay one batch."""
 
-DOCTOR_COMPILE_MIN_SAMPLES = 2_000
+DOCTOR_COMPILE_MIN_SAMPLES = 1_000
 """Samples (every training and held-out file together) from which the doctor's torch models compile their rollouts
 (:func:`doctor_model`): a fit simulates the files tens to hundreds of times, and torch's eager rollout costs a Python
-call per sample."""
+call per sample. 2000 until 2026-12-06; at 1000 (the AMD host, 1.27 s per 10⁷ Python additions, each slow test
+alone): ``tests/test_doctor_ml.py``'s Bacher & Madsen likelihood diagnosis on torch (1184 + 507 samples) 7 min 47 s →
+4 min 51 s, its TCLab diagnosis of a planted fan dependence (1000 + 600) 150 → 43 s; the fast tests' torch diagnoses
+use at most 700 samples and stay eager."""
 
 
 def doctor_model(net: Network, backend: str, n_samples: int):
