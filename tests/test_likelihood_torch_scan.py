@@ -10,24 +10,13 @@ import warnings
 
 import numpy as np
 import pytest
+from test_likelihood import RC, TWO  # one node and sensor; two nodes and sensors
 
 import tnn_dsl
 from tnn_dsl.compiler.model import TorchCompileWarning
 from tnn_dsl.estimation import likelihood as lk
 from tnn_dsl.estimation import torch_filter
 from tnn_dsl.estimation.likelihood import LikelihoodProblem
-
-RC = """
-network rc "one node"
-units temperature = K
-input Ta : temperature column "Ta"
-input P  : [W] column "P"
-boundary amb = Ta
-node n C = 100 J/K  free
-R n -- amb = 0.5 K/W  free as Rn
-source n = P
-sensor y = n column "y"
-"""
 
 RC_OTHER = """
 network rc_other "one node, written otherwise: the same shape"
@@ -39,22 +28,6 @@ node wall C = 800 J/K  free
 G wall -- amb = 4 W/K  free as Gw
 source wall = 0.5 * P
 sensor T_wall = wall column "y"
-"""
-
-TWO = """
-network two "two heaters, two sensors"
-units temperature = K
-input Ta : temperature column "Ta"
-input Q1 : [W] column "Q1"
-boundary amb = Ta
-node h1 C = 60 J/K  free
-node h2 C = 40 J/K  free
-G h1 -- amb = 0.3 W/K  free as G1
-G h2 -- amb = 0.2 W/K  free as G2
-G h1 -- h2 = 0.5 W/K  free as G12
-source h1 = Q1
-sensor T1 = h1 column "T1"
-sensor T2 = h2 column "T2"
 """
 
 
