@@ -694,7 +694,8 @@ class Model:
                 return [xp.take(v, k, axis=ax) for k in range(xp.shape(v)[ax])]
         # the context split into samples from the second step on; the first takes its sample alone (a filter that
         # steps every sample at once, step_all, steps one sample for its Jacobian: torch's unbind of Bacher &
-        # Madsen's 1691 samples and its reverse cost ~50 ms of such an evaluation's ~100, 2026-12-06)
+        # Madsen's 1691 samples and its reverse cost ~6 ms of such an evaluation's ~52, 2026-12-06).
+        # rows: [] before the first step, [None] after it, [(s_l, v_l, u_l)] once split
         rows: list = []
         stepper = self._stepper(prep, dt, integrator, sub)
         compiled = self._compiled_torch_step(prep, dt, integrator, sub) if self.torch_compile else None
