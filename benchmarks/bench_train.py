@@ -57,9 +57,11 @@ TORCH_COMPILED = "torch-compiled"
 def _worker(args) -> int:
     """One training run; prints one JSON line on stdout."""
     import tnn_dsl
-    from tnn_dsl.studies.casestudy import generate_case_study
+    from tnn_dsl.studies.casestudy import OOD_S, VAL_S, generate_case_study
 
     durations = None if not args.quick else (2400.0, 1200.0, 60.0)
+    if args.train_hours:
+        durations = (args.train_hours * 3600.0, VAL_S, OOD_S)
     cs = generate_case_study(args.cache, n_ood=0, widen=(), durations=durations)
     trace: list[tuple[float, float]] = []
     compiles: list[tuple[float, float]] = []  # (end s since t0, duration s)
@@ -145,7 +147,7 @@ def _count_compilations(backend: str, out: list[tuple[float, float]], t0) -> Non
     convert_frame._compile = timed
 
 
-def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
+def _table(rows: list[dict], quick: bool, epochs: int | None = None, train_hours: float | None = None) -> str:
     lines = ["| model | backend | final val MAE (K) | time to ≤ 1.1 × final (s) | total (s) | compilation (s) | "
              "time to ≤ 1.1 × final less compilation (s) | Adam epochs | stopped |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -162,6 +164,8 @@ def _table(rows: list[dict], quick: bool, epochs: int | None = None) -> str:
                      f"{r['t_total']:.0f} | {comp[0]} | {comp[1]} | {r['epochs']} | {r['stopped']} |")
     m2j = next((r for r in rows if r.get("model") == "m2" and r.get("backend") == "jax" and "t_reach" in r), None)
     size = "40 min train / 20 min validation (quick mode)" if quick else "4 h train / 2 h validation"
+    if train_hours:
+        size = f"{train_hours:g} h train / 2 h validation"
     if epochs:
         opts = (f"a fixed schedule for comparing backends (Adam {epochs} epochs, validation every 10, no L-BFGS, "
                 "no early stopping; otherwise defaults)")
@@ -256,6 +260,9 @@ def main(argv=None) -> int:
     ap.add_argument("--epochs", type=int, default=None,
                     help="fixed schedule for a backend comparison: N Adam epochs, no L-BFGS, no early stopping "
                          "(written to the `training-backends` section)")
+    ap.add_argument("--train-hours", type=float, default=None, metavar="H",
+                    help="hours of training data (default 4; validation stays 2 h): a longer record is more windows "
+                         "per training step (600 s each), e.g. 24 h for 144 windows")
     ap.add_argument("--timeout", type=float, default=None, help="seconds allowed per training run (default: none)")
     ap.add_argument("--torch-python-wrapper", action="store_true",
                     help="torch's compiled scans with inductor's Python wrapper (the model's TORCH_CPP_WRAPPER = "
@@ -277,7 +284,7 @@ def main(argv=None) -> int:
         return _worker(args)
     models = args.only or (["m2"] if args.quick else ["m2", "m3"])
     backends = args.backends or (["jax"] if args.quick else ["jax", "torch", TORCH_COMPILED])
-    cache = args.cache + ("_quick" if args.quick else "")
+    cache = args.cache + ("_quick" if args.quick else "") + (f"_{args.train_hours:g}h" if args.train_hours else "")
     rows = []
     runs = range(1, args.repeats + 1) if args.polish_jitter else range(args.repeats)
     for model in models:
@@ -287,6 +294,7 @@ def main(argv=None) -> int:
                 continue
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", model, "--backend", backend,
                    "--cache", cache] + (["--quick"] if args.quick else []) + (
+                      ["--train-hours", str(args.train_hours)] if args.train_hours else []) + (
                       ["--torch-python-wrapper"] if args.torch_python_wrapper else []) + (
                       ["--torch-vectorize"] if args.torch_vectorize else []) + (
                       ["--epochs", str(args.epochs)] if args.epochs else []) + (
@@ -318,7 +326,7 @@ def main(argv=None) -> int:
             print("  " + (f"failed: {r['error']}" if "error" in r else
                           f"final val MAE {r['final_val_mae']:.4g} K, within 10 % after {r['t_reach']:.0f} s, "
                           f"total {r['t_total']:.0f} s"), file=sys.stderr, flush=True)
-    md = _table(rows, args.quick, args.epochs)
+    md = _table(rows, args.quick, args.epochs, args.train_hours)
     print(md)
     if args.repeats > 1:
         print(_spread(rows))
@@ -329,6 +337,8 @@ def main(argv=None) -> int:
 
         if args.epochs:
             write_section("training-backends", md, path=args.output, title="Training: JAX vs torch, same schedule")
+        elif args.train_hours:
+            write_section("training-long-record", md, path=args.output, title="Training time on a longer record")
         else:
             write_section("training", md, path=args.output, title="Training time (issue 4)")
     return 0 if all("error" not in r for r in rows) else 1

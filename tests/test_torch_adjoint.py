@@ -428,18 +428,80 @@ def test_small_products_are_batch_last_and_equal_matmul(lead):
 
 
 @pytest.mark.slow  # SIMD kernels compile for a minute; the fast suite's batch-last test checks the product
-def test_simd_kernels_match_jax(monkeypatch):
-    """With inductor's SIMD kernels (``TNN_TORCH_SIMD=1``, ``TORCH_SIMD_BITS`` wide) a batch's states and
-    gradients are JAX's (1e-9 K, 1e-6 relative)."""
-    monkeypatch.setenv("TNN_TORCH_SIMD", "1")
+@pytest.mark.parametrize("how", ["environment", "batch size"])
+def test_simd_kernels_match_jax(monkeypatch, how):
+    """With inductor's SIMD kernels (``TNN_TORCH_SIMD=1``, or by default for a rollout of ``TORCH_SIMD_MIN_BATCH``
+    sequences and ``TORCH_SIMD_MIN_WINDOW_STEPS`` samples; ``TORCH_SIMD_BITS`` wide) a batch's states and
+    gradients are JAX's (1e-9 K, 1e-6 relative); a free run of two sequences after it runs on the same compiled
+    forward scan."""
+    import tnn_dsl.compiler.model as compiled_model
+
+    if how == "environment":
+        monkeypatch.setenv("TNN_TORCH_SIMD", "1")
+    else:
+        monkeypatch.delenv("TNN_TORCH_SIMD", raising=False)
+        monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", False)
+        monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_BATCH", 16)
+        monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_WINDOW_STEPS", 16 * 8)
     net = tnn_dsl.loads(CHAIN, "chain.thn")
     mc, mj = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "jax")
     p_np = nets.random_params(mj, 2)
     T0, U = _inputs(mj, 9, 16)
     got = _torch_grads(mc, p_np, T0, U)
     assert _adjoint_used(mc)
-    assert any(type(k) is tuple and k[0] == "torch_adjoint" and k[6] is True for k in mc._jit_cache)
+    assert [k[6] for k in mc._jit_cache if type(k) is tuple and k[0] == "torch_adjoint"] == [True]
     _assert_close(_jax_grads(mj, p_np, T0, U), got)
+    with torch.no_grad():
+        s = mc.rollout(mc.from_numpy(p_np), torch.as_tensor(T0[:2]), torch.as_tensor(U[:2]), 1.0)[0]
+    assert np.max(np.abs(s.numpy() - np.asarray(mj.rollout(mj.from_numpy(p_np), T0[:2], U[:2], 1.0)[0]))) <= 1e-9
+    assert [k[6] for k in mc._jit_cache if type(k) is tuple and k[0] == "torch_adjoint"] == [True]
+
+
+def test_large_batches_get_simd_kernels_and_free_runs_reuse_a_compiled_scan(monkeypatch):
+    """By default (``TORCH_VECTORIZE`` off, ``TNN_TORCH_SIMD`` unset) a rollout with gradients of a network with an
+    MLP of a smooth activation, of at least ``TORCH_SIMD_MIN_BATCH`` sequences and ``TORCH_SIMD_MIN_WINDOW_STEPS``
+    samples in all, gets SIMD kernels, others scalar kernels; a free run (no gradients) takes whichever runner the
+    model already has rather than compiling another (scalar where it has none), unless the environment chooses.
+    Nothing is compiled here: the runners compile at their first call."""
+    import tnn_dsl.compiler.model as compiled_model
+    from tnn_dsl.compiler.model import _torch_vectorize
+
+    monkeypatch.setattr(compiled_model, "TORCH_VECTORIZE", False)
+    monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_BATCH", 16)
+    monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_WINDOW_STEPS", 65_536)
+    monkeypatch.delenv("TNN_TORCH_SIMD", raising=False)
+    sizes = [(None, None), (256, None), (1, 10**6), (15, 10**5), (16, 4096), (24, 600), (256, 390), (16, 4095)]
+    assert [_torch_vectorize(b, n, True) for b, n in sizes] == [False, False, False, False, True, False, True, False]
+    assert not _torch_vectorize(256, 390, False)  # no MLP: nothing to vectorise that the scalar kernels do not
+    monkeypatch.setenv("TNN_TORCH_SIMD", "0")
+    assert not _torch_vectorize(256, 390, True)
+    monkeypatch.setenv("TNN_TORCH_SIMD", "1")
+    assert _torch_vectorize(1, 1) and _torch_vectorize()
+    monkeypatch.delenv("TNN_TORCH_SIMD")
+    monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_WINDOW_STEPS", None)
+    assert not _torch_vectorize(256, 10**6, True)
+    monkeypatch.setattr(compiled_model, "TORCH_SIMD_MIN_WINDOW_STEPS", 65_536)
+    for learn, simd in (("mlp(a, b; hidden = [3], activation = relu)", False), ("linear(a, b)", False),
+                        ("mlp(a, b; hidden = [3], activation = sigmoid)", True)):
+        other = tnn_dsl.compile(tnn_dsl.loads(CHAIN.replace("mlp(a, b; hidden = [3], activation = tanh)", learn),
+                                              "chain.thn"), "torch", torch_compile=True)
+        runner = other._adjoint_runner(1.0, "rk4", None, False, batch=256, samples=390)
+        assert ("cpp.vec_isa_ok" not in runner.options) is simd, learn
+
+    mc = tnn_dsl.compile(tnn_dsl.loads(CHAIN, "chain.thn"), "torch", torch_compile=True)
+    big = mc._adjoint_runner(1.0, "rk4", None, False, batch=256, samples=390)
+    assert "cpp.vec_isa_ok" not in big.options
+    assert mc._adjoint_runner(1.0, "rk4", None, False, reuse=True) is big  # a free run after it: no new graph
+    small = mc._adjoint_runner(1.0, "rk4", None, False, batch=24, samples=600)  # the case study's training
+    assert small is not big and small.options.get("cpp.vec_isa_ok") is False
+    assert mc._adjoint_runner(1.0, "rk4", None, False, reuse=True) is small
+    alone = tnn_dsl.compile(tnn_dsl.loads(CHAIN, "chain.thn"), "torch", torch_compile=True)  # a free run first
+    assert alone._adjoint_runner(1.0, "rk4", None, False, reuse=True).options.get("cpp.vec_isa_ok") is False
+    assert mc._adjoint_runner(1.0, "rk4", None, True, batch=1, samples=10**6).options.get("cpp.vec_isa_ok") is False
+    fresh = tnn_dsl.compile(tnn_dsl.loads(CHAIN, "chain.thn"), "torch", torch_compile=True)
+    simd_only = fresh._adjoint_runner(1.0, "rk4", None, False, batch=256, samples=390)
+    monkeypatch.setenv("TNN_TORCH_SIMD", "0")  # the user's choice wins over reuse
+    assert fresh._adjoint_runner(1.0, "rk4", None, False, reuse=True) is not simd_only
 
 
 def test_simd_kernels_follow_the_environment(monkeypatch):

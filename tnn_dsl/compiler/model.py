@@ -128,8 +128,10 @@ twice, scalar and vectorised, was most of inductor's code generation. Cold compi
 final MAE after 53 → 39 s, M3 169 → 131 s (``python benchmarks/bench_train.py``); batched forward + gradient 2.75
 → 2.84 µs per window-step, batched forward 0.79 → 0.96, single sequence 9.6 → 9.2 µs/step (``python
 benchmarks/bench_rollout.py --only jax,torchc``, one after the other). :class:`~.torch_adjoint.CompiledScan` keeps
-the option from leaking into the process's other graphs. ``True``: SIMD kernels, :data:`TORCH_SIMD_BITS` wide. The
-environment variable ``TNN_TORCH_SIMD`` (``1``/``0``) overrides it (:func:`_torch_vectorize`).
+the option from leaking into the process's other graphs. ``True``: SIMD kernels, :data:`TORCH_SIMD_BITS` wide, for
+every compiled scan; ``False``: only for the rollouts with gradients that repay them (an MLP's network, large
+batches: :data:`TORCH_SIMD_MIN_WINDOW_STEPS`). The environment variable ``TNN_TORCH_SIMD`` (``1``/``0``: everywhere,
+nowhere) overrides both (:func:`_torch_vectorize`).
 
 Since the small products run batch-last (:func:`~.backends.torch_ops.fused_matmul`, 2026-12-03) the SIMD kernels
 run along the windows and ``True`` is the faster runtime, but not the faster training from a cold start: case study
@@ -140,6 +142,33 @@ jax,torchc,torchv``, 02:50–02:54 UTC); training to within 10 % of the final va
 M2 106 against 62 s, M3 253 against 230 s, of it compiling 75 against 35 and 101 against 37 s (M3 less its
 compilation 153 against 193 s). Worth turning on for long trainings, fleets of one template, or where inductor's
 on-disk cache already holds the network's scans (BENCHMARKS.md, "SIMD kernels along the windows")."""
+
+
+TORCH_SIMD_MIN_BATCH = 16
+"""With :data:`TORCH_VECTORIZE` off and ``TNN_TORCH_SIMD`` unset, a rollout with gradients of a network holding an
+MLP with a smooth activation, of at least this many sequences at once (a training's windows, several units fitted
+together) and at least :data:`TORCH_SIMD_MIN_WINDOW_STEPS` samples in all, compiles its two scans with SIMD
+kernels; other rollouts stay scalar. The SIMD kernels run along the windows (four float64 values per operation at
+:data:`TORCH_SIMD_BITS`), so fewer windows leave the vectors mostly empty."""
+
+TORCH_SIMD_MIN_WINDOW_STEPS = 65_536
+"""The samples of a rollout with gradients, all its sequences together, from which its scans get SIMD kernels
+(:data:`TORCH_SIMD_MIN_BATCH`; ``None``: never by size). What SIMD kernels save grows with the samples a call
+integrates, what they cost to compile does not; and they save where the step evaluates an MLP's sigmoid, tanh,
+softplus or SiLU, which the scalar kernels compute one value at a time through the C library. Measured on the AMD
+host, 2026-12-07:
+
+- forward + gradient per window-step, case study M3, windows of 390 samples, scalar against SIMD, each pair in one
+  process (``python benchmarks/bench_rollout.py --only jax,torchc,torchv --batch B --steps B*390 --no-write``,
+  01:21–01:28 UTC): 24 windows 7.41 against 6.44 µs (9 ms a call), 64 windows 5.56 against 4.52 (26 ms), 256
+  windows 5.23 against 3.67 (156 ms a call; JAX 2.06: 2.54× against 1.78×), for about 30 s more compiling;
+- trainings on a 24 h record (144 windows of 600 samples, 86 400 a call), cold inductor cache, ``python
+  benchmarks/bench_train.py --only mN --backends torch-compiled --train-hours 24 --no-write`` with SIMD kernels
+  and then under ``TNN_TORCH_SIMD=0`` (01:40–02:06 UTC): M3 (sigmoid MLP) within 10 % of its final MAE after 373
+  against 459 s, 455 against 580 s in all, compiling 59.1 against 26.5 s; M2 (no MLP) 118 against 93 s, compiling
+  43.2 against 20.2 s, the rest 74 against 73 s: no gain to repay the compiling.
+
+The case study's own trainings (24 windows of 600 samples, 14 400 in all) stay scalar."""
 
 
 TORCH_SIMD_BITS = 256
@@ -172,26 +201,39 @@ miss, a tensor input's value is not part of the key, and the reused program comp
 6.5 and 5.8 s (dynamo still traces; inductor and the C++ compiler are skipped). ``False``: no caching."""
 
 
-def _torch_vectorize() -> bool:
-    """Whether the compiled scans get SIMD kernels: the environment variable ``TNN_TORCH_SIMD`` (``1``/``0``) where
-    set, else :data:`TORCH_VECTORIZE`. Read when a scan is looked up or compiled, so a process (``tnnc train
-    --backend torch --torch-compile`` under ``TNN_TORCH_SIMD=1``) can turn them on without code."""
+def _torch_vectorize(batch: int | None = None, samples: int | None = None, smooth_mlp: bool = False) -> bool:
+    """Whether a compiled scan gets SIMD kernels: the environment variable ``TNN_TORCH_SIMD`` (``1``: always,
+    ``0``: never) where set, else :data:`TORCH_VECTORIZE`, else whether a rollout of ``batch`` sequences of
+    ``samples`` samples each of a network with an MLP of a smooth activation (``smooth_mlp``) reaches
+    :data:`TORCH_SIMD_MIN_BATCH` and :data:`TORCH_SIMD_MIN_WINDOW_STEPS` (``None`` for a scan compiled for no
+    particular size: scalar). Read when a scan is looked up or compiled, so a process (``tnnc train --backend torch
+    --torch-compile`` under ``TNN_TORCH_SIMD=1``) can turn them on without code."""
     env = os.environ.get("TNN_TORCH_SIMD", "").strip()
     if env not in ("", "0", "1"):
         raise TnnError([Diagnostic(f"TNN_TORCH_SIMD must be 0 or 1, got {env!r}",
-                                   hint="unset it for the default (scalar kernels), or set 1 for SIMD kernels")])
-    return TORCH_VECTORIZE if not env else env == "1"
+                                   hint="unset it for the default (SIMD kernels for the trainings of networks with "
+                                        f"an MLP on at least {TORCH_SIMD_MIN_BATCH} windows and "
+                                        f"{TORCH_SIMD_MIN_WINDOW_STEPS} samples a step), 1 for SIMD kernels "
+                                        "everywhere, 0 for none")])
+    if env:
+        return env == "1"
+    if TORCH_VECTORIZE:
+        return True
+    if (not smooth_mlp or batch is None or samples is None or TORCH_SIMD_MIN_BATCH is None
+            or TORCH_SIMD_MIN_WINDOW_STEPS is None):
+        return False
+    return batch >= TORCH_SIMD_MIN_BATCH and batch * samples >= TORCH_SIMD_MIN_WINDOW_STEPS
 
 
-def inductor_options() -> dict:
-    """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`, :data:`TORCH_VECTORIZE`,
-    :data:`TORCH_CACHE_SCANS`)."""
+def inductor_options(simd: bool | None = None) -> dict:
+    """``torch.compile(options=...)`` of the compiled scans (:data:`TORCH_CPP_WRAPPER`, :data:`TORCH_CACHE_SCANS`);
+    SIMD kernels where ``simd`` (``None``: :func:`_torch_vectorize` for no particular batch)."""
     opts: dict = {"cpp_wrapper": True, "cpp_wrapper_build_separate": True} if TORCH_CPP_WRAPPER else {}
     if TORCH_CACHE_SCANS:
         import torch
 
         opts["unsafe_marked_cacheable_functions"] = {"torch.ops.higher_order.scan": torch.__version__}
-    if not _torch_vectorize():
+    if not (_torch_vectorize() if simd is None else simd):
         opts["cpp.vec_isa_ok"] = False  # part of inductor's cache key; see torch_adjoint.CompiledScan for its probe
     elif platform.machine().lower() in ("x86_64", "amd64"):
         opts["cpp.simdlen"] = TORCH_SIMD_BITS
@@ -873,14 +915,24 @@ class Model:
             return None
         return torch.movedim(torch.cat(outs, 0)[:M], 0, -2)
 
-    def _adjoint_runner(self, dt, integrator, sub, unbatched):
-        """The :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout` of this model's step, kept per ``(dt,
-        integrator, sub, unbatched)``; traced on :class:`FusedTorchXP`. Its compiled forward scan serves both the
-        rollouts with gradients (:meth:`_torch_adjoint_rollout`) and those without (:meth:`_forward_scan`)."""
+    def _adjoint_runner(self, dt, integrator, sub, unbatched, batch: int | None = None, samples: int | None = None,
+                        reuse: bool = False):
+        """The :class:`~tnn_dsl.compiler.torch_adjoint.AdjointRollout` of this model's step, kept per ``(dt, integrator,
+        sub, unbatched)`` and whether its kernels are SIMD (:func:`_torch_vectorize` of the rollout's ``batch`` of
+        sequences, their ``samples`` and whether the network has an MLP); traced on :class:`FusedTorchXP`. Its compiled
+        forward scan serves both the rollouts with gradients (:meth:`_torch_adjoint_rollout`) and those without
+        (:meth:`_forward_scan`, with ``reuse``: a runner of the other kind already made is taken rather than a new graph
+        compiled, unless ``TNN_TORCH_SIMD`` chooses the kind; a free run alone, paid for once, does not repay the SIMD
+        kernels' longer compiling, so it gets none of its own)."""
         from .torch_adjoint import AdjointRollout
 
-        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, _torch_vectorize(),
-               TORCH_SIMD_BITS)
+        smooth_mlp = any(fn.kind == "mlp" and fn.activation != "relu" for fn in self.network.learned)
+        simd = _torch_vectorize(batch, samples, smooth_mlp)
+        key = ("torch_adjoint", dt, integrator, sub, unbatched, TORCH_CPP_WRAPPER, simd, TORCH_SIMD_BITS)
+        if reuse and key not in self._jit_cache and not os.environ.get("TNN_TORCH_SIMD", "").strip():
+            other = (*key[:6], not simd, TORCH_SIMD_BITS)
+            if other in self._jit_cache:
+                key, simd = other, not simd
         runner = self._jit_cache.get(key)
         if runner is None:
             core = self._fused_core()
@@ -893,7 +945,7 @@ class Model:
                               f"{str(e)[:200]}); its gradients are computed uncompiled", TorchCompileWarning,
                               stacklevel=2)
             runner = self._jit_cache[key] = AdjointRollout(stepper, f"{id(self):x}_{len(self._jit_cache)}", failed,
-                                                           options=inductor_options())
+                                                           options=inductor_options(simd))
         return runner
 
     def _forward_scan(self, prep, T0, inputs, dt, integrator, sub):
@@ -913,7 +965,8 @@ class Model:
             T0 = T0.expand(2, T0.shape[-1])
         batch = tuple(T0.shape[:-1])
         U = torch.broadcast_to(inputs, (*batch, *inputs.shape[-2:]))
-        S = self._adjoint_runner(dt, integrator, sub, False).states(prep, T0, _time_major(self._core.rhs_u(prep, U)))
+        runner = self._adjoint_runner(dt, integrator, sub, False, reuse=True)  # SIMD only if a training made it
+        S = runner.states(prep, T0, _time_major(self._core.rhs_u(prep, U)))
         S = torch.movedim(S, 0, -2)
         return S[0] if single else S
 
@@ -928,7 +981,8 @@ class Model:
 
         from .torch_adjoint import Unsupported
 
-        runner = self._adjoint_runner(dt, integrator, sub, T0.ndim == 1)
+        runner = self._adjoint_runner(dt, integrator, sub, T0.ndim == 1, batch=math.prod(T0.shape[:-1]),
+                                      samples=ctx["u"].shape[-2])
         try:
             S = runner(prep, T0, _time_major(ctx))
         except Unsupported:

@@ -119,13 +119,13 @@ def fused_matmul(a, b):
     A batch of vectors ``a (B, K)`` (or more leading axes, flattened) is multiplied batch-last: ``sum(aᵀ[:, None,
     :]·b[:, :, None], 0) (N, B)``, returned transposed as ``(B, N)``. Inductor then lays the product and what is
     computed from it (an MLP's activations, their gradients) out with the batch as the contiguous axis, and its SIMD
-    kernels (:data:`~tnn_dsl.compiler.model.TORCH_VECTORIZE`) run along the windows instead of along the 3–18 units,
-    nodes or links of a layer, where most lanes were masked tails. Case study M3, RK4, 256 windows × 390 samples,
-    forward + gradient in µs per window-step, JAX and the variants alongside in one process (a throwaway A/B script,
-    2026-12-03, about 02:30–02:35 UTC; BENCHMARKS.md, "SIMD kernels along the windows"): SIMD kernels along the units
-    7.90, along the windows 7.00, batch-last without SIMD kernels 9.27 (JAX 4.59); without SIMD kernels the layout
-    changes nothing measurable (M2's training, ``python benchmarks/bench_train.py --only m2 --backends
-    torch-compiled``, the trees before and after alternately: 65, 64 against 72, 60 s to within 10 %)."""
+    kernels (:data:`~tnn_dsl.compiler.model.TORCH_SIMD_MIN_WINDOW_STEPS`) run along the windows instead of along the
+    3–18 units, nodes or links of a layer, where most lanes were masked tails. Case study M3, RK4, 256 windows × 390
+    samples, forward + gradient in µs per window-step, JAX and the variants alongside in one process (a throwaway A/B
+    script, 2026-12-03, about 02:30–02:35 UTC; BENCHMARKS.md, "SIMD kernels along the windows"): SIMD kernels along the
+    units 7.90, along the windows 7.00, batch-last without SIMD kernels 9.27 (JAX 4.59); without SIMD kernels the layout
+    changes nothing measurable (M2's training, ``python benchmarks/bench_train.py --only m2 --backends torch-compiled``,
+    the trees before and after alternately: 65, 64 against 72, 60 s to within 10 %)."""
     if (isinstance(a, torch.Tensor) and a.ndim >= 1 and isinstance(b, torch.Tensor) and b.ndim == 2
             and b.shape[0] == a.shape[-1] and b.numel() <= SMALL_MATMUL):
         if a.ndim == 1:
