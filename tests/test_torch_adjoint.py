@@ -38,6 +38,9 @@ source a = P
 sensor T_a = a
 learn G_ab as mlp(a, b; hidden = [3], activation = tanh)
 """
+PLAIN_CHAIN = CHAIN.replace("learn G_ab as mlp(a, b; hidden = [3], activation = tanh)\n", "")
+"""The chain without its learned conductance: for the tests of a mechanism whatever the step, whose scans compile in
+half the time (the wrapper's fallback: 13.8 against 27.7 s alone, 2026-12-07)."""
 
 
 def _inputs(model, N: int, B: int | None, seed: int = 0):
@@ -247,7 +250,8 @@ def test_cpp_wrapper_failure_falls_back_to_the_python_wrapper(monkeypatch):
         return seen[-1][1]
 
     monkeypatch.setattr(torch, "compile", _compile_failing_when(cpp, "conflicting declaration 'auto buf35'"))
-    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    net = tnn_dsl.loads(PLAIN_CHAIN, "chain.thn")
+    assert not net.learned
     mc, me = tnn_dsl.compile(net, "torch", torch_compile=True), tnn_dsl.compile(net, "torch")
     p_np = nets.random_params(me, 2)
     T0, U = _inputs(me, 7, 2)
