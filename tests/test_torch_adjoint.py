@@ -40,7 +40,7 @@ learn G_ab as mlp(a, b; hidden = [3], activation = tanh)
 """
 PLAIN_CHAIN = CHAIN.replace("learn G_ab as mlp(a, b; hidden = [3], activation = tanh)\n", "")
 """The chain without its learned conductance: for the tests of a mechanism whatever the step, whose scans compile in
-half the time (the wrapper's fallback: 13.8 against 27.7 s alone, 2026-12-07)."""
+half the time (the wrapper's fallback: 13.3 against 27.7 s alone, 2026-12-07)."""
 
 
 def _inputs(model, N: int, B: int | None, seed: int = 0):
