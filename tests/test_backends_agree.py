@@ -81,6 +81,30 @@ def test_input_only_links_agree_short():
         assert np.max(np.abs(a - a[0])) > 1.0  # it moved
 
 
+def test_an_eager_torch_rollout_without_gradients_returns_ordinary_tensors_and_leaves_nothing_behind():
+    """Torch's eager step loop runs under ``torch.inference_mode()`` when nothing is differentiated (issue 18): its
+    states and outputs come back as ordinary tensors (a caller may differentiate through them later), JAX's to
+    1e-9 K, and a rollout with gradients on the same model afterwards (its caches filled by the first) differentiates
+    as on a fresh model."""
+    import torch
+
+    net = nets.case_study("mlp", extra=True)
+    mt, mj = tnn_dsl.compile(net, "torch"), tnn_dsl.compile(net, "jax")
+    p_np = nets.random_params(mj, 0)
+    u = nets.case_inputs(50, seed=1)
+    T0 = np.full(len(mj.state_names), 298.15)
+    with torch.no_grad():
+        s, y = mt.rollout(mt.from_numpy(p_np), T0, u, 1.0)
+    assert not s.is_inference() and not y.is_inference()
+    assert np.max(np.abs(s.numpy() - np.asarray(mj.rollout(mj.from_numpy(p_np), T0, u, 1.0)[0]))) <= 1e-9
+    T0t = torch.as_tensor(T0).requires_grad_(True)
+    (s * 1.0 + mt.rollout(mt.from_numpy(p_np), T0t, u, 1.0)[0]).sum().backward()  # no "inference tensor" error
+    fresh = tnn_dsl.compile(net, "torch")
+    T0f = torch.as_tensor(T0).requires_grad_(True)
+    fresh.rollout(fresh.from_numpy(p_np), T0f, u, 1.0)[0].sum().backward()
+    assert T0t.grad is not None and torch.equal(T0t.grad, T0f.grad)
+
+
 def test_case_study_agree_expeuler_short():
     _check(nets.case_study("mlp", extra=True), 300, integrator="expeuler")
 
