@@ -85,7 +85,9 @@ def test_an_eager_torch_rollout_without_gradients_returns_ordinary_tensors_and_l
     """Torch's eager step loop runs under ``torch.inference_mode()`` when nothing is differentiated (issue 18): its
     states and outputs come back as ordinary tensors (a caller may differentiate through them later), JAX's to
     1e-9 K, and a rollout with gradients on the same model afterwards (its caches filled by the first) differentiates
-    as on a fresh model."""
+    as JAX's."""
+    import jax
+    import jax.numpy as jnp
     import torch
 
     net = nets.case_study("mlp", extra=True)
@@ -99,10 +101,9 @@ def test_an_eager_torch_rollout_without_gradients_returns_ordinary_tensors_and_l
     assert np.max(np.abs(s.numpy() - np.asarray(mj.rollout(mj.from_numpy(p_np), T0, u, 1.0)[0]))) <= 1e-9
     T0t = torch.as_tensor(T0).requires_grad_(True)
     (s * 1.0 + mt.rollout(mt.from_numpy(p_np), T0t, u, 1.0)[0]).sum().backward()  # no "inference tensor" error
-    fresh = tnn_dsl.compile(net, "torch")
-    T0f = torch.as_tensor(T0).requires_grad_(True)
-    fresh.rollout(fresh.from_numpy(p_np), T0f, u, 1.0)[0].sum().backward()
-    assert T0t.grad is not None and torch.equal(T0t.grad, T0f.grad)
+    pj = mj.from_numpy(p_np)
+    want = np.asarray(jax.grad(lambda T: mj.rollout(pj, T, u, 1.0)[0].sum())(jnp.asarray(T0)))
+    assert np.max(np.abs(T0t.grad.numpy() - want)) <= 1e-6 * np.max(np.abs(want))
 
 
 def test_case_study_agree_expeuler_short():
