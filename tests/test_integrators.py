@@ -53,11 +53,12 @@ def test_expeuler_is_stable_on_a_stiff_network(backend):
     s = np.asarray(m.xp.to_numpy(s))
     assert np.all(np.isfinite(s)) and np.all(s <= 350.0) and np.all(s >= 290.0 - 1e-9)
     np.testing.assert_allclose(s[-1], 290.0, atol=1e-3)
-    # explicit methods warn and sub-step instead of diverging
+    # explicit methods warn and sub-step instead of diverging (four samples: a step this far over its limit diverges
+    # in one; each sample is some 800 sub-steps, eager on torch: 5.2 → 1.1 s against 20 samples)
     with pytest.warns(StepSizeWarning, match="sub-steps"):
-        s, _ = m.rollout(p, np.array([350.0, 320.0]), u[:20], 10.0, integrator="rk4")
+        s, _ = m.rollout(p, np.array([350.0, 320.0]), u[:4], 10.0, integrator="rk4")
     assert np.all(np.isfinite(np.asarray(m.xp.to_numpy(s))))
-    ref, _ = m.rollout(p, np.array([350.0, 320.0]), u[:20], 10.0, integrator="rk4", substeps=2000)
+    ref, _ = m.rollout(p, np.array([350.0, 320.0]), u[:4], 10.0, integrator="rk4", substeps=2000)
     np.testing.assert_allclose(np.asarray(m.xp.to_numpy(s)), np.asarray(m.xp.to_numpy(ref)), atol=1e-6)
 
 
