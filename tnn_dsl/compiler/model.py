@@ -264,10 +264,10 @@ def _functorch_active() -> bool:
 def _eager_steps(backend: str, grad: bool) -> contextlib.AbstractContextManager:
     """Around the eager step-by-step loop of a rollout: ``torch.inference_mode()`` where torch differentiates
     nothing (no gradient recorded, no ``torch.func`` transform tracing), else nothing. Each of a step's few dozen
-    small operations then skips autograd's bookkeeping (version counters, view tracking): the TCLab network's eager
-    step 121 → 99 µs, with four of the doctor's null candidates 678 → 570 µs (issue 18, 2026-12-07). Only the loop's
-    own temporaries and states are made there, never a cached array; the states are stacked outside it into an
-    ordinary tensor, so nothing the rollout returns is an inference tensor."""
+    small operations then skips autograd's bookkeeping (version counters, view tracking): TCLab's eager step 111–114
+    → 92–96 µs, M3's 613–620 → 483–511 µs (issue 18, BENCHMARKS.md "torch's eager steps without autograd's
+    bookkeeping"). Only the loop's own temporaries and states are made there, never a cached array; the states are
+    stacked outside it into an ordinary tensor, so nothing the rollout returns is an inference tensor."""
     if backend != "torch" or grad or _functorch_active():
         return contextlib.nullcontext()
     import torch
