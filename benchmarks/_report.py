@@ -3,7 +3,7 @@
 Each benchmark owns one section of the file, delimited by ``<!-- begin NAME -->`` / ``<!-- end NAME -->``
 markers. :func:`write_section` replaces that section in place (or appends it at the end, or creates the
 file), so scripts can be re-run independently without touching each other's results. Every section
-states the machine (CPU model, cores, load average, Python/numpy/JAX/torch versions), the date and the
+states the machine (CPU model, cores, load average, the host's speed, Python/numpy/JAX/torch versions), the date and the
 command that produced it, because timings mean nothing without them.
 
 Usage from a benchmark script::
@@ -22,6 +22,7 @@ import os
 import platform
 import re
 import shlex
+import subprocess
 import sys
 import tempfile
 from importlib import metadata
@@ -66,12 +67,45 @@ def load_average() -> str:
         return "n/a"
 
 
+SPEED_LOOP = 10**7
+"""Additions in :func:`python_speed`'s loop (about a second on these hosts)."""
+
+
+_SPEED_SCRIPT = ("import time\nt = time.perf_counter()\ns = 0\nfor i in range({n}):\n    s += i\n"
+                 "print(time.perf_counter() - t)\n")
+
+
+def python_speed(n: int | None = None) -> float:
+    """Seconds a fresh interpreter (this one's executable) takes for ``n`` (default :data:`SPEED_LOOP`) additions in
+    a loop at module level (``for i in range(n): s += i``, the loop behind every "s per 10⁷ Python additions" in
+    BENCHMARKS.md; inside a function the same loop takes about half as long): the host's speed at the moment. The
+    shared machines these benchmarks run on move by up to 2× from hour to hour with the same CPU model and load
+    average (0.59 to 1.67 s on one Intel host in a day, BENCHMARKS.md "Test suite time"), so two timings compare
+    only when taken at a similar speed. NaN if the child fails."""
+    n = SPEED_LOOP if n is None else int(n)
+    try:
+        out = subprocess.run([sys.executable, "-c", _SPEED_SCRIPT.format(n=n)], capture_output=True, text=True,
+                             timeout=60, check=True).stdout
+        return float(out.strip())
+    except (OSError, subprocess.SubprocessError, ValueError):
+        return float("nan")
+
+
+def _count(n: int) -> str:
+    """``10⁷`` for a power of ten, else the number."""
+    k = len(str(n)) - 1
+    if n == 10**k and k > 1:
+        return "10" + str(k).translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    return str(n)
+
+
 def machine_info() -> dict[str, str]:
-    """``{label: value}`` describing where the numbers were measured."""
+    """``{label: value}`` describing where the numbers were measured (the host's speed: :func:`python_speed`)."""
     return {
         "cpu": cpu_model(),
         "cores": str(cores()),
         "load average (1/5/15 min) at write": load_average(),
+        "Python speed at write": f"{python_speed():.2f} s per {_count(SPEED_LOOP)} additions",
         "os": f"{platform.system()} {platform.release()}",
         "python": platform.python_version(),
         "numpy": _version("numpy"),

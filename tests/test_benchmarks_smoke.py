@@ -29,7 +29,8 @@ HAS_CC = any(shutil.which(c) for c in ("cc", "gcc", "clang"))
 # ---------------------------------------------------------------------------------------------
 
 
-def test_write_section_creates_replaces_and_appends(tmp_path):
+def test_write_section_creates_replaces_and_appends(tmp_path, monkeypatch):
+    monkeypatch.setattr(_report, "SPEED_LOOP", 10**5)  # the host's speed in a hundredth of the time
     path = tmp_path / "B.md"
     _report.write_section("alpha", "first body", path=path, command="python a.py")
     text = path.read_text()
@@ -38,6 +39,8 @@ def test_write_section_creates_replaces_and_appends(tmp_path):
     assert "first body" in text and "python a.py" in text
     for key in ("cpu", "cores", "python", "jax", "torch"):
         assert f"{key} " in text.split("<!-- begin alpha -->")[1]
+    speed = re.search(r"Python speed at write ([0-9.]+) s per 10⁵ additions", text)
+    assert speed is not None and 0 < float(speed.group(1)) < 60, text
 
     _report.write_section("beta", "beta body", path=path, command="python b.py")
     path.write_text(path.read_text() + "\nhand-written note\n")
@@ -59,7 +62,8 @@ def test_write_section_refuses_bad_names_and_broken_files(tmp_path):
     assert path.read_text() == "<!-- begin gamma -->\nno end marker\n"  # untouched
 
 
-def test_machine_info_names_versions():
+def test_machine_info_names_versions(monkeypatch):
+    monkeypatch.setattr(_report, "SPEED_LOOP", 10**5)
     info = _report.machine_info()
     assert int(info["cores"]) >= 1
     assert info["python"].count(".") == 2
