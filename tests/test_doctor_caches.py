@@ -5,6 +5,10 @@ process, asks for it: a library caller's own jitted functions are left alone by 
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -90,3 +94,83 @@ def test_tnnc_diagnose_owns_its_process_and_asks_for_it(tmp_path, monkeypatch):
     monkeypatch.setattr(tnn_dsl.doctor, "diagnose", fake)
     assert main(["diagnose", str(ROOT / "networks" / "tclab" / "tclab.thn"), str(data), "--quiet"]) != 0
     assert len(calls) == 1 and calls[0]["release_jax_caches"] is True
+
+
+_OWN_CACHE_SCRIPT = """
+import json, os, sys
+import jax, jax.numpy as jnp
+from jax import monitoring
+from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process
+events = []
+monitoring.register_event_listener(lambda e, **k: events.append(e))
+d = keep_programs_for_this_process(min_compile_s=float(sys.argv[1]))
+f = lambda x: jnp.tanh(x) @ x.T + 1.0
+a = jnp.ones((40, 40))
+y1 = jax.jit(f)(a)
+kept = sorted(os.listdir(d)) if d else []
+jax.clear_caches()  # as the doctor lets a program go: the next call compiles it again, or reads it back
+y2 = jax.jit(f)(a)
+print(json.dumps({"dir": d, "kept": len(kept), "equal": bool((y1 == y2).all()),
+                  "hits": events.count("/jax/compilation_cache/cache_hits"),
+                  "again": keep_programs_for_this_process() is None}))
+"""
+
+
+def _own_cache(env_extra: dict, threshold: float) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(env_extra)
+    out = subprocess.run([sys.executable, "-c", _OWN_CACHE_SCRIPT, str(threshold)], capture_output=True, text=True,
+                         env=env, cwd=str(ROOT), timeout=300)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_a_process_of_ours_reads_a_program_it_let_go_back_from_a_cache_of_its_own_removed_at_exit(tmp_path):
+    """``tnnc diagnose`` keeps the programs that took a while to compile in a cache directory of its process's own
+    (``jax_ops.keep_programs_for_this_process``, issue 18): a program compiled again after JAX's caches were emptied
+    is read back (the same numbers), the directory goes when the process ends, and a second call changes nothing."""
+    got = _own_cache({}, 0.0)
+    assert got["dir"] and got["kept"] >= 1 and got["hits"] == 1 and got["equal"] and got["again"]
+    assert not Path(got["dir"]).exists()
+    # above the threshold only: a program that compiled in less is compiled again, not written
+    got = _own_cache({}, 60.0)
+    assert got["dir"] and got["kept"] == 0 and got["hits"] == 0
+    # a cache the environment names is the one used, and left as it is
+    named = tmp_path / "users_cache"
+    got = _own_cache({"JAX_COMPILATION_CACHE_DIR": str(named)}, 0.0)
+    assert got["dir"] is None and got["hits"] == 1 and named.is_dir() and any(named.iterdir())
+
+
+def test_the_cache_of_its_own_is_not_set_up_after_jax_has_compiled():
+    """JAX sets its cache up at its first compilation and ignores a directory named later: the call then changes
+    nothing (a test running the command in its own process, whose session already compiled)."""
+    script = ("import jax.numpy as jnp; jnp.sin(jnp.ones(3)).block_until_ready()\n"
+              "from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process as k\n"
+              "import jax; print(k(), jax.config.jax_compilation_cache_dir)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=str(ROOT),
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["None", "None"]
+
+
+def test_tnnc_diagnose_keeps_its_programs_for_its_own_process_on_jax_only(tmp_path, monkeypatch):
+    import tnn_dsl.doctor
+    from tnn_dsl.cli import main
+    from tnn_dsl.compiler.backends import jax_ops
+
+    src = DATA / "tclab_kuntz_rawlings_prbs_openloop.csv"
+    if not src.is_file():
+        pytest.skip("shared data not present")
+    data = tmp_path / "prbs.csv"
+    data.write_text("".join(src.read_text().splitlines(keepends=True)[:300]))
+    asked: list = []
+    monkeypatch.setattr(jax_ops, "keep_programs_for_this_process", lambda: asked.append(True))
+
+    def fake(*args, **kwargs):
+        raise _Called  # stops the command here
+
+    monkeypatch.setattr(tnn_dsl.doctor, "diagnose", fake)
+    net = str(ROOT / "networks" / "tclab" / "tclab.thn")
+    assert main(["diagnose", net, str(data), "--quiet", "--backend", "torch"]) != 0 and asked == []
+    assert main(["diagnose", net, str(data), "--quiet"]) != 0 and asked == [True]

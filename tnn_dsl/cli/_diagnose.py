@@ -86,6 +86,13 @@ def run(args) -> int:
     for w in warning_lines(read_data(net, [*args.train, *(args.val or [])])):
         print(w, file=sys.stderr)
 
+    if args.backend == "jax":
+        # the doctor compiles some programs again after letting them go for memory: this process keeps those that
+        # took a while to compile in a cache of its own, read back instead (compiler.backends.jax_ops)
+        from ..compiler.backends.jax_ops import keep_programs_for_this_process
+
+        keep_programs_for_this_process()
+
     def progress(msg: str) -> None:
         if not args.quiet:
             print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)

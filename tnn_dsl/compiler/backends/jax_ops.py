@@ -48,6 +48,47 @@ def cache_every_program() -> bool:
 
 cache_every_program()
 
+PRIVATE_CACHE_MIN_COMPILE_S = 0.15
+"""Programs that took at least this long to compile go into :func:`keep_programs_for_this_process`'s cache; the
+smaller ones (most of a thermal network's, a few ms each) cost more to write than to compile again."""
+
+
+def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMPILE_S) -> str | None:
+    """For a process of ours that lets compiled programs go and needs the same ones again later (``tnnc diagnose``:
+    the doctor lets each network's programs go to stay within its memory, then the next round's score test, the
+    final extended fit and the MLP check compile some of them again): JAX's persistent compilation cache in a fresh
+    temporary directory of this process's own, keeping every program that took ``min_compile_s`` or more to compile,
+    removed when the process exits. A program compiled again is then read back instead (the same executable, so the
+    same numbers). Returns the directory; None, and nothing changed, where the environment or JAX's configuration
+    already names a cache (that one is used, :func:`cache_every_program`) or JAX has compiled in this process
+    already: it sets its cache up once, at the first compilation, and ignores a directory named later (a test
+    calling the command in its own process).
+
+    On the case study (``python benchmarks/bench_diagnose.py --threads 2 --no-write``, four pairs alternating, the AMD
+    host in a fast hour, 2026-12-07): 58.0–59.6 s against 59.8–62.4 s without it, peak 577–595 against 574–582 MB,
+    about 40 programs written (3 MB) — issue 18. Keeping every program (threshold 0) did not pay: writing the small
+    ones cost what reading the large ones saved (BENCHMARKS.md)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or jax.config.jax_compilation_cache_dir:
+        return None
+    try:  # JAX's own record of whether its cache was set up (at the first compilation); not public
+        from jax._src import compilation_cache as _jax_cache
+
+        if getattr(_jax_cache, "_cache_checked", False):
+            return None
+    except ImportError:  # pragma: no cover - a JAX without it: the directory may go unused
+        pass
+    path = tempfile.mkdtemp(prefix="tnn_programs_")
+    atexit.register(shutil.rmtree, path, ignore_errors=True)  # only the directory made just above
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_s))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
 from . import NumpyLike  # noqa: E402
 
 SMALL_MATMUL = 256
