@@ -64,10 +64,11 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
     already: it sets its cache up once, at the first compilation, and ignores a directory named later (a test
     calling the command in its own process).
 
-    On the case study (``python benchmarks/bench_diagnose.py --threads 2 --no-write``, four pairs alternating, the AMD
-    host in a fast hour, 2026-12-07): 58.0–59.6 s against 59.8–62.4 s without it, peak 577–595 against 574–582 MB,
-    about 40 programs written (3 MB) — issue 18. Keeping every program (threshold 0) did not pay: writing the small
-    ones cost what reading the large ones saved (BENCHMARKS.md)."""
+    On the case study (``python benchmarks/bench_diagnose.py --threads 2 --no-write``, seven pairs alternating with
+    no cache, the AMD host in a fast hour, 2026-12-07): about 2 s (3 %) faster on average, 58.0–63.8 s against
+    59.8–65.8 s, one pair the other way; peak 577–595 against 574–582 MB; about 40 programs written (3 MB) — issue 18.
+    Keeping every program (threshold 0) did not pay: writing the small ones cost what reading the large ones saved
+    (BENCHMARKS.md)."""
     import atexit
     import shutil
     import tempfile
