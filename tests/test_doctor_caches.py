@@ -154,6 +154,21 @@ def test_the_cache_of_its_own_is_not_set_up_after_jax_has_compiled():
     assert out.stdout.split() == ["None", "None"]
 
 
+def test_without_a_writable_temporary_directory_nothing_is_set_up():
+    """A temporary directory that cannot be made leaves JAX's configuration as it was: the command runs on, its
+    programs compiled again as without the cache (no traceback for a read-only /tmp)."""
+    script = ("import tempfile\n"
+              "def no_tmp(**kw):\n    raise PermissionError('read-only file system')\n"
+              "tempfile.mkdtemp = no_tmp\n"
+              "from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process as k\n"
+              "import jax; print(k(), jax.config.jax_compilation_cache_dir)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=str(ROOT),
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["None", "None"]
+
+
 def test_tnnc_diagnose_keeps_its_programs_for_its_own_process_on_jax_only(tmp_path, monkeypatch):
     import tnn_dsl.doctor
     from tnn_dsl.cli import main

@@ -62,7 +62,7 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
     same numbers). Returns the directory; None, and nothing changed, where the environment or JAX's configuration
     already names a cache (that one is used, :func:`cache_every_program`) or JAX has compiled in this process
     already: it sets its cache up once, at the first compilation, and ignores a directory named later (a test
-    calling the command in its own process).
+    calling the command in its own process); or no temporary directory can be made.
 
     On the case study (``python benchmarks/bench_diagnose.py --threads 2 --no-write``, seven pairs alternating with
     no cache, the AMD host in a fast hour, 2026-12-07): about 2 s (3 %) faster on average, 58.0–63.8 s against
@@ -82,7 +82,10 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
             return None
     except ImportError:  # pragma: no cover - a JAX without it: the directory may go unused
         pass
-    path = tempfile.mkdtemp(prefix="tnn_programs_")
+    try:
+        path = tempfile.mkdtemp(prefix="tnn_programs_")
+    except OSError:  # no writable temporary directory: the programs are compiled again, as without the cache
+        return None
     atexit.register(shutil.rmtree, path, ignore_errors=True)  # only the directory made just above
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_s))
