@@ -141,32 +141,31 @@ def test_a_process_of_ours_reads_a_program_it_let_go_back_from_a_cache_of_its_ow
     assert got["dir"] is None and got["hits"] == 1 and named.is_dir() and any(named.iterdir())
 
 
-def test_the_cache_of_its_own_is_not_set_up_after_jax_has_compiled():
-    """JAX sets its cache up at its first compilation and ignores a directory named later: the call then changes
-    nothing (a test running the command in its own process, whose session already compiled)."""
-    script = ("import jax.numpy as jnp; jnp.sin(jnp.ones(3)).block_until_ready()\n"
-              "from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process as k\n"
+def _set_up_after(prelude: str) -> list[str]:
+    """In a fresh interpreter without a cache in its environment: ``prelude``, then
+    ``keep_programs_for_this_process()`` → ``[its result, JAX's cache directory after it]`` as printed."""
+    script = (prelude + "from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process as k\n"
               "import jax; print(k(), jax.config.jax_compilation_cache_dir)")
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=str(ROOT),
                          timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["None", "None"]
+    return out.stdout.split()
+
+
+def test_the_cache_of_its_own_is_not_set_up_after_jax_has_compiled():
+    """JAX sets its cache up at its first compilation and ignores a directory named later: the call then changes
+    nothing (a test running the command in its own process, whose session already compiled)."""
+    assert _set_up_after("import jax.numpy as jnp; jnp.sin(jnp.ones(3)).block_until_ready()\n") == ["None", "None"]
 
 
 def test_without_a_writable_temporary_directory_nothing_is_set_up():
     """A temporary directory that cannot be made leaves JAX's configuration as it was: the command runs on, its
     programs compiled again as without the cache (no traceback for a read-only /tmp)."""
-    script = ("import tempfile\n"
-              "def no_tmp(**kw):\n    raise PermissionError('read-only file system')\n"
-              "tempfile.mkdtemp = no_tmp\n"
-              "from tnn_dsl.compiler.backends.jax_ops import keep_programs_for_this_process as k\n"
-              "import jax; print(k(), jax.config.jax_compilation_cache_dir)")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=str(ROOT),
-                         timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["None", "None"]
+    prelude = ("import tempfile\n"
+               "def no_tmp(**kw):\n    raise PermissionError('read-only file system')\n"
+               "tempfile.mkdtemp = no_tmp\n")
+    assert _set_up_after(prelude) == ["None", "None"]
 
 
 def test_tnnc_diagnose_keeps_its_programs_for_its_own_process_on_jax_only(tmp_path, monkeypatch):
