@@ -178,7 +178,8 @@ def peltier_fluid() -> Network:
 def case_study(learn: str | None = "linear", extra: bool = False) -> Network:
     """The case study (spec/case-study.md, model M2 by default). ``learn``: ``None`` (nominal constants),
     ``"const"``, ``"linear"``, ``"mlp"`` (M3, hidden [8, 8] sigmoid), ``"mlp_peltier"`` (M4), ``"linear_u1"`` (the
-    heat pipe's resistances linear in ``u1`` alone: links whose conductances depend on the inputs only).
+    heat pipe's resistances linear in ``u1`` alone: links whose conductances depend on the inputs only), ``"two_fns"``
+    (two functions of node temperatures sharing out four links, their targets interleaved in the links' order).
     ``extra`` adds every other component kind: a lagged offset sensor, radiation, a derived
     table conductance, a learned heat load and a derived source, so one rollout exercises everything."""
     b = B("peltier_heatpipe")
@@ -220,6 +221,9 @@ def case_study(learn: str | None = "linear", extra: bool = False) -> Network:
         b.learn("f_pe", "mlp", ["pe.Q_hot", "pe.Q_cold"], ["ph", "pc", "I"], hidden=[8, 8])
     elif learn == "linear_u1":  # the doctor's answer on the case study: resistances depending on the command only
         b.learn("f1_hp", "linear", ["R_hp1", "R_hp2", "R_hpa"], ["u1"])
+    elif learn == "two_fns":  # like the doctor's second round: several state-dependent functions own the links
+        b.learn("f1_hp", "linear", ["R_hp2", "R_hpa"], ["hp", "u1"])
+        b.learn("f2_bs", "poly", ["R_base_hs", "R_hp1"], ["hs", "I"], degree=2)
     elif learn is not None:
         raise ValueError(learn)
     if extra:

@@ -82,6 +82,9 @@ NETS = {
     "m2_u1": (lambda: case_study("linear_u1"), lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
     "m2_u1_scatter": (lambda: case_study("linear_u1"),
                       lambda rng, n: case_inputs(600, seed=5)[rng.integers(0, 600, n)]),
+    # links owned by two functions of node temperatures: one gather of their target vectors put end to end
+    # (``_links_vec``), the targets interleaved in the links' order
+    "two_fns": (lambda: case_study("two_fns"), lambda rng, n: case_inputs(600, seed=6)[rng.integers(0, 600, n)]),
     # the same with a constant boundary at a learned link's end (its heat folded into the input-only heat q)
     "wall_u": (lambda: wall_u(), lambda rng, n: rng.uniform(0, 20, (n, 1))),
 }
@@ -150,6 +153,8 @@ def test_rhs_equals_sum_of_heat_flows(backend, name, scaled, monkeypatch):
                                                       model.xp.asarray(draw(np.random.default_rng(0), 2)))["v"]
         assert core.links_in_matrix is in_matrix
         assert [k for k, _ in core._L_blocks] == ["M", "D"]
+    if name == "two_fns":
+        assert model._core._links_vec[0] == ("f2_bs", "f1_hp") and model._core._links_vec[1] is not None
     p = random_table(model, 0)
     rng = np.random.default_rng(1)
     if scaled:  # every scale key at a random value: parameters, flows, learned targets

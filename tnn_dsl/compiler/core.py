@@ -516,7 +516,8 @@ class _Core(_Assembly):
         if "gD" in vec:  # input-only: made with the sample's context (rhs_u)
             g = vec["gD"]
         elif lv is not None and not any(k in prep.scales for k in self._links_d_keys):
-            V = env.z[("V", lv[0])]
+            Vs = [env.z[("V", f)] for f in lv[0]]
+            V = Vs[0] if len(Vs) == 1 else self.xp.concat(Vs, axis=-1)
             if lv[1] is not None:
                 V = V[..., lv[1]]
             g = 1.0 / V if lv[2] == "R" else V
