@@ -317,15 +317,23 @@ class _Engine:
         self.x0_stale = False
 
     def _build_scatter(self):
+        """Where each column's value goes in the parameter table: :meth:`_setup_backend`'s ``with_theta`` puts every
+        key's values end to end (``self.key_slices``: key → (start, stop, shape)) and reads, for each of them, the
+        column that scales it (``self.i_log``: its index in θ, or ``len(cols)``, a 0 appended to θ) and the column
+        added to it (``self.i_lin``). One gather each, not a product by a one-hot matrix per key: every program of
+        the engine holds this map, and the products were a quarter of the score test's pointwise program (165 of its
+        XLA operations on the case study's extended network; issue 18). A column has one place, so the values are
+        the products' to the bit."""
         n = len(self.cols)
-        self.m_lin, self.m_log = {}, {}
+        self.key_slices: dict[str, tuple[int, int, tuple[int, ...]]] = {}
+        at = 0
         for k in self.keys:
-            size = int(np.asarray(self.params[k]).size)
-            a, b = np.zeros((size, n)), np.zeros((size, n))
-            for j, c in enumerate(self.cols):
-                if c.key == k:
-                    (b if c.log else a)[c.index, j] = 1.0
-            self.m_lin[k], self.m_log[k] = a, b
+            arr = np.asarray(self.params[k])
+            self.key_slices[k] = (at, at + int(arr.size), tuple(arr.shape))
+            at += int(arr.size)
+        self.i_lin, self.i_log = np.full(at, n, dtype=np.int64), np.full(at, n, dtype=np.int64)
+        for j, c in enumerate(self.cols):
+            (self.i_log if c.log else self.i_lin)[self.key_slices[c.key][0] + c.index] = j
 
     def _setup_backend(self):
         model = self.model
@@ -337,8 +345,8 @@ class _Engine:
         nf = self.n_force
         u_list = [xp.asarray(_pad(e.inputs, nf)) for e in exps]
         dts = [float(e.dt) for e in exps]
-        m_lin = {k: xp.asarray(v) for k, v in self.m_lin.items()}
-        m_log = {k: xp.asarray(v) for k, v in self.m_log.items()}
+        i_lin, i_log = backend_of(model).asarray(self.i_lin), backend_of(model).asarray(self.i_log)
+        spans = [(k, *self.key_slices[k]) for k in keys]
         n_sc = self.n_score_exps
         lens = [e.n_steps for e in exps[:n_sc]]
         x0_names = [self.x0_keys(i) for i in range(len(exps))]
@@ -350,11 +358,13 @@ class _Engine:
             return model.steady_state(p, u[0])
 
         def with_theta(base, theta):
+            """The parameter table at ``theta (n_cols,)``: each key's values ``base·exp(θ_log) + θ_lin``."""
             p = dict(base)
-            for k in keys:
-                b = base[k]
-                flat = b.reshape(-1) * xp.exp(m_log[k] @ theta) + m_lin[k] @ theta
-                p[k] = flat.reshape(b.shape)
+            th = xp.concat([theta, xp.zeros_like(theta[:1])])
+            flat = xp.concat([base[k].reshape(-1) for k in keys])
+            new = flat * xp.exp(th[i_log]) + th[i_lin]
+            for k, a, b, shape in spans:
+                p[k] = new[a:b].reshape(shape)
             return p
 
         def simulate(p):
