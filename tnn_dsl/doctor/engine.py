@@ -360,6 +360,8 @@ class _Engine:
         def with_theta(base, theta):
             """The parameter table at ``theta (n_cols,)``: each key's values ``base·exp(θ_log) + θ_lin``."""
             p = dict(base)
+            if not spans:  # no columns (an engine that only simulates)
+                return p
             th = xp.concat([theta, xp.zeros_like(theta[:1])])
             flat = xp.concat([base[k].reshape(-1) for k in keys])
             new = flat * xp.exp(th[i_log]) + th[i_lin]
