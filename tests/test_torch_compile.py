@@ -435,8 +435,12 @@ def test_burn_in_jacobian_by_central_differences_matches_forward_mode(network, c
                 assert fit.fJ is None and fit.fyJ.__qualname__.startswith("_central_difference_jacobian."), fit.fyJ
                 y, J[B.name] = (B.numpy(a) for a in fit.fyJ(*args))
                 np.testing.assert_allclose(y, B.numpy(fit.fy(*args)), rtol=0, atol=1e-9)  # the run from x, as alone
-            else:
-                J[B.name] = B.numpy(fit.fJ(*args))
+            else:  # forward mode: the readings and their Jacobian from one program
+                assert fit.fJ is None, fit.fJ
+                y, J[B.name] = (B.numpy(a) for a in fit.fyJ(*args))
+                np.testing.assert_array_equal(y, B.numpy(fit.fy(*args)))
+                alone = m.rollout(m.from_numpy(p_np), B.asarray(x), B.asarray(U), 1.0)[1]
+                np.testing.assert_allclose(y, B.numpy(alone), rtol=0, atol=1e-12)
     assert J["torch"].shape == J["jax"].shape == (n, len(mj.output_names), len(mj.state_names))
     assert np.max(np.abs(J["torch"] - J["jax"])) <= 1e-6 * np.max(np.abs(J["jax"]))
 

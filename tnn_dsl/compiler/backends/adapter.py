@@ -236,6 +236,7 @@ class Backend:
         :func:`forward_only` (``fn`` is never differentiated in reverse mode: a compiled model picks its forward
         kernels)."""
         if self.name == "jax":
+            @functools.wraps(fn)  # XLA's logs and profiles name the program after ``fn``
             def traced(*args, **kw):
                 with forward_only():
                     return fn(*args, **kw)
