@@ -11,6 +11,11 @@ with ``--no-release`` (docs/measurement-log.md, "Speed"). A no-op off glibc.
 :func:`large_blocks_mapped` goes further for the length of a ``with`` block (the doctor's rounds): every block of at
 least a megabyte gets its own mapping, handed back the moment it is freed, so the large buffers a long job makes and
 frees (a compiled simulation's temporaries, a Jacobian) never sit in the heap between its small live objects.
+
+Each such mapping is fresh memory, though: the kernel hands it out a 4 KiB page at a time, one page fault each, and
+the case study's diagnosis took 4.5–4.7 million of them (14.5–15.3 s of system time). :func:`huge_pages_environment`
+is the environment in which glibc asks for transparent huge pages on those mappings (a fault per 2 MiB); ``tnnc``
+starts its doctor's commands again in it (``tnn_dsl.cli.entry``).
 """
 
 from __future__ import annotations
@@ -18,10 +23,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import os
 import sys
 from contextlib import contextmanager
 from functools import lru_cache
-from typing import Iterator
+from typing import Iterator, Mapping
 
 
 @lru_cache(maxsize=1)
@@ -92,3 +98,67 @@ def large_blocks_mapped(threshold: int = LARGE_BLOCK_BYTES) -> Iterator[bool]:
         if taken:
             _mallopt(M_MMAP_THRESHOLD, GLIBC_MMAP_THRESHOLD_MAX)
             _mallopt(M_TRIM_THRESHOLD, 2 * GLIBC_MMAP_THRESHOLD_MAX)
+
+
+HUGE_PAGES_ENV = "TNN_HUGE_PAGES"
+"""Environment switch: ``0`` keeps glibc's mapped blocks on ordinary pages (:func:`huge_pages_environment` returns
+None)."""
+
+GLIBC_HUGETLB = "glibc.malloc.hugetlb"
+"""glibc's tunable (2.35 and later; read once, when a program starts): ``1`` makes ``malloc`` advise transparent huge
+pages (``madvise(MADV_HUGEPAGE)``) on the memory it maps."""
+
+THP_MODE_FILE = "/sys/kernel/mm/transparent_hugepage/enabled"
+"""Where Linux tells its transparent-huge-page mode: ``always [madvise] never`` (the one in brackets is set)."""
+
+
+def _thp_mode() -> str | None:
+    """The kernel's transparent-huge-page mode (``always``, ``madvise``, ``never``), or None where it does not say."""
+    try:
+        with open(THP_MODE_FILE) as f:
+            text = f.read()
+    except OSError:
+        return None
+    start, end = text.find("["), text.find("]")
+    return text[start + 1: end] if 0 <= start < end else None
+
+
+def _glibc_version() -> tuple[int, int] | None:
+    libc = _glibc()
+    if libc is None:
+        return None
+    try:
+        major, minor = libc.gnu_get_libc_version().decode().split(".")[:2]
+        return int(major), int(minor)
+    except (ValueError, UnicodeDecodeError):
+        return None
+
+
+def huge_pages_environment(env: Mapping[str, str] | None = None, *, thp_mode: str | None = None,
+                           glibc_version: tuple[int, int] | None = None) -> dict[str, str] | None:
+    """``env`` (default ``os.environ``) with ``GLIBC_TUNABLES`` extended by ``glibc.malloc.hugetlb=1``: a program
+    started in it gets transparent huge pages on the blocks its ``malloc`` maps, a page fault per 2 MiB instead of
+    per 4 KiB. Returns None where that would change nothing or is not wanted: off glibc or before glibc 2.35, the
+    kernel's mode other than ``madvise`` (``always`` gives the huge pages anyway, ``never`` not at all), the tunable
+    already set (whatever its value: the user's, or a program started again), or ``TNN_HUGE_PAGES=0``. ``thp_mode``
+    and ``glibc_version`` stand in for the machine's (tests).
+
+    Why: inside :func:`large_blocks_mapped` every simulation's temporaries and every Jacobian (1–100 MB on the case
+    study) is a fresh mapping, each of its pages faulted in and zeroed on first touch. ``tnnc diagnose`` of the case
+    study, three pairs alternating (2026-12-07 13:12–13:19 UTC, AMD EPYC, 2 cores, 0.82–0.89 s per 10⁷ Python
+    additions; ``perf stat -e page-faults``): 4.50–4.73 million page faults and 14.5–15.3 s of system time without,
+    1.49–1.79 million and 7.6–9.0 s with; wall 75.4–78.4 s against 67.6–70.2 s; peak resident 568–571 against
+    569–575 MB (glibc advises its heap's growth too); the same diagnosis (its JSON but for the timings)."""
+    env = dict(os.environ if env is None else env)
+    if env.get(HUGE_PAGES_ENV, "").strip() == "0":
+        return None
+    tunables = env.get("GLIBC_TUNABLES", "")
+    if GLIBC_HUGETLB in tunables:
+        return None
+    version = _glibc_version() if glibc_version is None else glibc_version
+    if version is None or version < (2, 35):
+        return None
+    if (_thp_mode() if thp_mode is None else thp_mode) != "madvise":
+        return None
+    env["GLIBC_TUNABLES"] = f"{tunables}:{GLIBC_HUGETLB}=1" if tunables else f"{GLIBC_HUGETLB}=1"
+    return env
