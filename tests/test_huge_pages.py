@@ -1,6 +1,7 @@
 """`tnn_dsl.core.memory.huge_pages_environment` and the `tnnc` console script (`tnn_dsl.cli.entry`) that starts the
-model doctor's commands again in it: glibc's tunable for transparent huge pages on the blocks `malloc` maps, asked
-for only where it changes something, never twice, never for other commands, and not with `TNN_HUGE_PAGES=0`."""
+model doctor's commands again in it (`diagnose`, `demo`): glibc's tunable for transparent huge pages on the blocks
+`malloc` maps, asked for only where it changes something, never twice, never for other commands, and not with
+`TNN_HUGE_PAGES=0`."""
 
 from __future__ import annotations
 
@@ -78,7 +79,8 @@ def test_the_doctors_commands_start_again_in_that_environment_and_others_do_not(
         assert lines[1].startswith("usage: tnnc diagnose"), lines[:2]
     demo = _tnnc("--debug", "demo", "--help")  # the command after the global option
     assert demo[1] == f"{GLIBC_HUGETLB}=1" if wanted else demo[1].startswith("usage: tnnc demo"), demo[:2]
-    check = _tnnc("check", "--help")
-    assert check[0] == "-" and check[1].startswith("usage: tnnc check"), check[:2]
+    for other in ("check", "fleet"):  # not the doctor in this process (fleet's run in Ray's workers)
+        lines = _tnnc(other, "--help")
+        assert lines[0] == "-" and lines[1].startswith(f"usage: tnnc {other}"), lines[:2]
     off = _tnnc("diagnose", "--help", **{HUGE_PAGES_ENV: "0"})
     assert off[0] == "-" and off[1].startswith("usage: tnnc diagnose"), off[:2]
