@@ -32,8 +32,13 @@ CALLS = ("jacobian", "_train_sse", "simulate", "point_derivs", "forced_jacobian"
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dir", default=None, help="the case study's data (bench_diagnose.py's --dir; made if missing)")
+    ap.add_argument("--point-block", type=int, default=None,
+                    help="samples per call of the score test's pointwise derivatives on JAX (engine.POINT_BLOCK)")
     a = ap.parse_args(argv)
     import tnn_dsl.doctor.engine as engine
+
+    if a.point_block:
+        engine.POINT_BLOCK["jax"] = a.point_block
     from tnn_dsl.doctor import diagnose
     from tnn_dsl.studies.casestudy import generate_case_study
 

@@ -18,13 +18,19 @@ from ..ir import Input, Network, Param
 from .base import Candidate, Extended
 from .stopping import stop_requested
 
-POINT_BLOCK = {"jax": 512, "torch": 4096}
+POINT_BLOCK = {"jax": 2048, "torch": 4096}
 """Samples per call of the pointwise derivatives (:meth:`_Engine.point_derivs`), by backend. JAX's compiled program
-holds a (tangents, samples) array per candidate term of the extended network, 392 × 16 × 512 doubles (26 MB) on the
-case study. Torch runs the same derivative eagerly, one operation after another, and pays its dispatch per call:
-on the case study's score test (4 h, chunks of 8 tangents; ``/tmp`` throwaway script, 2026-12-05, one process per
-size) 1.82 s per chunk at 512 samples, 0.40 s at 4096, 0.31 s at 8192, 0.28 s at 14401 (one block), the process'
-peak resident size 618, 618, 636 and 698 MB (issue 18)."""
+holds a (tangents, samples) array per candidate term of the extended network (392 candidates, chunks of 8 tangents
+on the case study). 2048, not 512: with glibc's mapped blocks on huge pages (``tnnc``'s, ``core.memory``) a block's
+temporaries of several MB fault in 2 MiB at a time, a 512-sample block's ~2 MB mostly 4 KiB at a time — the case
+study's score tests' derivatives 5.40 and 6.23 s against 7.47 and 6.54 s, 0.27–0.32 against 0.71 million page faults
+(``GLIBC_TUNABLES=glibc.malloc.hugetlb=1 python benchmarks/profile_page_faults.py --dir DIR --point-block N``,
+alternating, 2026-12-07 14:09–14:14); the highest resident size during a call about 6 MB more (a throwaway script
+resetting the high-water mark per call); ``tnnc diagnose``'s JSON the same but for its timings. Torch runs the same
+derivative eagerly, one operation after another, and pays its dispatch per call: on the case study's score test (4
+h, chunks of 8 tangents; ``/tmp`` throwaway script, 2026-12-05, one process per size) 1.82 s per chunk at 512
+samples, 0.40 s at 4096, 0.31 s at 8192, 0.28 s at 14401 (one block), the process' peak resident size 618, 618, 636
+and 698 MB (issue 18)."""
 
 # Levenberg–Marquardt Jacobians (at most) of a candidate's proper fit (it stops when the SSE drops < tol)
 FIT_ITER = 80
