@@ -147,8 +147,8 @@ def huge_pages_environment(env: Mapping[str, str] | None = None, *, thp_mode: st
     study) is a fresh mapping, each of its pages faulted in and zeroed on first touch. ``tnnc diagnose`` of the case
     study, three pairs alternating (2026-12-07 13:12–13:19 UTC, AMD EPYC, 2 cores, 0.82–0.89 s per 10⁷ Python
     additions; ``perf stat -e page-faults``): 4.50–4.73 million page faults and 14.5–15.3 s of system time without,
-    1.49–1.79 million and 7.6–9.0 s with; wall 75.4–78.4 s against 67.6–70.2 s; peak resident 568–571 against
-    569–575 MB (glibc advises its heap's growth too); the same diagnosis (its JSON but for the timings)."""
+    1.49–1.79 million and 7.6–9.0 s with; wall 75.4–78.4 s against 67.6–70.2 s; peak resident 555–557 against
+    555–561 MB (glibc advises its heap's growth too); the same diagnosis (its JSON but for the timings)."""
     env = dict(os.environ if env is None else env)
     if env.get(HUGE_PAGES_ENV, "").strip() == "0":
         return None
