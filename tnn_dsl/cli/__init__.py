@@ -53,8 +53,8 @@ HUGE_PAGE_COMMANDS = frozenset({"diagnose", "demo"})
 """The commands that run the model doctor in this process, whose rounds map and free large blocks by the thousand
 (``core.memory.large_blocks_mapped``): :func:`entry` starts them again with glibc's mapped blocks on transparent huge
 pages (``core.memory.huge_pages_environment``: the case study's diagnosis 67.6–70.2 s against 75.4–78.4 s; ``demo``'s
-trainings, which reuse their buffers, neither faster nor larger: M2 on JAX 23.9–24.3 against 24.4 s, 558 against
-560 MB, BENCHMARKS.md). Not
+trainings, which reuse their buffers, neither faster nor larger: M2 on JAX 23.9–24.3 against 24.4 s, 545 against
+547 MB, BENCHMARKS.md). Not
 ``fleet``: its diagnoses run in Ray's workers, beside Ray's own daemons, which would start with the tunable too
 (not measured)."""
 
