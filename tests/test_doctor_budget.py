@@ -118,3 +118,33 @@ def test_no_candidate_fit_starts_once_the_budget_is_spent(backend, clock, monkey
     where = "in round 1, before its candidates were fitted"
     assert d.verdict.startswith(f"not decided: the budget ({BUDGET_S:g} s) ran out {where}"), d.verdict
     assert any("no candidate is fitted" in line for line in lines), lines
+
+
+def test_the_score_tests_thread_ahead_hands_on_results_errors_and_stops():
+    """The score test's chunks computed one ahead on a thread of their own (issue 18): results in order, an error
+    raised where its chunk is asked for, a stop before a chunk ends the work there (None), and closing early lets
+    the thread go."""
+    from tnn_dsl.doctor.scoring import _Ahead
+
+    def make(part):
+        if part == [3]:
+            raise ValueError("chunk 3 failed")
+        return (part[0] * 2,)
+
+    ahead = _Ahead(make, [[1], [2], [3], [4]])
+    assert ahead.next() == (2,) and ahead.next() == (4,)
+    with pytest.raises(ValueError, match="chunk 3"):
+        ahead.next()
+    ahead.close()
+    calls = [0]
+
+    def stop():
+        calls[0] += 1
+        return calls[0] > 1  # spent after the first chunk started
+
+    ahead = _Ahead(make, [[1], [2], [4]], stop)
+    assert ahead.next() == (2,) and ahead.next() is None
+    ahead.close()
+    ahead = _Ahead(make, [[1], [2], [4], [5]])  # closed with results still to come
+    ahead.close()
+    assert not ahead._thread.is_alive()

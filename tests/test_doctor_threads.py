@@ -11,7 +11,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.core import TnnError
-from tnn_dsl.doctor.threads import THREADS_ENV, fit_threads
+from tnn_dsl.doctor.threads import THREADS_ENV, fit_threads, side_by_side
 from tnn_dsl.studies.planted import plant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -221,3 +221,30 @@ def test_fits_on_the_rounds_shared_network_give_their_own_networks_numbers(monke
     np.testing.assert_allclose([f["val_mae_after"] for f in shared["findings"]],
                                [f["val_mae_after"] for f in own["findings"]], rtol=1e-6)
     np.testing.assert_allclose(shared["extended"]["val_mae"], own["extended"]["val_mae"], rtol=1e-6)
+
+
+def test_jobs_start_in_the_order_given_and_report_in_job_order():
+    """``side_by_side(..., first=)``: the session starts the longest continuation first (issue 18). Jobs 2 and 0,
+    started first on two threads, wait for each other (a barrier of two: had job 1 taken a thread before either,
+    they would time out); the results and progress lines come back in job order whatever the start order."""
+    import threading
+
+    both = threading.Barrier(2, timeout=20)
+    started: list[int] = []
+
+    def job(i: int):
+        def run(say):
+            started.append(i)
+            if i != 1:
+                both.wait()
+            say(f"line of job {i}")
+            return i * 10
+        return run
+
+    lines: list[str] = []
+    out = side_by_side([job(0), job(1), job(2)], 2, lines.append, first=[2, 0, 1])
+    assert out == [0, 10, 20]
+    assert lines == ["line of job 0", "line of job 1", "line of job 2"]
+    assert started[-1] == 1 and sorted(started[:2]) == [0, 2]
+    with pytest.raises(ValueError, match="permutation"):
+        side_by_side([job(0), job(1)], 2, lines.append, first=[0, 0])

@@ -376,6 +376,10 @@ def test_from_the_fit_a_curved_law_makes_the_mlp_pay_and_a_straight_one_does_not
         assert r["linear"]["val_mae"] == pytest.approx(fit.evaluate(val)["mae"], rel=1e-9)
         if shape == "curved":
             assert r["choice"] == "mlp" and r["mlp"]["val_mae"] < 0.5 * r["linear"]["val_mae"], r
+            # with a second thread the linear law's free run goes beside the MLP's training: the same numbers
+            r2 = compare(EXTENDED, {"U"}, train, val, backend=backend, time_limit=60.0, start=start, threads=2)
+            assert (r2["choice"], r2["linear"]["val_mae"], r2["mlp"]["val_mae"], r2["p_value"]) == (
+                r["choice"], r["linear"]["val_mae"], r["mlp"]["val_mae"], r["p_value"])
             # the trained MLP is handed out (the doctor saves it), and it is the model the check measured
             assert r["model"].network == r["network"]
             assert r["model"].evaluate(val)["mae"] == pytest.approx(r["mlp"]["val_mae"], rel=1e-9)

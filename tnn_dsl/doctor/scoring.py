@@ -29,7 +29,8 @@ MIN_R2 = 0.02  # a candidate whose linearised fit explains less of the training 
 
 
 def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: dict[str, list[int]],
-                  accepted: list[Candidate], stop: Callable[[], bool] | None = None) -> list[dict] | None:
+                  accepted: list[Candidate], stop: Callable[[], bool] | None = None, threads: int = 1
+                  ) -> list[dict] | None:
     """The score test without simulating the big extended network: every candidate enters the dynamics as
     an extra heat flow per node, ``F_c(t) = C·∂rhs/∂θ_c`` at the current trajectory (the big network's
     right-hand side differentiated pointwise, vectorised over time), plus a direct output term
@@ -87,20 +88,42 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     # back to the system (``release_free_memory``): each chunk's arrays are the size of the last's, but the heap
     # they were freed on is fragmented by what stays, and without it the resident size kept every chunk's peak.
     n0 = len(active_base)
-    blocks = [cur.forced_jacobian(active_base, chunk=FORCED_CHUNK)]
-    for s0 in range(0, len(cand_idx), FORCED_CHUNK):
-        if stop is not None and stop():
-            return []
-        part = cand_idx[s0: s0 + FORCED_CHUNK]
+    parts = [cand_idx[s0: s0 + FORCED_CHUNK] for s0 in range(0, len(cand_idx), FORCED_CHUNK)]
+
+    def forcing_of(part: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """A chunk's forcing series ``F (k, N, nodes)`` W and direct output terms ``(k, N, n_out)``."""
         release_free_memory()  # each chunk's arrays are freed on a heap fragmented by the last: give them back
         d_rhs, d_out = big.point_derivs(part, X, U, chunk=FORCED_CHUNK)  # (k, N, ns), (k, N, n_out)
         with np.errstate(divide="ignore", invalid="ignore"):
             F = np.where(np.abs(inv_c[None, :, :nn]) > 0, d_rhs[:, :, :nn] / inv_c[None, :, :nn], 0.0)
         del d_rhs
-        release_free_memory()
+        return F, d_out
+
+    def response(F: np.ndarray, d_out: np.ndarray) -> np.ndarray:
         J = cur.forced_jacobian([], F, chunk=FORCED_CHUNK)
         J += d_out.reshape(d_out.shape[0], -1)[:, cur.train_idx].T  # the direct output term (sensor offsets)
-        blocks.append(J)
+        return J
+
+    # With a second thread the big network's pointwise derivatives of the next chunk are taken while this thread
+    # pushes the last chunk's forcing through the current network (two programs, two cores; one chunk ahead, so one
+    # chunk's arrays more in memory); the first chunk's go beside the base columns' forced Jacobian, each compiling
+    # its program. The same calls on the same arrays: the same numbers as one after the other (issue 18).
+    ahead = _Ahead(forcing_of, parts, stop) if threads > 1 and parts else None
+    try:
+        blocks = [cur.forced_jacobian(active_base, chunk=FORCED_CHUNK)]
+        for part in parts:
+            if stop is not None and stop():
+                return []
+            got = ahead.next() if ahead is not None else forcing_of(part)
+            if got is None:  # the budget ran out before the thread ahead started this chunk
+                return []
+            F, d_out = got
+            release_free_memory()
+            blocks.append(response(F, d_out))
+            del F, d_out
+    finally:
+        if ahead is not None:
+            ahead.close()
     # the structural forcings last, made a chunk at a time (each an (N, nodes) series: all of them at once held
     # ~40 MB through the whole score test on the 4 h case study, issue 18)
     forcings = _structural_forcing(cur, mass, smass, X, U, rates, nn)
@@ -119,6 +142,58 @@ def _score_forced(cur: _Engine, big: _Engine, cands: list[Candidate], cols_of: d
     e = cur.residual()
     return _score_stats(J_all, len(active_base), e.ravel()[cur.train_idx], cands, cand_idx, cols_of,
                         _noise_var(e, cur.train_mask))
+
+
+class _Ahead:
+    """``make(part)`` for each of ``parts`` in order on a thread of its own, at most one result ahead of the consumer
+    (:meth:`next`, which raises what ``make`` raised, and returns None once ``stop()`` said stop before a part: the
+    budget's rule, no chunk starts once it is spent); :meth:`close` ends the thread, what it holds dropped."""
+
+    def __init__(self, make: Callable[[list[int]], tuple], parts: list[list[int]],
+                 stop: Callable[[], bool] | None = None) -> None:
+        import queue
+        import threading
+
+        self._q: queue.Queue = queue.Queue(maxsize=1)
+        self._closed = threading.Event()
+
+        def run() -> None:
+            for part in parts:
+                if self._closed.is_set():
+                    return
+                if stop is not None and stop():
+                    item: tuple = ("stopped", None)
+                else:
+                    try:
+                        item = ("ok", make(part))
+                    except BaseException as exc:  # handed to the consumer, raised there
+                        item = ("error", exc)
+                while not self._closed.is_set():
+                    try:
+                        self._q.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if item[0] != "ok":
+                    return
+
+        self._thread = threading.Thread(target=run, name="tnn-score-ahead", daemon=True)
+        self._thread.start()
+
+    def next(self) -> tuple | None:
+        kind, value = self._q.get()
+        if kind == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        self._closed.set()
+        while True:  # a result waiting to be put is let go
+            try:
+                self._q.get_nowait()
+            except Exception:
+                break
+        self._thread.join()
 
 
 def _structural_forcing(cur: _Engine, mass: list[Candidate], smass: list[Candidate], X, U, rates, nn: int

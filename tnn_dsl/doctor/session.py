@@ -575,7 +575,7 @@ class _Session:
         b_eng, b_ext, b_free, b_cols = self.big
         self.say(f"round {rnd}: score test over {len(self.remaining)} candidates ...")
         scored = _score_forced(self.final_eng, b_eng, self.remaining, b_cols, [_cand_in(b_ext, k) for k in acc_keys],
-                               stop=lambda: self.spent(f"in round {rnd}'s score test"))
+                               stop=lambda: self.spent(f"in round {rnd}'s score test"), threads=self.threads)
         if scored == []:  # the budget stopped it between two chunks
             b_eng.release_programs()
             self.say(f"budget spent during round {rnd}'s score test; stopping the forward selection")
@@ -773,9 +773,10 @@ class _Session:
             self.say(f"  {len(out)} more candidate(s) tied with the shortlist by the score test: fitted too")
         return out
 
-    def side_by_side(self, jobs: list[Callable[[Callable[[str], None]], object]]) -> list:
-        """:func:`.threads.side_by_side` on this session's threads and progress."""
-        return side_by_side(jobs, self.threads, self.say)
+    def side_by_side(self, jobs: list[Callable[[Callable[[str], None]], object]],
+                     first: list[int] | None = None) -> list:
+        """:func:`.threads.side_by_side` on this session's threads and progress (``first``: the start order)."""
+        return side_by_side(jobs, self.threads, self.say, first)
 
     def fit_exact(self, s_: dict, small, start_params: dict, acc_keys: list[str], max_iter: int,
                   note: str = "", say: Callable[[str], None] | None = None, extra: Candidate | None = None) -> dict:
@@ -1112,6 +1113,10 @@ class _Session:
         each on a network of its own cut the case study's diagnosis from 332 s to 289–292 s but raised its peak
         memory from 946 to 1177 MB; tried in commit 2edc05b, off by default and then removed: BENCHMARKS.md.)"""
         going = sorted([f for f in fits if f.get("more")], key=lambda f: f["train_sse"])[:FIT_CONTINUE]
+        # started worst first: the fit furthest from the others' training SSE has the most left to go (the case
+        # study's round 1: R_pc_hx1 on u1, SSE 470 against 0.33–222 K², went on for 78 iterations while the others
+        # took 4–22), and started last it ran alone on one of the two cores at the end (issue 18)
+        worst_first = sorted(range(len(going)), key=lambda i: -going[i]["train_sse"])
 
         def go_on(f: dict):
             def run(say) -> dict | None:
@@ -1128,7 +1133,7 @@ class _Session:
                 return {**_fit_result(c, f["score"], e, x_s, self.e_base_val), "train_sse": info["sse"]}
             return run
 
-        for f, new in zip(going, self.side_by_side([go_on(f) for f in going])):
+        for f, new in zip(going, self.side_by_side([go_on(f) for f in going], worst_first)):
             if new is not None:
                 f.update(new)
 

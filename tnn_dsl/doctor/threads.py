@@ -37,22 +37,28 @@ def fit_threads(threads: int | None = None) -> int:
 
 
 def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads: int,
-                 say: Callable[[str], None]) -> list:
+                 say: Callable[[str], None], first: list[int] | None = None) -> list:
     """Run ``jobs`` (each called with its own progress function) on up to ``threads`` threads; results in job order,
-    and each job's progress lines said together, in job order, as the jobs finish. Candidate fits are independent
-    (each on its own engine clone or network) and spend their time inside compiled simulations, where JAX releases
-    the interpreter (torch runs one job at a time: the session sets ``threads`` = 1). The case study's whole diagnosis
-    on 2 cores: 356 s with one thread, 279 s with two, on a slow host (``benchmarks/bench_diagnose.py --threads 1,2``,
-    2026-11-29; BENCHMARKS.md)."""
+    and each job's progress lines said together, in job order, as the jobs finish. ``first``: the order the jobs
+    are started in (a permutation of their indices; default job order) — the longest first, where the caller can
+    tell, so that no thread is left alone with a long job at the end (the results and lines are the same).
+    Candidate fits are independent (each on its own engine clone or network) and spend their time inside compiled
+    simulations, where JAX releases the interpreter (torch runs one job at a time: the session sets ``threads`` =
+    1). The case study's whole diagnosis on 2 cores: 356 s with one thread, 279 s with two, on a slow host
+    (``benchmarks/bench_diagnose.py --threads 1,2``, 2026-11-29; BENCHMARKS.md)."""
     jobs = [_then_release(job) for job in jobs]
     if threads <= 1 or len(jobs) <= 1:
         return [job(say) for job in jobs]
     from concurrent.futures import ThreadPoolExecutor
 
+    order = list(range(len(jobs))) if first is None else list(first)
+    if sorted(order) != list(range(len(jobs))):
+        raise ValueError(f"first must be a permutation of 0..{len(jobs) - 1}, got {first}")
     bufs: list[list[str]] = [[] for _ in jobs]
     out = []
     with ThreadPoolExecutor(max_workers=min(threads, len(jobs)), thread_name_prefix="tnn-doctor") as pool:
-        futures = [pool.submit(job, buf.append) for job, buf in zip(jobs, bufs)]
+        started = {i: pool.submit(jobs[i], bufs[i].append) for i in order}
+        futures = [started[i] for i in range(len(jobs))]
         for fut, buf in zip(futures, bufs):
             res = fut.result()
             for line in buf:
