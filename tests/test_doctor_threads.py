@@ -102,8 +102,9 @@ class _FakeEngine:
     def release_programs(self) -> None:
         self.released = True
 
-    def warm(self, active: list[int]) -> None:
+    def warm(self, active: list[int], threads: int = 1) -> None:
         self.log.append(("warm", tuple(active)))
+        self.warm_threads = threads
 
 
 def _cand(target: str):
@@ -152,6 +153,7 @@ def test_a_rounds_extra_fits_run_side_by_side_unless_one_would_take_the_others_f
     assert log.count("clone") == (2 if apart else 0)
     # compiled alone before the jobs start side by side: the free columns and the first job's own
     assert [e for e in log if e != "clone"] == ([("warm", (0, 1, 2, 3))] if apart else [])
+    assert getattr(engine, "warm_threads", threads) == threads  # its two simulations beside its Jacobian
     assert all((d[1] is not engine) is apart for d in done)
     assert all(d[1].released for d in done)
     assert said == [line for n, (_, e) in zip(names, done) for line in (f"fitting {n} ...", f"fitted {n} on {e.name}")]

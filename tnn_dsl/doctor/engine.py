@@ -848,15 +848,31 @@ class _Engine:
         v = (self.y[: ym.shape[0]] - ym).ravel()[self.train_idx]
         return self._sse_of(v), v
 
-    def warm(self, active: list[int]) -> None:
+    def warm(self, active: list[int], threads: int = 1) -> None:
         """Compile, by calling each once at the current parameters, the programs a :meth:`fit` over ``active`` calls
         first (the whole simulation, the training one, the Jacobian of ``active``'s size); nothing changes. Fits on
         clones started side by side would otherwise meet in the first one's compilation: the others wait for it
         (JAX compiles a program once), and then all of them take their first Jacobians at once on a heap the
-        compilation has just grown (issue 18: the case study's highest resident size came there)."""
-        self.sse(self.params)
-        self._train_sse(self.params)
-        self.jacobian(active, method=LM_JACOBIAN)
+        compilation has just grown (issue 18: the case study's highest resident size came there). With ``threads``
+        ≥ 2 the Jacobian's program is compiled beside the two simulations' (XLA compiles a program on one thread
+        for the most part: the case study's round networks compiled in about 2.2–2.6 s one after the other)."""
+        def simulations() -> None:
+            self.sse(self.params)
+            self._train_sse(self.params)
+
+        def jacobian() -> None:
+            self.jacobian(active, method=LM_JACOBIAN)
+
+        if threads > 1 and self.backend == "jax":
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-warm") as pool:
+                job = pool.submit(jacobian)
+                simulations()
+                job.result()
+            return
+        simulations()
+        jacobian()
 
     def step_between(self, p0: dict[str, np.ndarray], p1: dict[str, np.ndarray], active: list[int]) -> np.ndarray:
         """The step (len(active),) in the columns' coordinates (log of the ratio for a log column, the difference

@@ -375,7 +375,17 @@ class _Session:
         eng, ext0, free_idx, _ = self.small([])
         self.lap("compile", t0)
         t0 = _time.monotonic()
-        eng.fitted_start()
+        if self.threads > 1 and self.backend == "jax":
+            # the nominal fit's programs compiled (at the values so far: nothing is kept but the programs) while the
+            # training files' initial states are fitted to their burn-in (issue 18)
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-warm") as pool:
+                job = pool.submit(eng.warm, list(free_idx))
+                eng.fitted_start()
+                job.result()
+        else:
+            eng.fitted_start()
         n_x0 = sum(1 for j in free_idx if eng.cols[j].key.startswith(X0_PREFIX))
         self.say(f"fitting the nominal model ({len(free_idx) - n_x0} free parameters"
                  + (f", {n_x0} initial-state values" if n_x0 else "")
@@ -652,7 +662,7 @@ class _Session:
             # before its fits start side by side (:meth:`_Engine.warm`)
             t_w = _time.monotonic()
             c0: Candidate = exact[0]["cand"]
-            e_s.warm(list(f_s) + [j for k in acc_keys + [c0.key] for j in c_s.get(k, [])])
+            e_s.warm(list(f_s) + [j for k in acc_keys + [c0.key] for j in c_s.get(k, [])], self.threads)
             release_free_memory()
             t_c += _time.monotonic() - t_w
 
@@ -873,7 +883,7 @@ class _Session:
             # compiling and taking their first Jacobians at once were the case study's peak (+15 MB, issue 18)
             acc_keys = self.acc_keys()
             small[0].warm(list(small[2]) + [j for k in acc_keys + [c.key for c in parts[0]]
-                                            for j in small[3].get(k, [])])
+                                            for j in small[3].get(k, [])], self.threads)
             release_free_memory()
         engines = [small[0].clone() if apart else small[0] for _ in jobs]
         bound = [lambda say, job=job, eng=eng: job(say, eng) for job, eng in zip(jobs, engines)]
