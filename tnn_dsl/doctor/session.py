@@ -377,11 +377,14 @@ class _Session:
         t0 = _time.monotonic()
         if self.threads > 1 and self.backend == "jax":
             # the nominal fit's programs compiled (at the values so far: nothing is kept but the programs) while the
-            # training files' initial states are fitted to their burn-in (issue 18)
+            # training files' initial states are fitted to their burn-in (issue 18) — on a clone, whose parameter
+            # table and last simulation are its own: the fit here writes the initial states into the engine's table
+            # while the clone simulates (a simulation remembered under values written after it ran would be handed
+            # back for them)
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-warm") as pool:
-                job = pool.submit(eng.warm, list(free_idx))
+                job = pool.submit(eng.clone().warm, list(free_idx))
                 eng.fitted_start()
                 job.result()
         else:
