@@ -11,7 +11,7 @@ import pytest
 
 import tnn_dsl
 from tnn_dsl.core import TnnError
-from tnn_dsl.doctor.threads import THREADS_ENV, fit_threads, side_by_side
+from tnn_dsl.doctor.threads import THREADS_ENV, fit_threads, side_by_side, two_at_once
 from tnn_dsl.studies.planted import plant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -250,3 +250,25 @@ def test_jobs_start_in_the_order_given_and_report_in_job_order():
     assert started[-1] == 1 and sorted(started[:2]) == [0, 2]
     with pytest.raises(ValueError, match="permutation"):
         side_by_side([job(0), job(1)], 2, lines.append, first=[0, 0])
+
+
+def test_two_pieces_of_work_run_at_once_with_two_threads_and_in_turn_with_one():
+    """``two_at_once(beside, here, threads)``: with two threads both run at once (a barrier of two, which one after
+    the other would time out), with one ``beside`` first; the results come back as ``(beside(), here())`` and an error
+    in either is raised once both have ended."""
+    import threading
+
+    both = threading.Barrier(2, timeout=20)
+    assert two_at_once(lambda: (both.wait(), "a")[1], lambda: (both.wait(), "b")[1], 2) == ("a", "b")
+    order: list[str] = []
+    assert two_at_once(lambda: order.append("beside") or 1, lambda: order.append("here") or 2, 1) == (1, 2)
+    assert order == ["beside", "here"]
+    ended: list[str] = []
+
+    def fails():
+        ended.append("beside")
+        raise ValueError("beside failed")
+
+    with pytest.raises(ValueError, match="beside failed"):
+        two_at_once(fails, lambda: ended.append("here"), 2)
+    assert sorted(ended) == ["beside", "here"]

@@ -863,16 +863,9 @@ class _Engine:
         def jacobian() -> None:
             self.jacobian(active, method=LM_JACOBIAN)
 
-        if threads > 1 and self.backend == "jax":
-            from concurrent.futures import ThreadPoolExecutor
+        from .threads import two_at_once
 
-            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-warm") as pool:
-                job = pool.submit(jacobian)
-                simulations()
-                job.result()
-            return
-        simulations()
-        jacobian()
+        two_at_once(jacobian, simulations, threads if self.backend == "jax" else 1)
 
     def step_between(self, p0: dict[str, np.ndarray], p1: dict[str, np.ndarray], active: list[int]) -> np.ndarray:
         """The step (len(active),) in the columns' coordinates (log of the ratio for a log column, the difference

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -61,7 +61,7 @@ from ..analysis import held_out_test
 from ..compiler.backends.adapter import lean_programs
 from ..ir import Network
 from .selection import MIN_GAIN, P_ACCEPT
-from .threads import side_by_side
+from .threads import side_by_side, two_at_once
 
 HIDDEN = 8
 
@@ -397,36 +397,28 @@ def _compare_from_fit(net: Network, net_mlp: Network, n: int, start: Mapping[str
             e = _held_out_errors(linear, val)
         return e, time.monotonic() - t_l
 
-    # with a second thread the linear law's free run (its burn-in programs compiled, ~1.3 s on the case study) goes
-    # beside the MLP's training, which it does not feed: the MLP starts from ``lin_params``, not from that run
-    # (issue 18); the numbers are the same either way
-    pool = None
-    if threads > 1:
-        from concurrent.futures import ThreadPoolExecutor
+    mlp_values, dz = mlp_start(net_mlp, lin_params)
+    out["start_dz"] = dz
+    converted = _converted(net, net_mlp)
+    specs = compile_network(net_mlp, backend=backend).param_specs
+    freeze = sorted({k for k, s in specs.items() if s.trainable and s.kind == "physical"}
+                    | {fn.name for fn in net_mlp.learned if fn.name not in converted})
 
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-linear-law")
-    try:
-        lin_job = pool.submit(linear_run) if pool is not None else None
-        e_lin, lin_s = linear_run() if lin_job is None else (None, 0.0)
-        mlp_values, dz = mlp_start(net_mlp, lin_params)
-        out["start_dz"] = dz
-        converted = _converted(net, net_mlp)
-        specs = compile_network(net_mlp, backend=backend).param_specs
-        freeze = sorted({k for k, s in specs.items() if s.trainable and s.kind == "physical"}
-                        | {fn.name for fn in net_mlp.learned if fn.name not in converted})
-        t0 = time.monotonic()
+    def mlp_run() -> tuple[Any, np.ndarray, float]:
+        """The MLP trained from the linear law, its held-out errors and its seconds."""
+        t_m = time.monotonic()
         say(f"  training the MLP from the doctor's linear law (at most {time_limit:.0f} s of training) ...")
         with lean_programs():
             trained = train_model(net_mlp, train, None, val_fraction=EARLY_STOP_FRACTION, backend=backend,
                                   time_limit=time_limit, seed=0, epochs=0, freeze=freeze, start=mlp_values,
                                   callback=_stopping(stop))
-            e_mlp = _held_out_errors(trained, val)
-        mlp_s = time.monotonic() - t0
-        if lin_job is not None:
-            e_lin, lin_s = lin_job.result()
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True)
+            e = _held_out_errors(trained, val)
+        return trained, e, time.monotonic() - t_m
+
+    # with a second thread the linear law's free run (its burn-in programs compiled, ~1.3 s on the case study) goes
+    # beside the MLP's training, which it does not feed: the MLP starts from ``lin_params``, not from that run
+    # (issue 18); the numbers are the same either way
+    (e_lin, lin_s), (trained, e_mlp, mlp_s) = two_at_once(linear_run, mlp_run, threads)
     out["linear"] = {"val_mae": float(np.nanmean(np.abs(e_lin))), "val_max": float(np.nanmax(np.abs(e_lin))),
                      "k": k_lin, "seconds": round(lin_s, 1), "stopped": "the doctor's fit"}
     k_mlp = int(sum(int(np.prod(s.shape)) for name, s in specs.items()

@@ -187,11 +187,13 @@ class _Ahead:
         return value
 
     def close(self) -> None:
+        import queue
+
         self._closed.set()
         while True:  # a result waiting to be put is let go
             try:
                 self._q.get_nowait()
-            except Exception:
+            except queue.Empty:
                 break
         self._thread.join()
 

@@ -9,6 +9,7 @@ import math
 import os
 import re
 import time as _time
+from functools import partial
 from typing import Any, Callable
 
 import numpy as np
@@ -42,7 +43,7 @@ from .scoring import MIN_R2, _indistinguishable, _score, _score_forced, _shortli
 from .selection import CONFIRM_RATIO, MIN_GAIN, ROUNDOFF_MAE_K, _choose, _place, refusal, unphysical_reason
 from .stopping import stop_requested
 from .structural import structural_candidates
-from .threads import fit_threads, side_by_side
+from .threads import fit_threads, side_by_side, two_at_once
 from .uncertainty import final_uncertainty
 from .words import _what_is_left, _words
 
@@ -381,12 +382,7 @@ class _Session:
             # table and last simulation are its own: the fit here writes the initial states into the engine's table
             # while the clone simulates (a simulation remembered under values written after it ran would be handed
             # back for them)
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-warm") as pool:
-                job = pool.submit(eng.clone().warm, list(free_idx))
-                eng.fitted_start()
-                job.result()
+            two_at_once(partial(eng.clone().warm, list(free_idx)), eng.fitted_start, self.threads)
         else:
             eng.fitted_start()
         n_x0 = sum(1 for j in free_idx if eng.cols[j].key.startswith(X0_PREFIX))

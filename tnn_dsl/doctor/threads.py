@@ -4,7 +4,7 @@ kept together."""
 from __future__ import annotations
 
 import os
-from typing import Callable
+from typing import Callable, TypeVar
 
 from ..core import Diagnostic, TnnError
 from ..core.memory import release_free_memory
@@ -13,6 +13,9 @@ THREADS_ENV = "TNN_DOCTOR_THREADS"
 """Environment variable: the number of candidate fits run side by side (default: the CPUs this process may use, at
 most ``MAX_THREADS``)."""
 MAX_THREADS = 4
+
+_A = TypeVar("_A")
+_B = TypeVar("_B")
 
 
 def fit_threads(threads: int | None = None) -> int:
@@ -65,6 +68,22 @@ def side_by_side(jobs: list[Callable[[Callable[[str], None]], object]], threads:
                 say(line)
             out.append(res)
     return out
+
+
+def two_at_once(beside: Callable[[], _A], here: Callable[[], _B], threads: int) -> tuple[_A, _B]:
+    """``(beside(), here())``: with ``threads`` ≥ 2 ``beside`` runs on a second thread while ``here`` runs on this one
+    (both waited for; an error in ``here`` is raised after ``beside`` ends, then one in ``beside``), else one after the
+    other. For two independent pieces of work of one stretch that would leave a core idle (issue 18: a network's
+    Jacobian program compiled beside its simulations', the MLP check's linear free run beside the MLP's training)."""
+    if threads <= 1:
+        a = beside()
+        return a, here()
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tnn-beside") as pool:
+        job = pool.submit(beside)
+        b = here()
+        return job.result(), b
 
 
 def _then_release(job: Callable[[Callable[[str], None]], object]) -> Callable[[Callable[[str], None]], object]:
