@@ -3,7 +3,8 @@ static checks of ``_validate``.
 
 A dimension (``_ir.Dim``) is a dict of exponents over the SI base units ``kg m s K A mol cd``; ``{}`` is
 dimensionless. Conversion is done by `pint <https://pint.readthedocs.io>`_; the registry is created once,
-lazily (it takes a fraction of a second).
+lazily (with pint's import about 0.45 s), and only for a unit that is not among the common ones
+(:data:`COMMON_UNITS`, pint's own results for them).
 
 Temperatures: a lone temperature unit (``23 degC``, ``296 K``, ``70 degF``) is an *absolute* temperature
 and converts to kelvin (``23 degC`` -> 296.15). Inside a compound unit (``W/degC``, ``J/(kg*degC)``,
@@ -80,9 +81,53 @@ def _normalise(unit: str) -> str:
     return u
 
 
+_ENERGY_PER_K = (("kg", 1.0), ("m", 2.0), ("s", -2.0), ("K", -1.0))
+_POWER = (("kg", 1.0), ("m", 2.0), ("s", -3.0))
+_RESISTANCE = (("kg", -1.0), ("m", -2.0), ("s", 3.0), ("K", 1.0))
+_SEEBECK = (("kg", 1.0), ("m", 2.0), ("s", -3.0), ("K", -1.0), ("A", -1.0))
+COMMON_UNITS: dict[str, tuple[float, float, tuple[tuple[str, float], ...]]] = {
+    "K/W": (1.0, 0.0, _RESISTANCE), "K/kW": (0.001, 0.0, _RESISTANCE),
+    "W/K": (1.0, 0.0, (("kg", 1.0), ("m", 2.0), ("s", -3.0), ("K", -1.0))),
+    "J/K": (1.0, 0.0, _ENERGY_PER_K), "kJ/K": (1000.0, 0.0, _ENERGY_PER_K), "MJ/K": (1000000.0, 0.0, _ENERGY_PER_K),
+    "kWh/K": (3600000.0, 0.0, _ENERGY_PER_K),
+    "kg/s": (1.0, 0.0, (("kg", 1.0), ("s", -1.0))), "kg/h": (0.0002777777777777778, 0.0, (("kg", 1.0), ("s", -1.0))),
+    "J/(kg*K)": (1.0, 0.0, (("m", 2.0), ("s", -2.0), ("K", -1.0))),
+    "kJ/(kg*K)": (1000.0, 0.0, (("m", 2.0), ("s", -2.0), ("K", -1.0))),
+    "W": (1.0, 0.0, _POWER), "kW": (1000.0, 0.0, _POWER), "mW": (0.001, 0.0, _POWER),
+    "W/%": (100.0, 0.0, _POWER), "W/percent": (100.0, 0.0, _POWER), "%": (0.01, 0.0, ()),
+    "m^2": (1.0, 0.0, (("m", 2.0),)), "W/m^2": (1.0, 0.0, (("kg", 1.0), ("s", -3.0))),
+    "kW/m^2": (1000.0, 0.0, (("kg", 1.0), ("s", -3.0))),
+    "V/K": (1.0, 0.0, _SEEBECK), "mV/K": (0.001, 0.0, _SEEBECK),
+    "ohm": (1.0, 0.0, (("kg", 1.0), ("m", 2.0), ("s", -3.0), ("A", -2.0))), "A": (1.0, 0.0, (("A", 1.0),)),
+    "V": (1.0, 0.0, (("kg", 1.0), ("m", 2.0), ("s", -3.0), ("A", -1.0))),
+    "J": (1.0, 0.0, (("kg", 1.0), ("m", 2.0), ("s", -2.0))),
+    "s": (1.0, 0.0, (("s", 1.0),)), "min": (60.0, 0.0, (("s", 1.0),)), "h": (3600.0, 0.0, (("s", 1.0),)),
+    "Hz": (1.0, 0.0, (("s", -1.0),)), "1/K": (1.0, 0.0, (("K", -1.0),)),
+    "m": (1.0, 0.0, (("m", 1.0),)), "mm": (0.001, 0.0, (("m", 1.0),)), "kg": (1.0, 0.0, (("kg", 1.0),)),
+    "W/(m*K)": (1.0, 0.0, (("kg", 1.0), ("m", 1.0), ("s", -3.0), ("K", -1.0))),
+    "W/(m^2*K)": (1.0, 0.0, (("kg", 1.0), ("s", -3.0), ("K", -1.0))),
+}
+"""The units thermal networks and their data are written in, as written (a data column's ``[%]`` without its
+brackets) -> what pint converts them to (``tests/test_units.py`` checks every entry against pint): a file that
+uses only these never imports pint, whose import and registry take about 0.45 s of every command (``tnnc check``
+of the case study 0.88 s before; issue 18)."""
+
+
 @lru_cache(maxsize=512)
 def _convert(unit: str) -> tuple[float, float, tuple[tuple[str, float], ...]]:
     """``unit`` -> (scale, offset, dim items): SI value = scale * x + offset."""
+    if unit.strip() in ("", "1", "[1]", "[]"):
+        return 1.0, 0.0, ()
+    bare = unit.strip()
+    if bare.startswith("[") and bare.endswith("]"):
+        bare = bare[1:-1].strip()
+    if bare in COMMON_UNITS:
+        return COMMON_UNITS[bare]
+    return _convert_with_pint(unit)
+
+
+def _convert_with_pint(unit: str) -> tuple[float, float, tuple[tuple[str, float], ...]]:
+    """:func:`_convert` of a unit not in :data:`COMMON_UNITS` (or of one that is: the test's reference)."""
     if unit.strip() in ("", "1", "[1]", "[]"):
         return 1.0, 0.0, ()
     text = _normalise(unit)
@@ -238,7 +283,7 @@ def describe_dim(d: Dim) -> str:
 
 
 __all__ = [
-    "BASE", "TEMPERATURE", "DIMENSIONLESS", "TEMPERATURE_UNITS", "UnitError", "parse_quantity",
+    "BASE", "COMMON_UNITS", "TEMPERATURE", "DIMENSIONLESS", "TEMPERATURE_UNITS", "UnitError", "parse_quantity",
     "unit_dim", "unit_scale", "is_temperature_unit", "dim_mul", "dim_div", "dim_pow", "dim_eq",
     "format_dim", "describe_dim",
 ]
