@@ -1,7 +1,7 @@
-"""`tnn_dsl.core.memory.release_free_memory` and `large_blocks_mapped`: arrays of a few MB freed with smaller live
+"""`tnn_dsl.core.memory.release_free_memory`, `large_blocks_mapped` and `freeze_live_objects`: arrays of a few MB freed with smaller live
 objects between them stay on glibc's heap (resident) until the first is called, and go back to the operating system
 when it is, or at once when they were mapped on their own (the second). Run in fresh processes (the allocator's state
-is per process)."""
+is per process). ``freeze_live_objects`` (the collector's permanent generation) in this one."""
 
 from __future__ import annotations
 
@@ -74,3 +74,29 @@ def test_large_blocks_mapped_go_back_when_freed_without_a_trim():
     assert mapped["kept"] < 40, mapped  # each 8 MB block was a mapping of its own, unmapped by `del`
     assert off["kept"] > 150, off
     assert mapped["kept_after_exit"] > 30, mapped  # glibc's behaviour after the block: heap blocks kept
+
+
+def test_frozen_objects_leave_later_garbage_to_the_collector():
+    """``freeze_live_objects``: what lives now goes to the permanent generation (walked by no later collection);
+    a reference cycle made afterwards is still collected, and its finaliser runs."""
+    import gc
+    import weakref
+
+    from tnn_dsl.core.memory import freeze_live_objects
+
+    class Node:
+        pass
+
+    kept = Node()
+    try:
+        freeze_live_objects()
+        assert gc.get_freeze_count() > 1000
+        assert not any(o is kept for o in gc.get_objects())  # frozen: out of the generations the collector walks
+        a, b = Node(), Node()
+        a.other, b.other = b, a
+        gone = weakref.ref(a)
+        del a, b
+        gc.collect()
+        assert gone() is None
+    finally:
+        gc.unfreeze()

@@ -92,6 +92,9 @@ def run(args) -> int:
         from ..compiler.backends.jax_ops import keep_programs_for_this_process
 
         keep_programs_for_this_process()
+    from ..core.memory import freeze_live_objects
+
+    freeze_live_objects()  # this process is ours: the imports' objects out of every later full collection
 
     def progress(msg: str) -> None:
         if not args.quiet:
