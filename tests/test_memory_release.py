@@ -1,7 +1,7 @@
-"""`tnn_dsl.core.memory.release_free_memory`, `large_blocks_mapped` and `freeze_live_objects`: arrays of a few MB freed with smaller live
+"""`tnn_dsl.core.memory.release_free_memory` and `large_blocks_mapped`: arrays of a few MB freed with smaller live
 objects between them stay on glibc's heap (resident) until the first is called, and go back to the operating system
 when it is, or at once when they were mapped on their own (the second). Run in fresh processes (the allocator's state
-is per process). ``freeze_live_objects`` (the collector's permanent generation) in this one."""
+is per process). And `freeze_live_objects` (the collector's permanent generation), in this one."""
 
 from __future__ import annotations
 
