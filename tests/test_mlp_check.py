@@ -416,3 +416,38 @@ def test_the_held_out_files_judge_the_laws_and_never_steer_a_training(backend, f
     for k in a:
         np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)
     assert runs[0]["mlp"]["val_mae"] != runs[1]["mlp"]["val_mae"]
+
+
+@pytest.mark.parametrize("kept", [True, False], ids=["programs kept", "no program cache"])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_trained_mlps_held_out_programs_are_compiled_beside_its_training(monkeypatch, threads, kept):
+    """With two threads and JAX keeping its programs (``tnnc diagnose``'s program cache), the thread that free-ran the
+    linear law then free-runs the MLP at its start values, so that the programs of the trained MLP's held-out run are
+    read back instead of compiled after its training (issue 18); a failure there changes nothing. With one thread,
+    or no cache to keep them in, it is not done."""
+    import tnn_dsl.doctor.mlp_check as M
+
+    e_lin = np.random.default_rng(2).normal(0.0, 0.05, 2000)
+    calls: list[str] = []
+
+    def fake_errors(model, val):
+        if isinstance(model, _Trained):
+            calls.append("trained MLP")
+            return model.err
+        if any(fn.kind == "mlp" for fn in model.network.learned):
+            calls.append("MLP at its start")
+            raise RuntimeError("a failed warm-up")
+        calls.append("linear law")
+        return e_lin
+
+    monkeypatch.setattr(M, "_held_out_errors", fake_errors)
+    monkeypatch.setattr(M, "_programs_kept", lambda: kept)
+    monkeypatch.setattr("tnn_dsl.fit.train", lambda *a, **k: _Trained(0.5 * e_lin, "completed", 45))
+    model = tnn_dsl.compile(EXTENDED, "jax")
+    start = values_for_extension_same(model.to_numpy(model.init_params(seed=0)))
+    r = compare(EXTENDED, {"U"}, [], [], time_limit=60.0, start=start, threads=threads)
+    warmed = threads == 2 and kept
+    assert sorted(calls) == sorted(["linear law", "trained MLP"] + (["MLP at its start"] if warmed else []))
+    if warmed:
+        assert calls.index("MLP at its start") > calls.index("linear law")
+    assert r["choice"] == "mlp" and r["mlp"]["val_mae"] == pytest.approx(0.5 * r["linear"]["val_mae"])

@@ -93,6 +93,14 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
     return path
 
 
+def programs_kept() -> bool:
+    """Whether this process writes the programs it compiles to a persistent compilation cache (the environment's,
+    :func:`cache_every_program`, or :func:`keep_programs_for_this_process`'s): a program compiled ahead on an idle
+    core is then read back, not compiled again, by whatever asks for the same program later, even through another
+    ``jax.jit`` object (the model doctor's MLP check)."""
+    return bool(os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or jax.config.jax_compilation_cache_dir)
+
+
 from . import NumpyLike  # noqa: E402
 
 SMALL_MATMUL = 256
