@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -19,12 +20,25 @@ TCLAB = os.path.join(ROOT, "networks", "tclab", "tclab.thn")
 BOUNDS = {"Q1": (0.0, 1.0), "Q2": (0.0, 1.0)}  # heater fraction (SI of [%])
 
 
-def test_one_thread_and_two_give_the_same_diagnosis():
+def test_one_thread_and_two_give_the_same_diagnosis(monkeypatch):
     """A dependence planted in TCLab data (U1 grows with T(h1)), three candidates fitted per round and the best
     continued: one thread and two name the same findings in the same order with the same values, word for word; the
     answer is the planted dependence, named, and it pays.
     JAX only: torch fits one candidate at a time (next test). Numpy's and scipy's BLAS run one thread during the
-    diagnosis, and the caller's number of threads is back after it."""
+    diagnosis, and the caller's number of threads is back after it. With two threads the standard errors'
+    forward-mode Jacobian is first taken beside the extended model's polish (its program compiled there), with the
+    same standard errors."""
+    from tnn_dsl.doctor.engine import _Engine
+
+    forward_on: list[str] = []  # the threads that took forward-mode Jacobians
+    jacobian = _Engine.jacobian
+
+    def spy(self, active, chunk=32, method="forward"):
+        if method == "forward":
+            forward_on.append(threading.current_thread().name)
+        return jacobian(self, active, chunk, method)
+
+    monkeypatch.setattr(_Engine, "jacobian", spy)
     net = tnn_dsl.load(TCLAB)
     backend = "jax"
     pl = plant(net, BOUNDS, "param_dependence", "U1", "T(h1)", 0.4, noise=0.01, seed=3, n_train=700, n_val=400,
@@ -36,8 +50,13 @@ def test_one_thread_and_two_give_the_same_diagnosis():
 
     seen: list[int] = []  # the BLAS threads at each progress line: one while the doctor runs (core.blas)
     with threadpool_limits(limits=2, user_api="blas"):  # the user's setting, restored after each diagnosis
-        runs = [tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False, backend=backend,
-                                 threads=n, progress=lambda line: seen.extend(blas_threads())) for n in (1, 2)]
+        runs = []
+        for n in (1, 2):
+            forward_on.clear()
+            runs.append(tnn_dsl.diagnose(net, pl.train, pl.val, top=3, max_rounds=1, mlp_check=False,
+                                         backend=backend, threads=n, progress=lambda line: seen.extend(blas_threads())))
+            beside = [name for name in forward_on if name.startswith("tnn-beside")]
+            assert (len(beside) == 1) if n == 2 else not beside, forward_on
         assert set(blas_threads()) == {2}
     assert seen and set(seen) == {1}, seen
     a, b = (d.to_dict() for d in runs)
@@ -46,6 +65,7 @@ def test_one_thread_and_two_give_the_same_diagnosis():
     assert [f["accepted"] for f in a["findings"]] == [f["accepted"] for f in b["findings"]]
     assert runs[0].extended_text == runs[1].extended_text
     np.testing.assert_allclose(a["extended"]["val_mae"], b["extended"]["val_mae"], rtol=1e-12)
+    assert a["extended"]["uncertainty"]["estimates"] and a["extended"]["uncertainty"] == b["extended"]["uncertainty"]
     assert len(a["findings"]) >= 2  # more than one candidate was fitted, so the threads had work to share
     # the answer (the CI check of test_diagnose.py::test_planted_dependence_is_found_named_and_pays, slow there):
     # the planted dependence first, named, paying on the held-out run, written as a valid network

@@ -1316,8 +1316,15 @@ class _Session:
         """The accepted findings applied to the IR (:func:`extend_network`, fitted values in the new parameters),
         printed; the extended model's held-out residual."""
         t0 = _time.monotonic()
-        self.polish()
-        if self.accepted and self.final_act and self.ml is None:  # under ml: the likelihood's own estimates
+        uncertain = bool(self.accepted and self.final_act and self.ml is None)  # under ml: the likelihood's own
+        if uncertain and self.threads > 1 and self.backend == "jax":
+            # the standard errors' forward-mode Jacobian (a program of its own, 0.7 s of compiling on the case study)
+            # compiled on a clone beside the polish, whose fits take their Jacobians by differences; the clone's
+            # parameter table is its own, the program shared (issue 18)
+            two_at_once(partial(self.final_eng.clone().jacobian, list(self.final_act)), self.polish, self.threads)
+        else:
+            self.polish()
+        if uncertain:
             self.uncertainty = final_uncertainty(self.final_eng, self.final_act, self.final_ext.fn_vars)
         self.acc_small = [_cand_in(self.final_ext, c.key) or c for c in self.accepted]
         self.ext_net = extend_network(self.net_x, self.acc_small, self.final_eng.params, self.unused)
