@@ -255,6 +255,31 @@ def test_warm_compiles_what_a_fit_calls_first_and_changes_nothing(backend):
     assert got["sse"] == want["sse"] and got["jacobians"] == want["jacobians"] == 3
 
 
+def test_a_jacobian_compiled_without_running_is_not_compiled_again():
+    """``_Engine.jacobian(run=False)`` (the doctor compiles the standard errors' forward-mode Jacobian beside the
+    extended model's polish, issue 18): nothing is returned, and the Jacobian taken afterwards on a clone compiles no
+    program and is the Jacobian of an engine that never compiled ahead, to the bit."""
+    import jax.monitoring
+
+    eng, free = _nominal_engine("jax")
+    cold = eng.clone()
+    assert eng.clone().jacobian(free, run=False) is None
+    compiled: list[str] = []
+
+    def listen(event: str, duration: float, **kwargs) -> None:
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        got = eng.jacobian(free)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == [], f"the Jacobian compiled {len(compiled)} program(s) after run=False"
+    cold.release_programs()
+    np.testing.assert_array_equal(got, cold.jacobian(free))
+
+
 def test_fitted_initial_states_stay_in_the_datas_start_range(tmp_path):
     """A training file's fitted initial state is a Levenberg–Marquardt column bounded by
     :func:`tnn_dsl.fit.ranges.start_range` (the trainer's penalty and the burn-in estimate keep theirs there too).

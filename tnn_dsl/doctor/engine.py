@@ -493,8 +493,8 @@ class _Engine:
         self._sim = jit(B.no_grad(simulate))
         # the training SSE of a trial step needs no held-out file (a third of the case study's rows)
         self._sim_train = jit(B.no_grad(simulate_train)) if n_sc < len(exps) else (lambda p, sim=self._sim: sim(p)[0])
-        self._jac = lambda base, tangents, idx: jac_j(base, tangents, B.asarray(idx))  # noqa: E731
-        self._jac_diff = lambda base, steps, idx: jac_diff_j(base, steps, B.asarray(idx))  # noqa: E731
+        self._jac = _Program(jac_j, B)
+        self._jac_diff = _Program(jac_diff_j, B)
         self._jac_forced = lambda base, a, F, idx: jac_forced_j(base, a, F, B.asarray(idx))  # noqa: E731
         self._forced_diff = B.no_grad(forced_diff)
         self._point = jit(point)
@@ -555,8 +555,10 @@ class _Engine:
         ym, _ = self.simulate(params)
         return self.y - ym  # (N, n_out), NaN where unmeasured
 
-    def jacobian(self, active: list[int], chunk: int = 32, method: str = "forward") -> np.ndarray:
-        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)).
+    def jacobian(self, active: list[int], chunk: int = 32, method: str = "forward", run: bool = True
+                 ) -> np.ndarray | None:
+        """∂ y_model[train rows] / ∂θ_active, shape (n_train, len(active)). ``run=False``: only compile its program
+        (JAX; nothing done on torch), return None: a warm-up that holds no tangents (:meth:`warm`).
 
         ``method="forward"`` (exact): directions go in one batch of forward-mode tangents, their number rounded up
         to a multiple of 4 (a compiled shape per size; the doctor's active sets vary by a few columns within a
@@ -570,7 +572,7 @@ class _Engine:
         if method not in ("forward", "difference"):
             raise ValueError(f"method must be 'forward' or 'difference', got {method!r}")
         if method == "forward" and self.by_differences:
-            return self._central_jacobian(active)
+            return self._central_jacobian(active) if run else None
         base = self._arg(self.params)
         n = len(self.cols)
         out = []
@@ -584,8 +586,13 @@ class _Engine:
                 tan[r, j] = 1.0 if method == "forward" else self._diff_step(j)
             tan_b = self._arg({"t": tan})["t"]
             jac = self._jac if method == "forward" else self._jac_diff
+            if not run:  # every part has the first one's shape: one program
+                jac.compile(base, tan_b, self.train_idx)
+                return None
             jc = np.asarray(self._np(jac(base, tan_b, self.train_idx)))
             out.append(jc[: len(part)].T)
+        if not run:
+            return None
         return np.concatenate(out, axis=1) if out else np.zeros((self.train_idx.size, 0))
 
     @property
@@ -849,8 +856,9 @@ class _Engine:
         return self._sse_of(v), v
 
     def warm(self, active: list[int], threads: int = 1) -> None:
-        """Compile, by calling each once at the current parameters, the programs a :meth:`fit` over ``active`` calls
-        first (the whole simulation, the training one, the Jacobian of ``active``'s size); nothing changes. Fits on
+        """Compile the programs a :meth:`fit` over ``active`` calls first: the whole simulation and the training one
+        by calling each once at the current parameters, the Jacobian of ``active``'s size without running it on JAX
+        (``jacobian(run=False)``: its run held 0.3 s and its tangents' memory for nothing); nothing changes. Fits on
         clones started side by side would otherwise meet in the first one's compilation: the others wait for it
         (JAX compiles a program once), and then all of them take their first Jacobians at once on a heap the
         compilation has just grown (issue 18: the case study's highest resident size came there). With ``threads``
@@ -861,7 +869,7 @@ class _Engine:
             self._train_sse(self.params)
 
         def jacobian() -> None:
-            self.jacobian(active, method=LM_JACOBIAN)
+            self.jacobian(active, method=LM_JACOBIAN, run=self.backend != "jax")
 
         from .threads import two_at_once
 
@@ -996,6 +1004,25 @@ class _Engine:
         current parameters (the proper fit then moves them with the parameters)."""
         if self.init.rule == "estimate":
             self.initial_states([i for i in range(len(self.exps)) if i not in self.val_only])
+
+
+class _Program:
+    """One of the engine's compiled programs whose last argument is row indices (numpy, turned into a backend array
+    on each call). :meth:`compile` compiles it for these arguments without running it (JAX: ``lower().compile()``,
+    which a later call with arguments of the same shapes finds compiled; torch runs eager: nothing to do)."""
+
+    __slots__ = ("fn", "B")
+
+    def __init__(self, fn: Callable, B: Any) -> None:
+        self.fn, self.B = fn, B
+
+    def __call__(self, *args):
+        return self.fn(*args[:-1], self.B.asarray(args[-1]))
+
+    def compile(self, *args) -> None:
+        lower = getattr(self.fn, "lower", None)
+        if lower is not None:
+            lower(*args[:-1], self.B.asarray(args[-1])).compile()
 
 
 def _snapshot(params) -> dict[str, np.ndarray]:

@@ -1319,9 +1319,10 @@ class _Session:
         uncertain = bool(self.accepted and self.final_act and self.ml is None)  # under ml: the likelihood's own
         if uncertain and self.threads > 1 and self.backend == "jax":
             # the standard errors' forward-mode Jacobian (a program of its own, 0.7 s of compiling on the case study)
-            # compiled on a clone beside the polish, whose fits take their Jacobians by differences; the clone's
-            # parameter table is its own, the program shared (issue 18)
-            two_at_once(partial(self.final_eng.clone().jacobian, list(self.final_act)), self.polish, self.threads)
+            # compiled, not run, on a clone beside the polish, whose fits take their Jacobians by differences; the
+            # clone's parameter table is its own, the program shared (issue 18)
+            two_at_once(partial(self.final_eng.clone().jacobian, list(self.final_act), run=False), self.polish,
+                        self.threads)
         else:
             self.polish()
         if uncertain:
