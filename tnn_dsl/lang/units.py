@@ -116,8 +116,6 @@ of the case study 0.88 s before; issue 18)."""
 @lru_cache(maxsize=512)
 def _convert(unit: str) -> tuple[float, float, tuple[tuple[str, float], ...]]:
     """``unit`` -> (scale, offset, dim items): SI value = scale * x + offset."""
-    if unit.strip() in ("", "1", "[1]", "[]"):
-        return 1.0, 0.0, ()
     bare = unit.strip()
     if bare.startswith("[") and bare.endswith("]"):
         bare = bare[1:-1].strip()

@@ -53,6 +53,14 @@ PRIVATE_CACHE_MIN_COMPILE_S = 0.15
 smaller ones (most of a thermal network's, a few ms each) cost more to write than to compile again."""
 
 
+def programs_kept() -> bool:
+    """Whether this process writes the programs it compiles to a persistent compilation cache (the environment's,
+    :func:`cache_every_program`, or :func:`keep_programs_for_this_process`'s): a program compiled ahead on an idle
+    core is then read back, not compiled again, by whatever asks for the same program later, even through another
+    ``jax.jit`` object (the model doctor's MLP check)."""
+    return bool(os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or jax.config.jax_compilation_cache_dir)
+
+
 def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMPILE_S) -> str | None:
     """For a process of ours that lets compiled programs go and needs the same ones again later (``tnnc diagnose``:
     the doctor lets each network's programs go to stay within its memory, then the next round's score test, the
@@ -73,7 +81,7 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
     import shutil
     import tempfile
 
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or jax.config.jax_compilation_cache_dir:
+    if programs_kept():
         return None
     try:  # JAX's own record of whether its cache was set up (at the first compilation); not public
         from jax._src import compilation_cache as _jax_cache
@@ -91,14 +99,6 @@ def keep_programs_for_this_process(min_compile_s: float = PRIVATE_CACHE_MIN_COMP
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
-
-
-def programs_kept() -> bool:
-    """Whether this process writes the programs it compiles to a persistent compilation cache (the environment's,
-    :func:`cache_every_program`, or :func:`keep_programs_for_this_process`'s): a program compiled ahead on an idle
-    core is then read back, not compiled again, by whatever asks for the same program later, even through another
-    ``jax.jit`` object (the model doctor's MLP check)."""
-    return bool(os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or jax.config.jax_compilation_cache_dir)
 
 
 from . import NumpyLike  # noqa: E402
