@@ -221,11 +221,6 @@ def test_a_wrong_constant_far_from_its_written_value_is_named_not_a_dependence()
 
 
 @pytest.mark.slow  # 35–135 s; the look-ahead's fast variant: test_fast_planted_effect_is_found[tclab/quadratic_load]
-@pytest.mark.xfail(strict=True, reason=(
-    "on commit 3dd3ae8 (the suite grid, 2026-11-26) round 1 still accepts R_pc_hx1 depending on T(pc): the baseline "
-    "moved pe.seebeck −82 % and pe.resistance to its prior edge to absorb the load, the line in I ranks seventh "
-    "(r² 0.90 against 0.96, outside the tie band; 0.0923 → 0.0816 K for R_pc_hx1), and fitted in round 2 it "
-    "diverges; with the other seed and at 0.05 K the load at hx2 in I and I² is found"))
 def test_a_load_growing_with_the_square_of_the_current_is_found_on_the_case_study():
     """``1 W/A²·I²`` at hx2: the line in I alone does not pay (0.134 K against 0.093 K before), the resistances
     depending on I that the score test ranks first diverge; the look-ahead fits the line with its square and accepts
@@ -238,6 +233,11 @@ def test_a_load_growing_with_the_square_of_the_current_is_found_on_the_case_stud
 
 
 @pytest.mark.slow  # 60 s; the rival rule's fast variant: test_doctor_selection.py (the guard it feeds)
+@pytest.mark.xfail(strict=True, reason=(
+    "a known miss since 2026-12-06 (BENCHMARKS.md, the hidden-effect suite's `casestudy/sensor_offset`): the doctor "
+    "accepts a heat load at hs depending on T(base), Q[hs] ≈ 28.7 − 2.44·(T(base) − 298) W (k = 2), which fits "
+    "better than the offset (k = 1) the rival rule weighs against constant loads; failed in the slow suite of "
+    "2026-12-07 (the AMD host)"))
 def test_a_sensor_offset_beats_the_constant_heat_loads_that_stand_in_for_it():
     """A 0.3 K offset on the case study's only sensor under 0.05 K noise: constant heat loads at hs, ph and hx2 fit
     as well; the offset, ranked 31st by the score test, is fitted as a more physical rival before a heat load is
