@@ -181,3 +181,45 @@ def test_rivals_alike_in_size_and_placement_are_told_apart_on_all_the_rows():
     for f in (hp1, hp2):
         del f["e_all"], f["eng"]
     assert _choose([hp2, hp1], (0.0236, 0.08), base) is hp2
+
+
+class _TrainRows:
+    """An engine's training rows: the first ``n`` of a fit's residual over every scored row (``e_all``)."""
+
+    def __init__(self, n: int) -> None:
+        self.train_idx = np.arange(n)
+
+
+def _trained(kind: str, target: str, e_val: np.ndarray, e_train: np.ndarray, k: int) -> dict:
+    f = _fit(kind, target, e_val)
+    f["cand"] = Candidate(kind, target, [], [Column(f"{target}.x", i) for i in range(k)])
+    f["e_all"], f["eng"] = np.concatenate([e_train, e_val]), _TrainRows(e_train.size)
+    return f
+
+
+def test_a_smaller_rival_that_fits_the_training_rows_as_well_is_within_noise():
+    """``casestudy/sensor_offset`` at 0.05 K noise: every candidate reaches the noise on the training rows (the
+    planted offset 4.4015 K², a heat load at hs depending on T(base) with k = 2 4.39995 K²), and the load leads on
+    the held-out rows by 20 %, significantly. Its extra parameter bought nothing on the rows it was fitted to, so the
+    offset (k = 1, more physical) is within noise and wins; where the load's training SSE is clearly lower (5 %
+    below, with 1800 rows), or the two have as many parameters, the held-out rows decide as before."""
+    from tnn_dsl.doctor.selection import _ties_on_training
+
+    heat, offset = _pair(1.2)
+    assert held_out_test(offset, heat, 0)[1] < 0.05
+    noise = 0.05 * np.random.default_rng(2).standard_normal(1800)
+    tied = np.sqrt(4.4015 / 4.39995) * noise
+    load = _trained("heat_load", "Q[hs]", heat, noise, 2)
+    off = _trained("sensor_offset", "T_out", offset, tied, 1)
+    assert _ties_on_training(off, load) and not _ties_on_training(load, off)
+    pick = _choose([load, off], (0.15, 0.3), np.full_like(heat, 0.15))
+    assert pick is off and load["reason"] == "within noise of the chosen one, which is more physical or smaller"
+
+    worse = _trained("sensor_offset", "T_out", offset, np.sqrt(1.05) * noise, 1)
+    assert not _ties_on_training(worse, load)
+    assert _choose([load, worse], (0.15, 0.3), np.full_like(heat, 0.15)) is load
+    same_k = _trained("sensor_offset", "T_out", offset, tied, 2)
+    assert not _ties_on_training(same_k, load)
+    assert _choose([load, same_k], (0.15, 0.3), np.full_like(heat, 0.15)) is load
+    untrained = _fit("sensor_offset", "T_out", offset)  # no training residual at hand: the held-out rows decide
+    assert _choose([load, untrained], (0.15, 0.3), np.full_like(heat, 0.15)) is load
