@@ -84,6 +84,19 @@ def refusal(f: dict, mae0: float) -> str | None:
     return None
 
 
+def _training_sse(f: dict) -> tuple[float, int] | None:
+    """A fitted candidate's training SSE (K²; inf where the training simulation was not finite, as the engine's SSE)
+    and its number of residuals, from its residual over every scored row; None where that is not at hand."""
+    e, eng = f.get("e_all"), f.get("eng")
+    idx = getattr(eng, "train_idx", None)
+    if e is None or idx is None:
+        return None
+    tr = np.asarray(e).ravel()[idx]
+    if not np.all(np.isfinite(tr)):
+        return math.inf, int(tr.size)
+    return float(tr @ tr), int(tr.size)
+
+
 def _all_sse(f: dict) -> float:
     """Squared error (K²) of a fitted candidate over every scored row, training and held-out together: what
     decides between rivals within noise of each other that have the same parameter count and placement. The
@@ -91,32 +104,13 @@ def _all_sse(f: dict) -> float:
     (0.01 K, seed 0), R_hp1(u1) (the truth) at 0.180 K² on training and 0.235 on held-out rows against R_hp2(u1)
     at 0.261 and 0.183. With the same k the in-sample part favours neither; the held-out SSE alone when the
     training residual is not at hand, inf when the training simulation was not finite (as the engine's SSE)."""
-    e, eng = f.get("e_all"), f.get("eng")
-    idx = getattr(eng, "train_idx", None)
-    if e is None or idx is None:
-        return float(f["val_sse"])
-    tr = np.asarray(e).ravel()[idx]
-    if not np.all(np.isfinite(tr)):
-        return math.inf
-    return float(f["val_sse"]) + float(tr @ tr)
+    tr = _training_sse(f)
+    return float(f["val_sse"]) + (0.0 if tr is None else tr[0])
 
 
 TRAIN_TIE_P = 0.05
 """A rival with fewer parameters than the best fit is within noise of it when the best's lower training SSE is not
 significant at this level (:func:`_ties_on_training`)."""
-
-
-def _training_sse(f: dict) -> tuple[float, int] | None:
-    """A fitted candidate's training SSE (K²) and its number of residuals, from its residual over every scored row
-    (None where it is not at hand or not finite)."""
-    e, eng = f.get("e_all"), f.get("eng")
-    idx = getattr(eng, "train_idx", None)
-    if e is None or idx is None:
-        return None
-    tr = np.asarray(e).ravel()[idx]
-    if not tr.size or not np.all(np.isfinite(tr)):
-        return None
-    return float(tr @ tr), int(tr.size)
 
 
 def _ties_on_training(f: dict, best: dict) -> bool:
@@ -133,7 +127,7 @@ def _ties_on_training(f: dict, best: dict) -> bool:
     if dk <= 0:
         return False
     a, b = _training_sse(f), _training_sse(best)
-    if a is None or b is None or a[1] != b[1] or not b[0] > 0:
+    if a is None or b is None or a[1] != b[1] or not a[1] or not 0 < b[0] < math.inf:
         return False
     if a[0] <= b[0]:
         return True
@@ -144,9 +138,9 @@ def _choose(fits: list[dict], current_val, e_base_val) -> dict | None:
     """Pick the candidate that pays on held-out data: a Diebold–Mariano test with a charge for its k
     parameters (p < ``P_ACCEPT``, or the held-out MAE divided by ``CONFIRM_RATIO``) and a held-out MAE gain of at
     least ``MIN_GAIN``. Among those within noise
-    of the best (within ``MIN_GAIN`` of its held-out MAE or not significantly worse, and never ``CLOSE_RATIO``
-    times it), a candidate extending a user's ``learn`` clause as a whole wins (:func:`_whole_learned`), then fewer
-    parameters,
+    of the best (within ``MIN_GAIN`` of its held-out MAE, or not significantly worse, or with fewer parameters as
+    good on the training rows, :func:`_ties_on_training`; and never ``CLOSE_RATIO`` times it), a candidate
+    extending a user's ``learn`` clause as a whole wins (:func:`_whole_learned`), then fewer parameters,
     then the more physical placement (an exact sub-model explains the data as well as the larger candidate
     containing it: the larger one only adds a parameter to compensate), then the smaller squared error over the
     training and held-out rows together (:func:`_all_sse`).
