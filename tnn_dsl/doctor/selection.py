@@ -118,8 +118,8 @@ def _ties_on_training(f: dict, best: dict) -> bool:
     lower by a likelihood-ratio test, ``n·ln(SSE_f / SSE_best)`` against χ² with the difference in parameters as its
     degrees of freedom, at :data:`TRAIN_TIE_P` (every residual counted as independent: the test is lenient towards
     ``best``, and calls a tie only where the extra parameters bought almost nothing on the rows they were fitted
-    to). Then ``best``'s lead on the held-out rows is not the better structure's but how the fitted constants carry
-    over: suite case ``casestudy/sensor_offset`` (noise 0.05 K), the planted 0.3 K offset at a training SSE of
+    to). Then ``best``'s lead on the held-out rows is read as how the fitted constants carry over, not as a better
+    structure: suite case ``casestudy/sensor_offset`` (noise 0.05 K), the planted 0.3 K offset at a training SSE of
     4.4015 K² against 4.39995 for a heat load at hs depending on T(base) (k = 2), 0.0521 against 0.0432 K held out."""
     from scipy import stats
 
