@@ -107,6 +107,9 @@ def pytest_configure(config):
     # set before torch is imported (inductor reads it when it first needs its cache); the workers inherit the
     # controlling process's value; a directory the user named is left to the user
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", _inductor_cache_dir(config))
+    # no helper process compiling beside a torch training (tnn_dsl.fit.compile_ahead): xdist already runs one worker
+    # per core, and the tests of the helpers start theirs themselves
+    os.environ.setdefault("TNN_COMPILE_AHEAD", "0")
     if os.environ.get(NO_SHARED_JAX_CACHE_ENV) != "1":
         import jax
 

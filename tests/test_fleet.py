@@ -205,7 +205,8 @@ def test_the_units_share_the_jax_cache_the_environment_names(tmp_path, monkeypat
 
 def test_ray_workers_keep_the_users_xla_flags_and_run_one_thread_each(tmp_path, monkeypatch):
     """A local Ray's workers start with the user's ``XLA_FLAGS`` (Ray's ``env_vars`` replace the variable, so they
-    were dropped before), then the fleet's one-thread flags; one thread per numerical library; JAX's cache."""
+    were dropped before), then the fleet's one-thread flags; one thread per numerical library; no compile helpers;
+    JAX's cache."""
     from tnn_dsl.fleet.engine import WORKER_XLA_FLAGS, _cache_env, worker_env
 
     cache = _cache_env(tmp_path / "out")
@@ -213,6 +214,7 @@ def test_ray_workers_keep_the_users_xla_flags_and_run_one_thread_each(tmp_path, 
     env = worker_env(cache)
     assert env["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=false " + WORKER_XLA_FLAGS
     assert env["OMP_NUM_THREADS"] == env["MKL_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == "1"
+    assert env["TNN_COMPILE_AHEAD"] == "0"  # no helper process beside a worker's training: the workers take the cores
     assert env["JAX_COMPILATION_CACHE_DIR"] == cache["JAX_COMPILATION_CACHE_DIR"]
     monkeypatch.delenv("XLA_FLAGS")
     env = worker_env({})

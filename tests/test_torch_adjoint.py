@@ -139,6 +139,32 @@ def test_adjoint_matches_eager_and_jax(batch):
     _assert_close(_jax_grads(mj, p_np, T0b, Ub), got_b)
 
 
+def test_a_helper_shares_the_compilation_through_hooks_around_the_first_reverse_call(monkeypatch):
+    """:data:`~tnn_dsl.compiler.torch_adjoint.SHARED` (the helper that compiles a training's reverse scan beside it,
+    ``tnn_dsl.fit.compile_ahead.CompileBeside``): ``before_backward`` and ``after_backward`` are called around the
+    call that compiles a reverse scan and not around the later calls of that program (another window length), and
+    the helper's uncompiled forward gives the compiled forward's states and, through the same reverse program, its
+    gradients."""
+    from tnn_dsl.compiler import torch_adjoint as ta
+
+    calls: list[str] = []
+    monkeypatch.setattr(ta.SHARED, "before_backward", lambda: calls.append("before"))
+    monkeypatch.setattr(ta.SHARED, "after_backward", lambda: calls.append("after"))
+    net = tnn_dsl.loads(CHAIN, "chain.thn")
+    mc = tnn_dsl.compile(net, "torch", torch_compile=True)
+    p_np = nets.random_params(tnn_dsl.compile(net, "jax"), 2)
+    T0, U = _inputs(mc, 9, 3)
+    compiled = _torch_grads(mc, p_np, T0, U)
+    assert _adjoint_used(mc) and calls == ["before", "after"]
+    T0b, Ub = _inputs(mc, 5, 3, seed=1)
+    _torch_grads(mc, p_np, T0b, Ub)
+    assert calls == ["before", "after"]  # the program compiled: no hook
+    monkeypatch.setattr(ta.SHARED, "eager_forward", True)
+    eager = _torch_grads(mc, p_np, T0, U)
+    assert calls == ["before", "after"]
+    _assert_close(compiled, eager, atol=1e-9, rtol=1e-9)
+
+
 def _n_tensors(spec) -> int:
     """The tensors :func:`flatten`'s key describes."""
     if type(spec) is not tuple or not spec:

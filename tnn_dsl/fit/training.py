@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -93,7 +94,8 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                 f"epochs{how}; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
-    tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log, start)
+    with _compile_beside(net, exps, vals, cfg, model, log):
+        tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log, start)
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
@@ -254,6 +256,20 @@ def _fitted(tr: _Trainer, model: Any, final: dict[str, np.ndarray]) -> dict[str,
     """Each free physical parameter's fitted and initial value (SI), for ``meta.json``."""
     return {sl.name: {"value": final[sl.name].tolist(), "initial": tr.params0[sl.name].tolist()}
             for sl in tr.slots if "@" not in sl.name and model.param_specs[sl.name].kind == "physical"}
+
+
+def _compile_beside(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, log: Any):
+    """A helper process compiling the training's reverse scan while the training compiles its forward one
+    (:class:`~.compile_ahead.CompileBeside`), where :func:`~.compile_ahead.beside_wanted` says it pays for this
+    model (compiled on torch); else nothing."""
+    from .compile_ahead import CompileBeside, beside_wanted
+
+    if not beside_wanted(cfg.backend, getattr(model, "torch_compile", False)):
+        return contextlib.nullcontext()
+    if log is not None:
+        log("torch: a helper process compiles the gradient's reverse scan beside this training "
+            "(TNN_COMPILE_AHEAD=0 turns it off)")
+    return CompileBeside(net, exps, vals, cfg.to_dict())
 
 
 def _fit(net: Network, exps: list, vals: list, cfg: TrainConfig, model: Any, callback: Any, log: Any,

@@ -271,12 +271,14 @@ WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_thre
 
 
 def worker_env(cache_env: dict[str, str]) -> dict[str, str]:
-    """The environment variables a local Ray's workers start with: one thread per numerical library, JAX's cache
-    (``cache_env``, :func:`_cache_env`), and ``XLA_FLAGS`` holding the user's own flags (this process's, which a
-    worker would otherwise not see: Ray's ``env_vars`` replace a variable) followed by :data:`WORKER_XLA_FLAGS`."""
+    """The environment variables a local Ray's workers start with: one thread per numerical library, no helper
+    processes compiling beside a training (``TNN_COMPILE_AHEAD=0``, :mod:`tnn_dsl.fit.compile_ahead`: the workers
+    already take the cores), JAX's cache (``cache_env``, :func:`_cache_env`), and ``XLA_FLAGS`` holding the user's
+    own flags (this process's, which a worker would otherwise not see: Ray's ``env_vars`` replace a variable)
+    followed by :data:`WORKER_XLA_FLAGS`."""
     xla = " ".join(f for f in (os.environ.get("XLA_FLAGS", "").strip(), WORKER_XLA_FLAGS) if f)
-    return {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "XLA_FLAGS": xla,
-            **cache_env}
+    return {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "TNN_COMPILE_AHEAD": "0",
+            "XLA_FLAGS": xla, **cache_env}
 
 
 def _use_cache_here(env: dict[str, str]) -> None:
