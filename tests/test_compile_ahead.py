@@ -225,6 +225,7 @@ def test_the_training_waits_for_a_helper_that_has_begun_until_it_is_done(monkeyp
     t = time.monotonic()
     beside.wait()
     assert 0.5 <= time.monotonic() - t < 20 and beside.proc is None and beside.waited_s > 0.5
+    assert beside.outcome.startswith("the reverse scan compiled by the helper, after waiting")
     beside.wait()  # done: nothing left to wait for
     beside.close()
 
@@ -237,7 +238,7 @@ def test_a_helper_that_has_not_begun_is_stopped_and_not_waited_for(monkeypatch):
     t = time.monotonic()
     beside.wait()
     assert time.monotonic() - t < 15 and beside.proc is None and proc.returncode is not None
-    assert beside.waited_s == 0.0
+    assert beside.waited_s == 0.0 and beside.outcome.startswith("the helper had not begun")
 
 
 def test_a_stuck_helper_is_waited_for_at_most_the_bound_then_stopped(monkeypatch):
@@ -250,6 +251,14 @@ def test_a_stuck_helper_is_waited_for_at_most_the_bound_then_stopped(monkeypatch
     t = time.monotonic()
     beside.wait()
     assert time.monotonic() - t < 15 and proc.returncode is not None and beside.proc is None
+    assert beside.outcome.startswith("the helper still compiling after waiting")
+
+
+def test_a_helper_that_fails_after_beginning_is_not_taken_for_a_compiled_program(monkeypatch):
+    beside = _beside(monkeypatch, f"import sys; sys.stdin.read(); print({CA.BEGUN!r}, flush=True); sys.exit(3)")
+    _begun(beside)
+    beside.wait()
+    assert beside.outcome.startswith("the helper ended with status 3")
 
 
 def test_the_hook_is_set_inside_the_context_only_and_the_helper_stopped_on_exit(monkeypatch):

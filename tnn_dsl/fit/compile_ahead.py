@@ -184,12 +184,14 @@ class CompileBeside:
 
     ``wait()`` (the hook): returns at once when no helper runs or it has not begun compiling (it is stopped then:
     the training compiles the graph itself); else when the helper has exited (its program in the cache), or after
-    :data:`BESIDE_WAIT_S`. ``waited_s`` sums the seconds spent waiting."""
+    :data:`BESIDE_WAIT_S`. ``waited_s`` sums the seconds spent waiting; ``outcome`` says what happened (None before
+    the training asked)."""
 
     def __init__(self, network: "Network", train: Sequence["Experiment"], val: Sequence["Experiment"] | None,
                  options: dict[str, Any]):
         self.proc: subprocess.Popen | None = None
         self.waited_s = 0.0
+        self.outcome: str | None = None
         self._begun = threading.Event()
         self._hooked = False
         spec = {"parent": os.getpid(),
@@ -219,14 +221,20 @@ class CompileBeside:
             return
         if proc.poll() is None and not self._begun.is_set():
             self.close()  # behind the training: compiling beside it now would only take the second core
+            self.outcome = ("the helper had not begun compiling the reverse scan when the training needed it: "
+                            "compiled here")
             return
         t = time.monotonic()
         try:
-            proc.wait(timeout=BESIDE_WAIT_S)
+            rc: int | None = proc.wait(timeout=BESIDE_WAIT_S)
         except subprocess.TimeoutExpired:
-            pass
+            rc = None
         self.waited_s += time.monotonic() - t
         self.close()
+        waited = f"after waiting {self.waited_s:.1f} s"
+        self.outcome = (f"the reverse scan compiled by the helper, {waited}" if rc == 0 and self._begun.is_set()
+                        else f"the helper ended with status {rc} {waited}: compiled here" if rc is not None
+                        else f"the helper still compiling {waited}: stopped, compiled here")
 
     def close(self) -> None:
         """Stop the helper if it still runs."""

@@ -94,8 +94,10 @@ def train(network: Network | str | os.PathLike, data: Any, val: Any = None, *,
                 f"epochs{how}; torch_compile=False or TNN_TORCH_COMPILE=0 to run eager)")
     model = compile_network(net, backend=cfg.backend, dtype=cfg.dtype, torch_compile=cfg.torch_compile)
     t_start = time.perf_counter()
-    with _compile_beside(net, exps, vals, cfg, model, log):
+    with _compile_beside(net, exps, vals, cfg, model, log) as beside:
         tr, z, strategy, compile_s = _best_route(net, exps, vals, cfg, model, callback, log, start)
+    if log is not None and getattr(beside, "outcome", None):
+        log(f"torch: {beside.outcome}")
     final = tr.numpy_params(z)
     initial_states = tr.fitted_initial_states(z)
     per_experiment = tr.experiment_values(z)
