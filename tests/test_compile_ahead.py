@@ -278,10 +278,17 @@ def test_the_helper_gets_the_trainings_options_for_one_compiled_epoch():
                     "backend": "torch", "window": 600.0}
 
 
-def test_beside_only_for_compiled_torch_and_not_beside_a_study_compiling_ahead(monkeypatch):
+def test_beside_only_for_compiled_torch_on_the_main_thread_and_not_beside_a_study_compiling_ahead(monkeypatch):
     monkeypatch.setattr(CA, "wanted", lambda backend, n: backend == "torch" and n > 0)
     assert CA.beside_wanted("torch", True)
     assert not CA.beside_wanted("torch", False) and not CA.beside_wanted("jax", True)
+    import threading
+
+    on_thread: list[bool] = []
+    side = threading.Thread(target=lambda: on_thread.append(CA.beside_wanted("torch", True)))
+    side.start()
+    side.join()
+    assert on_thread == [False]  # the hook is the process's: only a training on the main thread sets it
     monkeypatch.setattr(CA.CompileAhead, "open_count", 1)
     assert not CA.beside_wanted("torch", True)
 

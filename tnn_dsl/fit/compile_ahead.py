@@ -117,9 +117,12 @@ def _available_bytes() -> int | None:
 
 def beside_wanted(backend: str, torch_compile: bool | None) -> bool:
     """Whether :class:`CompileBeside` can pay for a training: its rollouts compiled on torch (``torch_compile``
-    true), :func:`wanted`'s conditions, and no :class:`CompileAhead` open in this process (a study whose later
-    trainings are compiled ahead: their graphs are in the cache, and a third process would slow the second)."""
-    return bool(torch_compile) and CompileAhead.open_count == 0 and wanted(backend, 1)
+    true), :func:`wanted`'s conditions, no :class:`CompileAhead` open in this process (a study whose later
+    trainings are compiled ahead: their graphs are in the cache, and a third process would slow the second), and the
+    training run on the main thread (the hook it sets is the process's: a training on another thread — the model
+    doctor's MLP check beside its other work — may share the process with another)."""
+    main_thread = threading.current_thread() is threading.main_thread()
+    return bool(torch_compile) and CompileAhead.open_count == 0 and main_thread and wanted(backend, 1)
 
 
 class CompileAhead:
