@@ -197,8 +197,8 @@ class CompileBeside:
         self.outcome: str | None = None
         self._begun = threading.Event()
         self._hooked = False
-        spec = {"parent": os.getpid(),
-                "beside": {"network": network.to_json(indent=None), "train": [encode_experiment(e) for e in train],
+        # (no parent pid as CompileAhead's jobs have: a helper whose training has gone fails writing its line)
+        spec = {"beside": {"network": network.to_json(indent=None), "train": [encode_experiment(e) for e in train],
                            "val": [encode_experiment(e) for e in val or ()], "options": _beside_options(options)}}
         env = {**os.environ, "TORCHINDUCTOR_COMPILE_THREADS": "1", ENV: "0"}
         try:
